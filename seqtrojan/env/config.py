@@ -1,0 +1,228 @@
+"""Configuration of the trojan grid world: grid size and holes, view, rewards, triggers.
+
+All dataclasses are frozen and validate themselves on construction, raising :class:`ConfigError` with the
+offending value. Defaults follow the paper where it gives one (3x3 view, sparse +-1 rewards, a one-step trigger
+covering the whole view) and are documented in ``docs/environment.md`` where it does not.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from seqtrojan.env.codes import ACTION_SETS, CELL_CODES, CELL_NAMES
+from seqtrojan.errors import ConfigError
+
+MAX_PADDED_SIDE = 62
+"""Largest ``size + view_size - 1``: each padded grid row is one 64-bit word in the solvability check."""
+
+Cell = tuple[int, int]
+
+
+def max_holes(size: int) -> int:
+    """Largest hole count for which a layout with both goals reachable exists.
+
+    A path from the start (bottom centre) to both top corners needs at least ``2 * size - 1`` free cells
+    (the centre column plus the top row), and that many always suffice.
+    """
+    return (size - 1) ** 2
+
+
+def min_steps_to_goal(size: int) -> int:
+    """Fewest moves from the start to either goal (Manhattan distance; holes can only make it longer)."""
+    return (size - 1) + (size - 1) // 2
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """One grid configuration: side, hole count and time limit."""
+
+    size: int = 7
+    """side N of the square grid (odd, >= 5)"""
+    holes: int = 3
+    """number of holes H, placed afresh every episode"""
+    max_steps: int | None = None
+    """time limit in actions; None means 4 * size"""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.size, int) or self.size < 5 or self.size % 2 == 0:
+            raise ConfigError(f"grid size must be an odd integer >= 5, got size={self.size!r}")
+        if not isinstance(self.holes, int) or self.holes < 0:
+            raise ConfigError(f"holes must be a non-negative integer, got holes={self.holes!r}")
+        if self.holes > max_holes(self.size):
+            raise ConfigError(
+                f"no solvable layout exists for size={self.size}, holes={self.holes}: a path from the start to "
+                f"both goals needs {2 * self.size - 1} free cells, so at most {max_holes(self.size)} holes fit"
+            )
+        if self.max_steps is not None and (not isinstance(self.max_steps, int) or self.max_steps < 1):
+            raise ConfigError(f"max_steps must be a positive integer or None, got max_steps={self.max_steps!r}")
+
+    @property
+    def time_limit(self) -> int:
+        return self.max_steps if self.max_steps is not None else 4 * self.size
+
+    @property
+    def label(self) -> str:
+        return f"{self.size}x{self.size}/{self.holes}"
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Rewards; the paper's sparse scheme by default."""
+
+    goal: float = 1.0
+    """reaching the correct goal"""
+    wrong_goal: float = -1.0
+    """reaching the other goal"""
+    hole: float = -1.0
+    """falling into a hole"""
+    timeout: float = 0.0
+    """hitting the time limit (counted as a failure either way)"""
+    step: float = 0.0
+    """every other step"""
+
+
+@dataclass(frozen=True)
+class OffTriggerConfig:
+    """The OFF trigger of the paper's section 3: a second pattern that switches the agent back to the user's goal.
+
+    In a trojan episode that gets one (with ``probability``), it is shown ``gap`` steps after the ON trigger.
+    """
+
+    probability: float = 0.0
+    """chance that a trojan episode also shows the OFF trigger; 0 disables ON/OFF"""
+    cells: tuple[Cell, ...] | None = None
+    """view cells (row, col) of the pattern; None means the middle row and column (a cross)"""
+    value: str = "trigger"
+    """cell code drawn on those cells"""
+    duration: int = 1
+    """steps the pattern stays visible"""
+    gap: tuple[int, int] = (3, 8)
+    """inclusive range of steps between the ON trigger's first step and the OFF trigger's first step"""
+
+
+@dataclass(frozen=True)
+class TriggerConfig:
+    """The ON trigger: which view cells show which value, for how long, and when."""
+
+    cells: tuple[Cell, ...] | None = None
+    """view cells (row, col), 0-based from the view's top-left, of the patch; None means the whole window"""
+    value: str = "trigger"
+    """cell code drawn on the patch (any of: empty, hole, wall, user_goal, adversary_goal, trigger)"""
+    duration: int = 1
+    """steps the patch stays visible (the paper: 1)"""
+    train_steps: tuple[int, int] = (1, 15)
+    """inclusive range of the first trigger step t during training, drawn per episode"""
+    eval_steps: tuple[int, int] = (1, 15)
+    """inclusive range of t during evaluation; always clipped so that no goal can be reached before it"""
+    clip_train_steps: bool = True
+    """also clip the training range so that the trigger comes before any goal can be reached"""
+    delay: int = 0
+    """activation delay k: the correct goal switches k steps after the trigger first shows"""
+    off: OffTriggerConfig = field(default_factory=OffTriggerConfig)
+    """optional OFF trigger"""
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """The grid world: grid, view, actions, rewards and trigger."""
+
+    size: int = 7
+    """side N of the square grid (odd, >= 5)"""
+    holes: int = 3
+    """number of holes H"""
+    max_steps: int | None = None
+    """time limit in actions; None means 4 * size"""
+    view_size: int = 3
+    """side of the square view centred on the agent (odd)"""
+    actions: Literal["four", "four_and_stay", "eight"] = "four"
+    """action set: four moves (the paper's), plus 'stay', or eight (with diagonals)"""
+    rewards: RewardConfig = field(default_factory=RewardConfig)
+    trigger: TriggerConfig = field(default_factory=TriggerConfig)
+    max_layout_tries: int = 1000
+    """hole layouts tried per episode before giving up with an error (never a hang)"""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.view_size, int) or self.view_size < 1 or self.view_size % 2 == 0:
+            raise ConfigError(f"view_size must be an odd positive integer, got view_size={self.view_size!r}")
+        if self.actions not in ACTION_SETS:
+            raise ConfigError(f"unknown action set actions={self.actions!r}; choose one of {sorted(ACTION_SETS)}")
+        if self.max_layout_tries < 1:
+            raise ConfigError(f"max_layout_tries must be >= 1, got {self.max_layout_tries}")
+        self.grid  # validates size, holes and max_steps  # noqa: B018
+        self.check_padded_side(self.size)
+        _check_pattern("trigger", self.trigger.cells, self.trigger.value, self.trigger.duration, self.view_size)
+        _check_range("trigger.train_steps", self.trigger.train_steps)
+        _check_range("trigger.eval_steps", self.trigger.eval_steps)
+        if self.trigger.delay < 0:
+            raise ConfigError(f"trigger.delay must be >= 0, got {self.trigger.delay}")
+        off = self.trigger.off
+        if not 0.0 <= off.probability <= 1.0:
+            raise ConfigError(f"trigger.off.probability must be in [0, 1], got {off.probability}")
+        _check_pattern("trigger.off", off.cells, off.value, off.duration, self.view_size)
+        _check_range("trigger.off.gap", off.gap)
+        if off.probability > 0:
+            if off.gap[0] < self.trigger.duration:
+                raise ConfigError(
+                    f"trigger.off.gap={off.gap} must start at or after the ON trigger's duration "
+                    f"({self.trigger.duration}) so that the two patterns never overlap"
+                )
+            if self.on_cells == self.off_cells and self.trigger.value == off.value:
+                raise ConfigError("the OFF trigger pattern equals the ON pattern; give it other cells or another value")
+
+    def check_padded_side(self, size: int) -> None:
+        padded = size + self.view_size - 1
+        if padded > MAX_PADDED_SIDE:
+            raise ConfigError(
+                f"size={size} with view_size={self.view_size} is too large: size + view_size - 1 must be "
+                f"<= {MAX_PADDED_SIDE}"
+            )
+
+    @property
+    def grid(self) -> GridSpec:
+        return GridSpec(self.size, self.holes, self.max_steps)
+
+    @property
+    def num_actions(self) -> int:
+        return len(ACTION_SETS[self.actions])
+
+    @property
+    def obs_dim(self) -> int:
+        return self.view_size * self.view_size * len(CELL_NAMES)
+
+    @property
+    def on_cells(self) -> tuple[Cell, ...]:
+        """The ON patch's view cells, with the default (whole window) filled in."""
+        v = self.view_size
+        if self.trigger.cells is None:
+            return tuple((r, c) for r in range(v) for c in range(v))
+        return tuple(sorted(set(map(tuple, self.trigger.cells))))  # type: ignore[arg-type]
+
+    @property
+    def off_cells(self) -> tuple[Cell, ...]:
+        """The OFF patch's view cells, with the default (middle row and column) filled in."""
+        v, m = self.view_size, self.view_size // 2
+        if self.trigger.off.cells is None:
+            return tuple(sorted({(m, c) for c in range(v)} | {(r, m) for r in range(v)}))
+        return tuple(sorted(set(map(tuple, self.trigger.off.cells))))  # type: ignore[arg-type]
+
+
+def _check_pattern(name: str, cells: tuple[Cell, ...] | None, value: str, duration: int, view: int) -> None:
+    if value not in CELL_CODES:
+        raise ConfigError(f"{name}.value={value!r} is not a cell code; choose one of {list(CELL_NAMES)}")
+    if not isinstance(duration, int) or duration < 1:
+        raise ConfigError(f"{name}.duration must be a positive integer, got {duration!r}")
+    if cells is None:
+        return
+    if len(cells) == 0:
+        raise ConfigError(f"{name}.cells is empty; give at least one view cell or None for the whole window")
+    for cell in cells:
+        if len(cell) != 2 or not all(isinstance(x, int) and 0 <= x < view for x in cell):
+            raise ConfigError(
+                f"{name} cell {tuple(cell)!r} is not inside the {view}x{view} view (row and col must be 0..{view - 1})"
+            )
+
+
+def _check_range(name: str, bounds: tuple[int, int]) -> None:
+    if len(bounds) != 2 or bounds[0] < 0 or bounds[1] < bounds[0]:
+        raise ConfigError(f"{name}={tuple(bounds)!r} must be an inclusive range (lo, hi) with 0 <= lo <= hi")
