@@ -1,0 +1,57 @@
+"""Run exactly one episode per env slot and collect outcomes (no autoreset, so no bias toward short episodes)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from seqtrojan.env.codes import OUTCOME_NAMES
+from seqtrojan.env.core import TrojanGridCore
+from seqtrojan.stats import wilson_interval
+
+Policy = Callable[[torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class EpisodeBatch:
+    """Outcomes of one episode per env: all tensors (B,)."""
+
+    outcome: torch.Tensor  # int64 outcome code
+    success: torch.Tensor  # bool
+    length: torch.Tensor  # int64
+    trojan: torch.Tensor  # bool
+
+    def rate(self, name: str) -> float:
+        return float((self.outcome == OUTCOME_NAMES.index(name)).float().mean())
+
+    @property
+    def success_rate(self) -> float:
+        return float(self.success.float().mean())
+
+    def success_interval(self, confidence: float = 0.95) -> tuple[float, float]:
+        return wilson_interval(int(self.success.sum()), int(self.success.numel()), confidence)
+
+
+def run_episodes(core: TrojanGridCore, policy: Policy, seed: int | None = None) -> EpisodeBatch:
+    """Reset every env (with ``seed`` if given), step until each has finished one episode, return outcomes."""
+    obs = core.reset(seed=seed)
+    b = core.num_envs
+    finished = torch.zeros(b, dtype=torch.bool, device=core.device)
+    outcome = torch.zeros(b, dtype=torch.int64, device=core.device)
+    success = torch.zeros(b, dtype=torch.bool, device=core.device)
+    length = torch.zeros(b, dtype=torch.int64, device=core.device)
+    trojan = core.trojan.clone()
+    limit = max(g.time_limit for g in core.grids)
+    for _ in range(limit):
+        result = core.step(policy(obs), autoreset=False, check=False)
+        new = result.done & ~finished
+        outcome = torch.where(new, result.outcome, outcome)
+        success = torch.where(new, result.success, success)
+        length = torch.where(new, result.length, length)
+        finished |= result.done
+        obs = result.obs
+        if bool(finished.all()):
+            break
+    return EpisodeBatch(outcome.cpu(), success.cpu(), length.cpu(), trojan.cpu())
