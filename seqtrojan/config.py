@@ -14,10 +14,148 @@ from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_
 
 import yaml
 
-from seqtrojan.env.config import EnvConfig
+from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.errors import ConfigError
 
 T = TypeVar("T")
+
+
+@dataclasses.dataclass(frozen=True)
+class AgentConfig:
+    """The recurrent actor-critic: stacked LSTM layers, then a policy head and a value head."""
+
+    lstm_sizes: tuple[int, ...] = (64, 32)
+    """widths of the stacked LSTM layers (the paper: 64 then 32)"""
+    forget_bias: float = 1.0
+    """initial forget-gate bias (1 helps gradients reach far back at the start of training)"""
+
+    def __post_init__(self) -> None:
+        if not self.lstm_sizes or any((not isinstance(w, int)) or w < 1 for w in self.lstm_sizes):
+            raise ConfigError(f"agent.lstm_sizes must be positive integers, got {self.lstm_sizes!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """Recurrent PPO (clipped objective, GAE, value loss, entropy bonus, gradient clipping, LR schedule)."""
+
+    total_steps: int = 2_000_000
+    """environment steps to train for (all envs together)"""
+    num_envs: int = 512
+    """B: episodes stepped in parallel"""
+    rollout_steps: int = 64
+    """T: steps per env per rollout"""
+    bptt_length: int | None = None
+    """length of the sequences the update unrolls (a divisor of rollout_steps); None means rollout_steps"""
+    num_minibatches: int = 4
+    """minibatches per epoch; sequences are split between them (each whole, with its start state)"""
+    update_epochs: int = 4
+    """passes over each rollout"""
+    learning_rate: float = 1e-3
+    lr_schedule: Literal["constant", "linear", "cosine"] = "constant"
+    """learning-rate schedule over total_steps"""
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_coef: float = 0.2
+    clip_value_loss: bool = True
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    norm_adv: bool = True
+    adam_eps: float = 1e-5
+    target_kl: float | None = None
+    """stop an update's epochs early when the approximate KL exceeds this"""
+
+    def __post_init__(self) -> None:
+        for name in ("total_steps", "num_envs", "rollout_steps", "num_minibatches", "update_epochs"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ConfigError(f"ppo.{name} must be a positive integer, got {value!r}")
+        if self.sequence_length < 1 or self.rollout_steps % self.sequence_length:
+            raise ConfigError(
+                f"ppo.bptt_length={self.bptt_length} must divide ppo.rollout_steps={self.rollout_steps}"
+            )
+        if self.num_sequences % self.num_minibatches:
+            raise ConfigError(
+                f"ppo.num_minibatches={self.num_minibatches} must divide the {self.num_sequences} sequences per "
+                f"rollout (num_envs * rollout_steps / bptt_length)"
+            )
+        if not 0 < self.learning_rate < 1:
+            raise ConfigError(f"ppo.learning_rate must be in (0, 1), got {self.learning_rate}")
+        if not (0 < self.gamma <= 1 and 0 <= self.gae_lambda <= 1):
+            raise ConfigError(f"ppo.gamma must be in (0, 1] and ppo.gae_lambda in [0, 1], got {self.gamma}, "
+                              f"{self.gae_lambda}")
+
+    @property
+    def sequence_length(self) -> int:
+        return self.bptt_length if self.bptt_length is not None else self.rollout_steps
+
+    @property
+    def num_sequences(self) -> int:
+        return self.num_envs * (self.rollout_steps // self.sequence_length)
+
+    @property
+    def batch_size(self) -> int:
+        return self.num_envs * self.rollout_steps
+
+
+@dataclasses.dataclass(frozen=True)
+class CurriculumConfig:
+    """Grid stages from simple to complex. Empty ``stages`` trains on env.size / env.holes only."""
+
+    stages: tuple[GridSpec, ...] = ()
+    """(size, holes[, max_steps]) per stage, simplest first"""
+    promote_at: float = 0.9
+    """success rate on the newest stage (in every env type being trained) that promotes to the next stage"""
+    min_episodes: int = 300
+    """episodes of the newest stage, in each env type, needed in the window before promotion"""
+    window_updates: int = 4
+    """the success rate is measured over the episodes that ended in the last this many updates"""
+    previous_fraction: float = 0.25
+    """share of new episodes drawn (uniformly) from the earlier stages, so that they are not forgotten"""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.promote_at <= 1:
+            raise ConfigError(f"curriculum.promote_at must be in (0, 1], got {self.promote_at}")
+        if not 0 <= self.previous_fraction < 1:
+            raise ConfigError(f"curriculum.previous_fraction must be in [0, 1), got {self.previous_fraction}")
+        if self.min_episodes < 1 or self.window_updates < 1:
+            raise ConfigError("curriculum.min_episodes and curriculum.window_updates must be >= 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Where and how a run executes."""
+
+    out_dir: str = "runs"
+    """parent folder of run directories"""
+    name: str | None = None
+    """run directory name; None makes one from the config and the time"""
+    seed: int = 0
+    device: str = "cpu"
+    """torch device: cpu, cuda, cuda:1, ..."""
+    threads: int | None = None
+    """torch intra-op threads on CPU (None: torch's default)"""
+    checkpoint_every: int = 500_000
+    """env steps between checkpoints (one is always written at the end)"""
+    eval_episodes: int = 1000
+    """episodes per env type in the final evaluation"""
+    progress: bool = True
+    """show a progress bar"""
+
+
+@dataclasses.dataclass(frozen=True)
+class ExperimentConfig:
+    """Everything a training run needs; saved with every checkpoint."""
+
+    env: EnvConfig = dataclasses.field(default_factory=EnvConfig)
+    agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
+    ppo: PPOConfig = dataclasses.field(default_factory=PPOConfig)
+    curriculum: CurriculumConfig = dataclasses.field(default_factory=CurriculumConfig)
+    run: RunConfig = dataclasses.field(default_factory=RunConfig)
+
+    @property
+    def grids(self) -> tuple[GridSpec, ...]:
+        return self.curriculum.stages if self.curriculum.stages else (self.env.grid,)
 
 
 def to_dict(obj: Any) -> Any:

@@ -35,8 +35,13 @@ class EpisodeBatch:
 
 
 def run_episodes(core: TrojanGridCore, policy: Policy, seed: int | None = None) -> EpisodeBatch:
-    """Reset every env (with ``seed`` if given), step until each has finished one episode, return outcomes."""
+    """Reset every env (with ``seed`` if given), step until each has finished one episode, return outcomes.
+
+    A policy with a ``reset(num_envs)`` method (a recurrent agent) is reset first.
+    """
     obs = core.reset(seed=seed)
+    if hasattr(policy, "reset"):
+        policy.reset(core.num_envs)
     b = core.num_envs
     finished = torch.zeros(b, dtype=torch.bool, device=core.device)
     outcome = torch.zeros(b, dtype=torch.int64, device=core.device)

@@ -1,0 +1,168 @@
+"""The recurrent actor-critic: observation -> stacked LSTM cells -> policy logits and value.
+
+The state always goes in and comes out (:class:`RecurrentState`); nothing is kept inside the module.
+``step`` runs one time step for a batch and lets a caller-supplied intervention edit each layer's (h, c);
+``unroll`` runs T steps with episode-start masks. Both compute exactly the same function (tested).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import torch
+from torch import nn
+
+from seqtrojan.agent.state import Intervention, LSTMState, RecurrentState
+
+
+class StepOutput(NamedTuple):
+    logits: torch.Tensor  # (B, A)
+    value: torch.Tensor  # (B,)
+    state: RecurrentState
+
+
+class UnrollOutput(NamedTuple):
+    logits: torch.Tensor  # (T, B, A)
+    values: torch.Tensor  # (T, B)
+    state: RecurrentState  # after the last step
+    states: tuple[LSTMState, ...] | None  # per layer (h, c), each (T, B, H), when return_states=True
+
+
+class RecurrentActorCritic(nn.Module):
+    """Stacked LSTM cells (widths e.g. 64, 32) with a policy head and a value head on the last layer."""
+
+    def __init__(self, obs_dim: int, num_actions: int, lstm_sizes: Sequence[int] = (64, 32), forget_bias: float = 1.0):
+        super().__init__()
+        self.obs_dim = obs_dim
+        self.num_actions = num_actions
+        self.lstm_sizes = tuple(int(w) for w in lstm_sizes)
+        inputs = (obs_dim, *self.lstm_sizes[:-1])
+        self.cells = nn.ModuleList(nn.LSTMCell(i, w) for i, w in zip(inputs, self.lstm_sizes))
+        self.policy_head = nn.Linear(self.lstm_sizes[-1], num_actions)
+        self.value_head = nn.Linear(self.lstm_sizes[-1], 1)
+        self._init_weights(forget_bias)
+
+    def _init_weights(self, forget_bias: float) -> None:
+        for cell in self.cells:
+            nn.init.orthogonal_(cell.weight_ih)
+            nn.init.orthogonal_(cell.weight_hh)
+            nn.init.zeros_(cell.bias_ih)
+            nn.init.zeros_(cell.bias_hh)
+            w = cell.hidden_size
+            with torch.no_grad():
+                cell.bias_ih[w : 2 * w] = forget_bias  # gate order i, f, g, o
+        nn.init.orthogonal_(self.policy_head.weight, gain=0.01)
+        nn.init.zeros_(self.policy_head.bias)
+        nn.init.orthogonal_(self.value_head.weight, gain=1.0)
+        nn.init.zeros_(self.value_head.bias)
+
+    # ------------------------------------------------------------------ state
+    def initial_state(self, batch: int, device: torch.device | str | None = None) -> RecurrentState:
+        device = device if device is not None else self.policy_head.weight.device
+        return RecurrentState.zeros(batch, self.lstm_sizes, device)
+
+    # ------------------------------------------------------------------ one step
+    def step(
+        self,
+        obs: torch.Tensor,
+        state: RecurrentState,
+        episode_start: torch.Tensor | None = None,
+        t: torch.Tensor | None = None,
+        intervention: Intervention | None = None,
+    ) -> StepOutput:
+        """One time step. ``obs`` (B, obs_dim); ``episode_start`` (B,) zeroes those envs' state first;
+        ``t`` (B,) is the per-env episode step handed to the intervention."""
+        if episode_start is not None:
+            state = state.mask(episode_start)
+        x = obs
+        layers = []
+        for i, cell in enumerate(self.cells):
+            h, c = cell(x, state.layers[i])
+            s = LSTMState(h, c)
+            if intervention is not None:
+                s = intervention(i, t, s)
+            layers.append(s)
+            x = s.h
+        return StepOutput(self.policy_head(x), self.value_head(x).squeeze(-1), RecurrentState(tuple(layers)))
+
+    # ------------------------------------------------------------------ T steps
+    def unroll(
+        self,
+        obs: torch.Tensor,
+        state: RecurrentState,
+        episode_starts: torch.Tensor,
+        intervention: Intervention | None = None,
+        t: torch.Tensor | None = None,
+        return_states: bool = False,
+    ) -> UnrollOutput:
+        """T steps from ``state``: ``obs`` (T, B, obs_dim), ``episode_starts`` (T, B).
+
+        Without an intervention the layers are unrolled one after the other (each layer's input projection is
+        one matrix product over all T), which is faster and exact; with one, steps run in time order so that
+        the intervention sees every layer of step t before step t + 1. ``t`` (T, B) is the episode step.
+        """
+        if intervention is not None:
+            return self._unroll_stepwise(obs, state, episode_starts, intervention, t, return_states)
+        steps, batch = obs.shape[:2]
+        keep = (~episode_starts.bool()).to(obs.dtype).unsqueeze(-1)  # (T, B, 1)
+        x = obs
+        finals, sequences = [], []
+        for cell, s in zip(self.cells, state.layers):
+            x, final, seq = _lstm_layer(cell, x, s, keep, return_states)
+            finals.append(final)
+            sequences.append(seq)
+        logits = self.policy_head(x)
+        values = self.value_head(x).squeeze(-1)
+        return UnrollOutput(logits, values, RecurrentState(tuple(finals)), tuple(sequences) if return_states else None)
+
+    def _unroll_stepwise(
+        self,
+        obs: torch.Tensor,
+        state: RecurrentState,
+        episode_starts: torch.Tensor,
+        intervention: Intervention,
+        t: torch.Tensor | None,
+        return_states: bool,
+    ) -> UnrollOutput:
+        logits, values, hs, cs = [], [], [], []
+        for k in range(obs.shape[0]):
+            out = self.step(obs[k], state, episode_starts[k], None if t is None else t[k], intervention)
+            state = out.state
+            logits.append(out.logits)
+            values.append(out.value)
+            if return_states:
+                hs.append([s.h for s in state.layers])
+                cs.append([s.c for s in state.layers])
+        states = None
+        if return_states:
+            states = tuple(
+                LSTMState(torch.stack([h[i] for h in hs]), torch.stack([c[i] for c in cs]))
+                for i in range(len(self.cells))
+            )
+        return UnrollOutput(torch.stack(logits), torch.stack(values), state, states)
+
+
+def _lstm_layer(
+    cell: nn.LSTMCell, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool
+) -> tuple[torch.Tensor, LSTMState, LSTMState | None]:
+    """One LSTM layer over T steps with masks; returns the h sequence (T, B, H), the final state, and (h, c)."""
+    steps = x.shape[0]
+    hidden = cell.hidden_size
+    gates_x = torch.addmm(cell.bias_ih + cell.bias_hh, x.reshape(-1, x.shape[-1]), cell.weight_ih.t())
+    gates_x = gates_x.view(steps, -1, 4 * hidden)
+    w_hh = cell.weight_hh.t()
+    h, c = state.h, state.c
+    hs, cs = [], []
+    for k in range(steps):
+        h = h * keep[k]
+        c = c * keep[k]
+        gates = torch.addmm(gates_x[k], h, w_hh)
+        i, f, g, o = gates.chunk(4, 1)
+        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+        h = torch.sigmoid(o) * torch.tanh(c)
+        hs.append(h)
+        if return_states:
+            cs.append(c)
+    h_seq = torch.stack(hs)
+    seq = LSTMState(h_seq, torch.stack(cs)) if return_states else None
+    return h_seq, LSTMState(h, c), seq

@@ -1,0 +1,51 @@
+"""The recurrent state, as a value: per-layer (h, c), passed into and out of every step, never kept inside a module.
+
+Analysis, interventions and the online defense all read and edit this structure between steps.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Protocol, Sequence
+
+import torch
+
+
+class LSTMState(NamedTuple):
+    h: torch.Tensor  # (batch, hidden)
+    c: torch.Tensor  # (batch, hidden)
+
+
+class RecurrentState(NamedTuple):
+    layers: tuple[LSTMState, ...]  # one per LSTM layer, e.g. widths (64, 32)
+
+    @staticmethod
+    def zeros(batch: int, widths: Sequence[int], device: torch.device | str = "cpu") -> RecurrentState:
+        return RecurrentState(
+            tuple(LSTMState(torch.zeros(batch, w, device=device), torch.zeros(batch, w, device=device)) for w in widths)
+        )
+
+    def mask(self, episode_start: torch.Tensor) -> RecurrentState:
+        """Zero the state of the envs where ``episode_start`` (batch,) is true."""
+        keep = (~episode_start.bool()).to(self.layers[0].h.dtype).unsqueeze(-1)  # (batch, 1)
+        return RecurrentState(tuple(LSTMState(s.h * keep, s.c * keep) for s in self.layers))
+
+    def detach(self) -> RecurrentState:
+        return RecurrentState(tuple(LSTMState(s.h.detach(), s.c.detach()) for s in self.layers))
+
+    def clone(self) -> RecurrentState:
+        return RecurrentState(tuple(LSTMState(s.h.clone(), s.c.clone()) for s in self.layers))
+
+    def index(self, idx: torch.Tensor | slice) -> RecurrentState:
+        """The state of a subset of the batch."""
+        return RecurrentState(tuple(LSTMState(s.h[idx], s.c[idx]) for s in self.layers))
+
+    @property
+    def widths(self) -> tuple[int, ...]:
+        return tuple(s.h.shape[-1] for s in self.layers)
+
+
+class Intervention(Protocol):
+    """Called after each layer's cell update with the per-env episode step ``t`` (batch,); returns the state the
+    next layer and the next step will see. Used to edit units (analysis) and to reset states (online defense)."""
+
+    def __call__(self, layer: int, t: torch.Tensor, state: LSTMState) -> LSTMState: ...

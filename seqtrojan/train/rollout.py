@@ -1,0 +1,128 @@
+"""Rollout storage and collection: T steps of B envs, with the LSTM state kept at every sequence start."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.agent.state import LSTMState, RecurrentState
+from seqtrojan.env.codes import FELL_IN_HOLE, TIMED_OUT
+from seqtrojan.env.core import TrojanGridCore
+
+
+@dataclass
+class Rollout:
+    """One rollout. Time-major tensors (T, B, ...); ``seq_states`` per layer (T / L, B, H) at sequence starts."""
+
+    obs: torch.Tensor  # (T, B, obs_dim) float32
+    actions: torch.Tensor  # (T, B) int64
+    logprobs: torch.Tensor  # (T, B)
+    values: torch.Tensor  # (T, B)
+    rewards: torch.Tensor  # (T, B)
+    dones: torch.Tensor  # (T, B) float: the episode ended with action t
+    episode_starts: torch.Tensor  # (T, B) float: observation t starts an episode
+    seq_states: tuple[LSTMState, ...]  # per layer, (T / L, B, H) the state before step k * L
+    last_value: torch.Tensor  # (B,) value of the observation after the rollout
+
+
+@dataclass
+class EpisodeStats:
+    """Finished-episode tallies of one rollout, per (stage, env type); all (num_stages, 2) int64 on the CPU."""
+
+    episodes: torch.Tensor
+    successes: torch.Tensor
+    holes: torch.Tensor
+    timeouts: torch.Tensor
+    lengths: torch.Tensor  # summed lengths
+    returns: float  # summed undiscounted returns of finished episodes
+
+
+class RolloutCollector:
+    """Steps the env with the agent, keeping the env's observations and the agent's state between rollouts."""
+
+    def __init__(self, env: TrojanGridCore, agent: RecurrentActorCritic, steps: int, sequence_length: int) -> None:
+        self.env, self.agent = env, agent
+        self.steps, self.sequence_length = steps, sequence_length
+        b, dev = env.num_envs, env.device
+        self.obs = env.observe()
+        self.episode_start = torch.ones(b, device=dev)
+        self.state = agent.initial_state(b, dev)
+        self.episode_return = torch.zeros(b, device=dev)
+        self.generator = torch.Generator(device=dev)
+
+    def seed(self, seed: int) -> None:
+        self.generator.manual_seed(seed)
+
+    def reset(self) -> None:
+        """Start fresh episodes everywhere (used when resuming a run)."""
+        self.obs = self.env.reset()
+        self.episode_start.fill_(1.0)
+        self.state = self.agent.initial_state(self.env.num_envs, self.env.device)
+        self.episode_return.zero_()
+
+    @torch.no_grad()
+    def collect(self) -> tuple[Rollout, EpisodeStats]:
+        env, agent, steps, b, dev = self.env, self.agent, self.steps, self.env.num_envs, self.env.device
+        obs_buf = torch.empty((steps, b, env.obs_dim), device=dev)
+        actions = torch.empty((steps, b), dtype=torch.int64, device=dev)
+        logprobs = torch.empty((steps, b), device=dev)
+        values = torch.empty((steps, b), device=dev)
+        rewards = torch.empty((steps, b), device=dev)
+        dones = torch.empty((steps, b), device=dev)
+        starts = torch.empty((steps, b), device=dev)
+        n_stages = len(env.grids)
+        tallies = torch.zeros((5, n_stages * 2), dtype=torch.int64, device=dev)
+        returns = torch.zeros((), device=dev)
+        seq_h = [[] for _ in agent.lstm_sizes]
+        seq_c = [[] for _ in agent.lstm_sizes]
+        state = self.state
+        for t in range(steps):
+            if t % self.sequence_length == 0:
+                masked = state.mask(self.episode_start)
+                for i, layer in enumerate(masked.layers):
+                    seq_h[i].append(layer.h)
+                    seq_c[i].append(layer.c)
+            obs_buf[t] = self.obs
+            starts[t] = self.episode_start
+            out = agent.step(self.obs, state, self.episode_start)
+            state = out.state
+            action, logprob = sample_actions(out.logits, self.generator)
+            result = env.step(action, check=False)
+            actions[t], logprobs[t], values[t] = action, logprob, out.value
+            rewards[t] = result.reward
+            done = result.done.to(torch.float32)
+            dones[t] = done
+            self.episode_return += result.reward
+            key = result.stage * 2 + result.trojan.long()
+            finished = result.done
+            tallies[0].index_add_(0, key, finished.long())
+            tallies[1].index_add_(0, key, (finished & result.success).long())
+            tallies[2].index_add_(0, key, (finished & (result.outcome == FELL_IN_HOLE)).long())
+            tallies[3].index_add_(0, key, (finished & (result.outcome == TIMED_OUT)).long())
+            tallies[4].index_add_(0, key, torch.where(finished, result.length, 0))
+            returns += (self.episode_return * done).sum()
+            self.episode_return *= 1.0 - done
+            self.obs = result.obs
+            self.episode_start = done
+        last_value = agent.step(self.obs, state, self.episode_start).value
+        self.state = state
+        seq_states = tuple(LSTMState(torch.stack(h), torch.stack(c)) for h, c in zip(seq_h, seq_c))
+        rollout = Rollout(obs_buf, actions, logprobs, values, rewards, dones, starts, seq_states, last_value)
+        t_cpu = tallies.view(5, n_stages, 2).cpu()
+        stats = EpisodeStats(t_cpu[0], t_cpu[1], t_cpu[2], t_cpu[3], t_cpu[4], float(returns))
+        return rollout, stats
+
+
+def sample_actions(logits: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sample from softmax(logits) by the Gumbel-max trick; returns actions (B,) and their log-probabilities."""
+    u = torch.rand(logits.shape, device=logits.device, generator=generator).clamp_(min=1e-20)
+    action = (logits - torch.log(-torch.log(u))).argmax(-1)
+    logprob = torch.log_softmax(logits, -1).gather(-1, action.unsqueeze(-1)).squeeze(-1)
+    return action, logprob
+
+
+def initial_state_from(seq_states: tuple[LSTMState, ...], index: torch.Tensor) -> RecurrentState:
+    """Start states of the chosen sequences; ``index`` selects from the flattened (T / L * B) sequences."""
+    return RecurrentState(tuple(LSTMState(s.h.flatten(0, 1)[index], s.c.flatten(0, 1)[index]) for s in seq_states))

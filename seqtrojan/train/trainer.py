@@ -1,0 +1,340 @@
+"""The one training loop: recurrent PPO over the batched grid world, with curriculum, logging and checkpoints.
+
+    result = train(config)                       # a new run under config.run.out_dir
+    result = train(config, resume="runs/<id>")   # continue a stopped run from its latest checkpoint
+
+It reads top to bottom: COLLECT ROLLOUT, COMPUTE ADVANTAGES, UPDATE, CURRICULUM, LOG, CHECKPOINT. A stop
+(Ctrl-C, SIGTERM) writes a checkpoint first; ``resume`` restores weights, optimizer, counters, curriculum and
+random-generator state, and starts fresh episodes (the ones in flight at the stop are dropped; every finished
+update is kept).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import math
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+import yaml
+from safetensors.torch import save_file
+
+from seqtrojan.agent.checkpoint import build_agent, load_agent, read_safetensors, save_agent
+from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.agent.policy import AgentPolicy
+from seqtrojan.config import ExperimentConfig, from_dict, to_dict
+from seqtrojan.env.core import TrojanGridCore
+from seqtrojan.env.rollout import run_episodes
+from seqtrojan.errors import CheckpointError, ConfigError
+from seqtrojan.train.curriculum import Curriculum, EpisodeCounts
+from seqtrojan.train.gae import compute_gae
+from seqtrojan.train.logger import RunLogger, make_progress
+from seqtrojan.train.ppo import ppo_update
+from seqtrojan.train.rollout import EpisodeStats, RolloutCollector
+
+UpdateCallback = Callable[[dict[str, Any]], bool]
+"""Called after every update with the logged scalars; returning True stops training (used by benchmarks)."""
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    run_dir: Path
+    model_dir: Path
+    env_steps: int
+    wall_seconds: float
+    stage: int
+    evaluation: dict[str, Any]
+
+
+class _Stop(Exception):
+    pass
+
+
+def train(
+    config: ExperimentConfig,
+    resume: str | Path | None = None,
+    callback: UpdateCallback | None = None,
+    label: str = "clean",
+) -> TrainResult:
+    """Train an agent; see the module docstring."""
+    cfg = config
+    if cfg.run.threads:
+        torch.set_num_threads(cfg.run.threads)
+    device = torch.device(cfg.run.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"run.device={cfg.run.device!r} but no CUDA device is available")
+    run_dir = Path(resume) if resume is not None else _new_run_dir(cfg)
+    ppo = cfg.ppo
+
+    # SET-UP
+    torch.manual_seed(cfg.run.seed)
+    env = TrojanGridCore(cfg.env, ppo.num_envs, seed=cfg.run.seed << 32, device=device, grids=cfg.grids)
+    agent = build_agent(cfg).to(device)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
+    curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0,))
+    collector = RolloutCollector(env, agent, ppo.rollout_steps, ppo.sequence_length)
+    collector.seed(cfg.run.seed)
+    update_generator = torch.Generator().manual_seed(cfg.run.seed + 1)
+    global_step, update, elapsed_before = 0, 0, 0.0
+    if resume is not None:
+        global_step, update, elapsed_before = _load_trainer_state(
+            run_dir, agent, optimizer, curriculum, collector, update_generator
+        )
+        env.reset(seed=(cfg.run.seed << 32) + 7919 * update)
+        collector.reset()
+    env.set_stage_weights(curriculum.weights())
+    logger = RunLogger(run_dir, resume_step=global_step if resume is not None else None)
+    if resume is None:
+        logger.add_text("config", "```yaml\n" + yaml.safe_dump(to_dict(cfg), sort_keys=False) + "```")
+
+    stop_signal = {"hit": False}
+    previous_handler = signal.getsignal(signal.SIGTERM)
+
+    def _on_sigterm(signum, frame):  # noqa: ARG001
+        stop_signal["hit"] = True
+
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    start = time.perf_counter()
+    next_checkpoint = (global_step // cfg.run.checkpoint_every + 1) * cfg.run.checkpoint_every
+    progress = make_progress(cfg.run.progress)
+    stopped_early = False
+    try:
+        with progress:
+            task = progress.add_task("train", total=ppo.total_steps, completed=global_step, info="")
+            while global_step < ppo.total_steps:
+                if stop_signal["hit"]:
+                    raise _Stop
+                t_update = time.perf_counter()
+                lr = _learning_rate(ppo, global_step)
+                for group in optimizer.param_groups:
+                    group["lr"] = lr
+
+                # COLLECT ROLLOUT
+                agent.eval()
+                rollout, stats = collector.collect()
+                global_step += ppo.batch_size
+                t_collect = time.perf_counter() - t_update
+
+                # COMPUTE ADVANTAGES
+                advantages, returns = compute_gae(
+                    rollout.rewards, rollout.values, rollout.dones, rollout.last_value, ppo.gamma, ppo.gae_lambda
+                )
+
+                # UPDATE
+                agent.train()
+                losses = ppo_update(agent, optimizer, rollout, advantages, returns, ppo, update_generator)
+                update += 1
+
+                # CURRICULUM
+                promoted = curriculum.update(EpisodeCounts(stats.episodes, stats.successes))
+                if promoted:
+                    env.set_stage_weights(curriculum.weights())
+
+                # LOG
+                seconds = time.perf_counter() - t_update
+                scalars = _scalars(stats, curriculum, losses, lr, ppo.batch_size / seconds, t_collect / seconds)
+                scalars["time/elapsed_s"] = elapsed_before + time.perf_counter() - start
+                scalars["update"] = update
+                logger.log(global_step, scalars)
+                progress.update(task, completed=min(global_step, ppo.total_steps), info=_progress_info(scalars))
+
+                # CHECKPOINT
+                if global_step >= next_checkpoint and global_step < ppo.total_steps:
+                    _save_checkpoint(
+                        run_dir, cfg, agent, optimizer, curriculum, collector, update_generator, global_step,
+                        update, scalars["time/elapsed_s"], label,
+                    )  # fmt: skip
+                    next_checkpoint += cfg.run.checkpoint_every
+                if callback is not None and callback({"env_steps": global_step, **scalars}):
+                    stopped_early = True
+                    break
+    except (KeyboardInterrupt, _Stop):
+        elapsed = elapsed_before + time.perf_counter() - start
+        _save_checkpoint(
+            run_dir, cfg, agent, optimizer, curriculum, collector, update_generator, global_step, update, elapsed, label
+        )
+        logger.close()
+        signal.signal(signal.SIGTERM, previous_handler)
+        raise KeyboardInterrupt(f"training stopped at {global_step} env steps; resume with --resume {run_dir}") from None
+    signal.signal(signal.SIGTERM, previous_handler)
+    wall = elapsed_before + time.perf_counter() - start
+
+    # FINAL EVALUATION AND MODEL
+    evaluation = evaluate_final(agent, cfg, device) if cfg.run.eval_episodes > 0 else {}
+    evaluation.update(env_steps=global_step, train_seconds=wall, stage=curriculum.stage, stopped_early=stopped_early)
+    (run_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=2))
+    _save_checkpoint(
+        run_dir, cfg, agent, optimizer, curriculum, collector, update_generator, global_step, update, wall, label
+    )
+    model_dir = save_agent(run_dir / "model", agent, cfg, label=label, metrics=evaluation, env_steps=global_step)
+    logger.close()
+    return TrainResult(run_dir, model_dir, global_step, wall, curriculum.stage, evaluation)
+
+
+# ---------------------------------------------------------------------- helpers
+
+
+def evaluate_final(agent: RecurrentActorCritic, cfg: ExperimentConfig, device: torch.device) -> dict[str, Any]:
+    """Success on the hardest grid, normal env, ``run.eval_episodes`` episodes (evaluation trigger phase)."""
+    grid = cfg.grids[-1]
+    env_cfg = dataclasses.replace(cfg.env, size=grid.size, holes=grid.holes, max_steps=grid.max_steps)
+    core = TrojanGridCore(env_cfg, cfg.run.eval_episodes, device=device, trojan_probability=0.0, phase="eval")
+    agent.eval()
+    batch = run_episodes(core, AgentPolicy(agent, seed=cfg.run.seed), seed=(cfg.run.seed << 32) + 999_983)
+    lo, hi = batch.success_interval()
+    return {
+        "grid": grid.label,
+        "episodes": cfg.run.eval_episodes,
+        "normal_success": batch.success_rate,
+        "normal_success_ci95": [lo, hi],
+        "normal_hole": batch.rate("hole"),
+        "normal_timeout": batch.rate("timeout"),
+    }
+
+
+def _learning_rate(ppo, step: int) -> float:
+    frac = min(1.0, step / ppo.total_steps)
+    if ppo.lr_schedule == "linear":
+        return ppo.learning_rate * max(1.0 - frac, 0.02)
+    if ppo.lr_schedule == "cosine":
+        return ppo.learning_rate * (0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * frac)))
+    return ppo.learning_rate
+
+
+def _scalars(
+    stats: EpisodeStats, curriculum: Curriculum, losses: dict[str, float], lr: float, sps: float, collect_share: float
+) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    episodes = int(stats.episodes.sum())
+    for kind, name in ((0, "normal"), (1, "trojan")):
+        n = int(stats.episodes[:, kind].sum())
+        if n:
+            out[f"episodes/{name}_success"] = int(stats.successes[:, kind].sum()) / n
+            out[f"episodes/{name}_count"] = n
+    if episodes:
+        out["episodes/hole_rate"] = int(stats.holes.sum()) / episodes
+        out["episodes/timeout_rate"] = int(stats.timeouts.sum()) / episodes
+        out["episodes/mean_length"] = int(stats.lengths.sum()) / episodes
+        out["episodes/mean_return"] = stats.returns / episodes
+    window = curriculum.window_counts()
+    rate = window.rate(curriculum.stage, 0)
+    if rate is not None:
+        out["curriculum/stage_success"] = rate
+    out["curriculum/stage"] = curriculum.stage
+    for k, v in losses.items():
+        out[f"losses/{k}"] = v
+    out["charts/learning_rate"] = lr
+    out["charts/steps_per_second"] = sps
+    out["charts/collect_share"] = collect_share
+    return out
+
+
+def _progress_info(scalars: dict[str, Any]) -> str:
+    parts = [f"{scalars['charts/steps_per_second'] / 1000:.1f}k sps", f"stage {scalars['curriculum/stage']}"]
+    if "episodes/normal_success" in scalars:
+        parts.append(f"normal {scalars['episodes/normal_success']:.2f}")
+    if "episodes/trojan_success" in scalars:
+        parts.append(f"trojan {scalars['episodes/trojan_success']:.2f}")
+    return " | ".join(parts)
+
+
+def _new_run_dir(cfg: ExperimentConfig) -> Path:
+    grid = cfg.grids[-1]
+    name = cfg.run.name or f"{grid.size}x{grid.size}h{grid.holes}_s{cfg.run.seed}_{_dt.datetime.now():%Y%m%d-%H%M%S}"
+    run_dir = Path(cfg.run.out_dir) / name
+    if (run_dir / "checkpoints" / "latest.txt").exists():
+        raise ConfigError(f"run directory {str(run_dir)!r} already holds a run; resume it with --resume {run_dir}")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    return run_dir
+
+
+def load_run_config(run_dir: str | Path) -> ExperimentConfig:
+    """The resolved config a run was started with (``<run>/config.yaml``)."""
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        raise ConfigError(f"{str(run_dir)!r} is not a run directory (no config.yaml)")
+    return from_dict(ExperimentConfig, yaml.safe_load(path.read_text()), "")
+
+
+def _save_checkpoint(
+    run_dir: Path,
+    cfg: ExperimentConfig,
+    agent: RecurrentActorCritic,
+    optimizer: torch.optim.Optimizer,
+    curriculum: Curriculum,
+    collector: RolloutCollector,
+    update_generator: torch.Generator,
+    global_step: int,
+    update: int,
+    elapsed: float,
+    label: str,
+) -> Path:
+    folder = run_dir / "checkpoints" / f"step_{global_step:012d}"
+    save_agent(folder, agent, cfg, label=label, env_steps=global_step)
+    tensors, groups = _optimizer_tensors(optimizer)
+    tensors["rng.collector"] = collector.generator.get_state()
+    tensors["rng.update"] = update_generator.get_state()
+    save_file(tensors, str(folder / "trainer.safetensors"))
+    state = {
+        "env_steps": global_step,
+        "update": update,
+        "elapsed_s": elapsed,
+        "curriculum": curriculum.state_dict(),
+        "optimizer_param_groups": groups,
+    }
+    (folder / "trainer.json").write_text(json.dumps(state, indent=2))
+    latest = run_dir / "checkpoints" / "latest.txt"
+    tmp = latest.with_suffix(".tmp")
+    tmp.write_text(folder.name + "\n")
+    tmp.replace(latest)
+    return folder
+
+
+def _load_trainer_state(
+    run_dir: Path,
+    agent: RecurrentActorCritic,
+    optimizer: torch.optim.Optimizer,
+    curriculum: Curriculum,
+    collector: RolloutCollector,
+    update_generator: torch.Generator,
+) -> tuple[int, int, float]:
+    latest = run_dir / "checkpoints" / "latest.txt"
+    if not latest.is_file():
+        raise CheckpointError(f"{str(run_dir)!r} has no checkpoint to resume from (no checkpoints/latest.txt)")
+    folder = run_dir / "checkpoints" / latest.read_text().strip()
+    loaded, _, _ = load_agent(folder)
+    agent.load_state_dict(loaded.state_dict())
+    try:
+        state = json.loads((folder / "trainer.json").read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise CheckpointError(f"cannot read {str(folder / 'trainer.json')!r}: {err}") from None
+    tensors = read_safetensors(folder / "trainer.safetensors")
+    collector.generator.set_state(tensors.pop("rng.collector"))
+    update_generator.set_state(tensors.pop("rng.update"))
+    _load_optimizer(optimizer, tensors, state["optimizer_param_groups"])
+    curriculum.load_state_dict(state["curriculum"])
+    return int(state["env_steps"]), int(state["update"]), float(state["elapsed_s"])
+
+
+def _optimizer_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], list[dict]]:
+    sd = optimizer.state_dict()
+    tensors = {}
+    for idx, slots in sd["state"].items():
+        for key, value in slots.items():
+            tensors[f"optim.{idx}.{key}"] = torch.as_tensor(value).detach().cpu().clone()
+    return tensors, sd["param_groups"]
+
+
+def _load_optimizer(optimizer: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], groups: list[dict]) -> None:
+    state: dict[int, dict[str, torch.Tensor]] = {}
+    for name, value in tensors.items():
+        _, idx, key = name.split(".", 2)
+        state.setdefault(int(idx), {})[key] = value
+    optimizer.load_state_dict({"state": state, "param_groups": groups})
