@@ -1,13 +1,13 @@
 """The ``seqtrojan`` command: one subcommand per stage, each parsed by tyro from a typed dataclass.
 
-    seqtrojan demo --out outputs/demo
-    seqtrojan <command> --help
+seqtrojan demo --out outputs/demo
+seqtrojan <command> --help
 """
 
 from __future__ import annotations
 
 import sys
-from typing import Callable
+from collections.abc import Callable
 
 import tyro
 

@@ -71,9 +71,7 @@ class PPOConfig:
             if not isinstance(value, int) or value < 1:
                 raise ConfigError(f"ppo.{name} must be a positive integer, got {value!r}")
         if self.sequence_length < 1 or self.rollout_steps % self.sequence_length:
-            raise ConfigError(
-                f"ppo.bptt_length={self.bptt_length} must divide ppo.rollout_steps={self.rollout_steps}"
-            )
+            raise ConfigError(f"ppo.bptt_length={self.bptt_length} must divide ppo.rollout_steps={self.rollout_steps}")
         if self.num_sequences % self.num_minibatches:
             raise ConfigError(
                 f"ppo.num_minibatches={self.num_minibatches} must divide the {self.num_sequences} sequences per "
@@ -82,8 +80,9 @@ class PPOConfig:
         if not 0 < self.learning_rate < 1:
             raise ConfigError(f"ppo.learning_rate must be in (0, 1), got {self.learning_rate}")
         if not (0 < self.gamma <= 1 and 0 <= self.gae_lambda <= 1):
-            raise ConfigError(f"ppo.gamma must be in (0, 1] and ppo.gae_lambda in [0, 1], got {self.gamma}, "
-                              f"{self.gae_lambda}")
+            raise ConfigError(
+                f"ppo.gamma must be in (0, 1] and ppo.gae_lambda in [0, 1], got {self.gamma}, {self.gae_lambda}"
+            )
 
     @property
     def sequence_length(self) -> int:

@@ -18,18 +18,18 @@ import gymnasium as gym
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-from gymnasium.utils.env_checker import check_env  # noqa: E402
-from rich.console import Console  # noqa: E402
-from rich.table import Table  # noqa: E402
+import matplotlib.pyplot as plt
+import torch
+from gymnasium.utils.env_checker import check_env
+from rich.console import Console
+from rich.table import Table
 
-from seqtrojan.bench.env_speed import measure_env_speed  # noqa: E402
-from seqtrojan.env import EnvConfig, EpisodeSnapshot, Layout, TrojanGridCore  # noqa: E402
-from seqtrojan.env.config import min_steps_to_goal  # noqa: E402
-from seqtrojan.env.render import render_ansi, render_rgb  # noqa: E402
-from seqtrojan.env.rollout import run_episodes  # noqa: E402
-from seqtrojan.env.scripted import OracleAgent, RandomAgent  # noqa: E402
+from seqtrojan.bench.env_speed import measure_env_speed
+from seqtrojan.env import EnvConfig, EpisodeSnapshot, Layout, TrojanGridCore
+from seqtrojan.env.config import min_steps_to_goal
+from seqtrojan.env.render import render_ansi, render_rgb
+from seqtrojan.env.rollout import run_episodes
+from seqtrojan.env.scripted import OracleAgent, RandomAgent
 
 
 @dataclass

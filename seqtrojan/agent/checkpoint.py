@@ -120,7 +120,9 @@ def load_agent(
     try:
         agent.load_state_dict(tensors, strict=True)
     except RuntimeError as err:
-        raise CheckpointError(f"{WEIGHTS} in {str(folder)!r} does not fit the architecture in card.json: {err}") from None
+        raise CheckpointError(
+            f"{WEIGHTS} in {str(folder)!r} does not fit the architecture in card.json: {err}"
+        ) from None
     return agent.to(device).eval(), config, card
 
 
@@ -135,7 +137,9 @@ def read_card(folder: Path) -> dict[str, Any]:
     if not isinstance(card, dict) or card.get("format") != FORMAT:
         raise CheckpointError(f"{str(path)!r} is not a seqtrojan model card (format must be {FORMAT!r})")
     if card.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(f"{str(path)!r} has format_version {card.get('format_version')}, expected {FORMAT_VERSION}")
+        raise CheckpointError(
+            f"{str(path)!r} has format_version {card.get('format_version')}, expected {FORMAT_VERSION}"
+        )
     for key in ("architecture", "config", "tensors", "label"):
         if key not in card:
             raise CheckpointError(f"{str(path)!r} lacks the field {key!r}")

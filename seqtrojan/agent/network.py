@@ -7,7 +7,8 @@ The state always goes in and comes out (:class:`RecurrentState`); nothing is kep
 
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 from torch import nn
@@ -58,8 +59,10 @@ class RecurrentActorCritic(nn.Module):
 
     # ------------------------------------------------------------------ state
     def initial_state(self, batch: int, device: torch.device | str | None = None) -> RecurrentState:
-        device = device if device is not None else self.policy_head.weight.device
-        return RecurrentState.zeros(batch, self.lstm_sizes, device)
+        weight = self.policy_head.weight
+        return RecurrentState.zeros(
+            batch, self.lstm_sizes, device if device is not None else weight.device, weight.dtype
+        )
 
     # ------------------------------------------------------------------ one step
     def step(

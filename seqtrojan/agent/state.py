@@ -5,7 +5,8 @@ Analysis, interventions and the online defense all read and edit this structure 
 
 from __future__ import annotations
 
-from typing import NamedTuple, Protocol, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple, Protocol
 
 import torch
 
@@ -19,10 +20,13 @@ class RecurrentState(NamedTuple):
     layers: tuple[LSTMState, ...]  # one per LSTM layer, e.g. widths (64, 32)
 
     @staticmethod
-    def zeros(batch: int, widths: Sequence[int], device: torch.device | str = "cpu") -> RecurrentState:
-        return RecurrentState(
-            tuple(LSTMState(torch.zeros(batch, w, device=device), torch.zeros(batch, w, device=device)) for w in widths)
-        )
+    def zeros(
+        batch: int, widths: Sequence[int], device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
+    ) -> RecurrentState:
+        def z(w: int) -> torch.Tensor:
+            return torch.zeros(batch, w, device=device, dtype=dtype)
+
+        return RecurrentState(tuple(LSTMState(z(w), z(w)) for w in widths))
 
     def mask(self, episode_start: torch.Tensor) -> RecurrentState:
         """Zero the state of the envs where ``episode_start`` (batch,) is true."""

@@ -25,7 +25,9 @@ class EpisodeCounts:
 
     @staticmethod
     def zeros(num_stages: int) -> EpisodeCounts:
-        return EpisodeCounts(torch.zeros(num_stages, 2, dtype=torch.int64), torch.zeros(num_stages, 2, dtype=torch.int64))
+        return EpisodeCounts(
+            torch.zeros(num_stages, 2, dtype=torch.int64), torch.zeros(num_stages, 2, dtype=torch.int64)
+        )
 
     def __add__(self, other: EpisodeCounts) -> EpisodeCounts:
         return EpisodeCounts(self.episodes + other.episodes, self.successes + other.successes)

@@ -71,7 +71,9 @@ class RunLogger:
 
     def _truncate_after(self, step: int) -> None:
         if self.jsonl_path.exists():
-            lines = [ln for ln in self.jsonl_path.read_text().splitlines() if ln and json.loads(ln)["env_steps"] <= step]
+            lines = [
+                ln for ln in self.jsonl_path.read_text().splitlines() if ln and json.loads(ln)["env_steps"] <= step
+            ]
             self.jsonl_path.write_text("".join(ln + "\n" for ln in lines))
         if self.csv_path.exists():
             with self.csv_path.open() as fh:

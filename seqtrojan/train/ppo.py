@@ -121,5 +121,7 @@ def ppo_update(
             break
     stats = {k: v / count for k, v in totals.items()}
     var_returns = float(returns.var())
-    stats["explained_variance"] = 1.0 - float((returns - rollout.values).var()) / var_returns if var_returns > 0 else 0.0
+    stats["explained_variance"] = (
+        1.0 - float((returns - rollout.values).var()) / var_returns if var_returns > 0 else 0.0
+    )
     return stats

@@ -17,9 +17,10 @@ import json
 import math
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 import yaml
@@ -96,7 +97,7 @@ def train(
     stop_signal = {"hit": False}
     previous_handler = signal.getsignal(signal.SIGTERM)
 
-    def _on_sigterm(signum, frame):  # noqa: ARG001
+    def _on_sigterm(signum, frame):
         stop_signal["hit"] = True
 
     signal.signal(signal.SIGTERM, _on_sigterm)
@@ -161,7 +162,9 @@ def train(
         )
         logger.close()
         signal.signal(signal.SIGTERM, previous_handler)
-        raise KeyboardInterrupt(f"training stopped at {global_step} env steps; resume with --resume {run_dir}") from None
+        raise KeyboardInterrupt(
+            f"training stopped at {global_step} env steps; resume with --resume {run_dir}"
+        ) from None
     signal.signal(signal.SIGTERM, previous_handler)
     wall = elapsed_before + time.perf_counter() - start
 

@@ -1,0 +1,101 @@
+"""The recurrent actor-critic: state in and out, masks at episode starts, step == unroll, interventions."""
+
+from __future__ import annotations
+
+import torch
+
+from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.agent.state import LSTMState, RecurrentState
+
+
+def make(seed: int = 0) -> RecurrentActorCritic:
+    torch.manual_seed(seed)
+    return RecurrentActorCritic(54, 4, (64, 32)).double()
+
+
+def random_state(batch: int) -> RecurrentState:
+    return RecurrentState(
+        tuple(LSTMState(torch.randn(batch, w).double(), torch.randn(batch, w).double()) for w in (64, 32))
+    )
+
+
+def test_stepping_t_times_equals_one_unroll_with_resets():
+    net = make()
+    steps, batch = 12, 5
+    obs = torch.randn(steps, batch, 54).double()
+    starts = (torch.rand(steps, batch) < 0.2).double()
+    state0 = random_state(batch)
+    out = net.unroll(obs, state0, starts, return_states=True)
+    state = state0
+    for t in range(steps):
+        step = net.step(obs[t], state, starts[t])
+        state = step.state
+        torch.testing.assert_close(step.logits, out.logits[t])
+        torch.testing.assert_close(step.value, out.values[t])
+        for layer, seq in zip(state.layers, out.states):
+            torch.testing.assert_close(layer.h, seq.h[t])
+            torch.testing.assert_close(layer.c, seq.c[t])
+    for a, b in zip(state.layers, out.state.layers):
+        torch.testing.assert_close(a.h, b.h)
+        torch.testing.assert_close(a.c, b.c)
+
+
+def test_gradients_of_fast_unroll_equal_stepwise_unroll():
+    net = make()
+    obs = torch.randn(9, 4, 54).double()
+    starts = (torch.rand(9, 4) < 0.3).double()
+    state0 = random_state(4)
+    grads = []
+    for stepwise in (False, True):
+        net.zero_grad()
+        identity = (lambda layer, t, s: s) if stepwise else None
+        out = net.unroll(obs, state0, starts, intervention=identity)
+        (out.logits.logsumexp(-1).sum() + out.values.sum()).backward()
+        grads.append([p.grad.clone() for p in net.parameters()])
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b)
+
+
+def test_episode_start_resets_exactly_the_finished_envs():
+    net = make()
+    obs = torch.randn(3, 54).double()
+    state = random_state(3)
+    starts = torch.tensor([0.0, 1.0, 0.0]).double()
+    out = net.step(obs, state, starts)
+    fresh = net.step(obs[1:2], net.initial_state(1))
+    torch.testing.assert_close(out.logits[1:2], fresh.logits)
+    kept = net.step(obs[[0, 2]], state.index(torch.tensor([0, 2])))
+    torch.testing.assert_close(out.logits[[0, 2]], kept.logits)
+
+
+def test_state_is_never_kept_inside_the_module():
+    net = make()
+    obs = torch.randn(2, 54).double()
+    state = random_state(2)
+    a = net.step(obs, state)
+    b = net.step(obs, state)
+    torch.testing.assert_close(a.logits, b.logits)
+    assert not any(isinstance(v, torch.Tensor) for v in vars(net).values())
+
+
+def test_intervention_sees_every_layer_and_step_and_changes_the_output():
+    net = make()
+    obs = torch.randn(6, 3, 54).double()
+    starts = torch.zeros(6, 3).double()
+    t = torch.arange(6).repeat(3, 1).T
+    calls = []
+
+    def set_units(layer, t_now, s):
+        calls.append((layer, int(t_now[0])))
+        if layer == 1 and int(t_now[0]) >= 3:
+            c = s.c.clone()
+            c[:, :4] = 5.0
+            return LSTMState(s.h, c)
+        return s
+
+    base = net.unroll(obs, net.initial_state(3), starts)
+    edited = net.unroll(obs, net.initial_state(3), starts, intervention=set_units, t=t, return_states=True)
+    assert calls == [(layer, step) for step in range(6) for layer in (0, 1)]
+    torch.testing.assert_close(edited.logits[:3], base.logits[:3])
+    assert not torch.allclose(edited.logits[4:], base.logits[4:])
+    assert bool((edited.states[1].c[3:, :, :4] == 5.0).all())
