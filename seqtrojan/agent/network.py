@@ -106,7 +106,6 @@ class RecurrentActorCritic(nn.Module):
         """
         if intervention is not None:
             return self._unroll_stepwise(obs, state, episode_starts, intervention, t, return_states)
-        steps, batch = obs.shape[:2]
         keep = (~episode_starts.bool()).to(obs.dtype).unsqueeze(-1)  # (T, B, 1)
         x = obs
         finals, sequences = [], []

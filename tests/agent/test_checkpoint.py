@@ -54,7 +54,7 @@ def test_corrupt_and_truncated_weights_are_refused(saved):
     _, folder = saved
     data = (folder / "model.safetensors").read_bytes()
     (folder / "model.safetensors").write_bytes(data[: len(data) // 2])
-    with pytest.raises(CheckpointError, match="corrupt|truncated"):
+    with pytest.raises(CheckpointError, match=r"corrupt|truncated"):
         load_agent(folder)
     (folder / "model.safetensors").write_bytes(b"garbage")
     with pytest.raises(CheckpointError, match="not a valid safetensors"):
@@ -81,7 +81,7 @@ def test_weights_swapped_after_the_card_was_written_are_refused(saved, tmp_path)
 
 def test_missing_or_foreign_cards_are_refused(saved, tmp_path):
     _, folder = saved
-    with pytest.raises(CheckpointError, match="no card.json"):
+    with pytest.raises(CheckpointError, match=r"no card\.json"):
         load_agent(tmp_path)
     (folder / "card.json").write_text("{not json")
     with pytest.raises(CheckpointError, match="not valid JSON"):
@@ -96,5 +96,5 @@ def test_config_in_card_is_checked(saved):
     card = json.loads((folder / "card.json").read_text())
     card["config"]["env"]["size"] = 8
     (folder / "card.json").write_text(json.dumps(card))
-    with pytest.raises(CheckpointError, match="invalid config.*size=8"):
+    with pytest.raises(CheckpointError, match=r"invalid config.*size=8"):
         load_agent(folder)
