@@ -151,13 +151,15 @@ def _lstm_layer(
     steps = x.shape[0]
     hidden = cell.hidden_size
     gates_x = torch.addmm(cell.bias_ih + cell.bias_hh, x.reshape(-1, x.shape[-1]), cell.weight_ih.t())
-    gates_x = gates_x.view(steps, -1, 4 * hidden)
+    # unbind, not gates_x[k]: indexing would make every step's backward build a full-size zero tensor (O(T^2)).
+    gates_x = gates_x.view(steps, -1, 4 * hidden).unbind(0)
+    keeps = keep.unbind(0)
     w_hh = cell.weight_hh.t()
     h, c = state.h, state.c
     hs, cs = [], []
     for k in range(steps):
-        h = h * keep[k]
-        c = c * keep[k]
+        h = h * keeps[k]
+        c = c * keeps[k]
         gates = torch.addmm(gates_x[k], h, w_hh)
         i, f, g, o = gates.chunk(4, 1)
         c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)

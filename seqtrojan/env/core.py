@@ -21,6 +21,7 @@ from a hash of ``(s, j)`` alone, so env ``i`` of a batch equals a single env see
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -149,8 +150,12 @@ class TrojanGridCore:
     def _check_solvable_fraction(self) -> None:
         """Refuse grids whose solvable layouts are so rare that an episode could exhaust ``max_layout_tries``."""
         needed = 30.0 / self.config.max_layout_tries  # then a reset fails with probability about e^-30
-        for g in self.grids:
-            frac = _solvable_fraction(g.size, g.holes, self.view_size)
+        fractions = [_solvable_fraction(g.size, g.holes, self.view_size) for g in self.grids]
+        worst = min(fractions)
+        # Enough tries per round that an env needs a second round with probability <= 1e-3.
+        rounds = math.log(1e-3) / math.log(1.0 - worst) if 0.0 < worst < 1.0 else 1.0
+        self.sampler.attempts_per_round = int(min(32, max(1, math.ceil(rounds))))
+        for g, frac in zip(self.grids, fractions, strict=True):
             if frac < needed:
                 raise LayoutError(
                     f"solvable layouts are too rare for size={g.size}, holes={g.holes}: {frac:.2%} of random "

@@ -109,22 +109,75 @@ class Layout:
         return (0, 0) in seen and (0, n - 1) in seen
 
 
-class LayoutSampler:
-    """Samples solvable hole layouts for a batch of envs, each env on one of several grid stages."""
+class _NumpyOps:
+    """The few array operations the sampler needs, on NumPy (CPU: small-array ops cost ~1 us, not ~5 us)."""
 
-    def __init__(self, grids: Sequence[GridSpec], view_size: int, max_tries: int, device: torch.device) -> None:
+    @staticmethod
+    def convert(x: torch.Tensor) -> np.ndarray:
+        return x.numpy()
+
+    @staticmethod
+    def back(x: np.ndarray, device: torch.device) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(x))
+
+    arange = staticmethod(lambda n, like: np.arange(n, dtype=np.int64))
+    zeros_bool = staticmethod(lambda shape, like: np.zeros(shape, dtype=bool))
+    sort_rows = staticmethod(lambda a: np.sort(a, axis=1))
+    gather_rows = staticmethod(lambda a, idx: np.take_along_axis(a, idx, axis=1))
+    repeat_each = staticmethod(lambda a, n: np.repeat(a, n))
+    tile = staticmethod(lambda a, n: np.tile(a, n))
+    where = staticmethod(np.where)
+    to_int64 = staticmethod(lambda a: a.astype(np.int64))
+    argmax_rows = staticmethod(lambda a: a.argmax(1))
+
+    @staticmethod
+    def set_true(cells: np.ndarray, idx: np.ndarray) -> None:
+        np.put_along_axis(cells, idx, True, axis=1)
+
+
+class _TorchOps:
+    """The same operations on torch tensors (CUDA)."""
+
+    convert = staticmethod(lambda x: x)
+    back = staticmethod(lambda x, device: x)
+    arange = staticmethod(lambda n, like: torch.arange(n, device=like.device))
+    zeros_bool = staticmethod(lambda shape, like: torch.zeros(shape, dtype=torch.bool, device=like.device))
+    sort_rows = staticmethod(lambda a: a.sort(dim=1).values)
+    gather_rows = staticmethod(lambda a, idx: torch.gather(a, 1, idx))
+    repeat_each = staticmethod(lambda a, n: a.repeat_interleave(n))
+    tile = staticmethod(lambda a, n: a.repeat(n))
+    where = staticmethod(torch.where)
+    to_int64 = staticmethod(lambda a: a.to(torch.int64))
+    argmax_rows = staticmethod(lambda a: a.to(torch.int8).argmax(1))
+
+    @staticmethod
+    def set_true(cells: torch.Tensor, idx: torch.Tensor) -> None:
+        cells.scatter_(1, idx, True)
+
+
+class LayoutSampler:
+    """Samples solvable hole layouts for a batch of envs, each env on one of several grid stages.
+
+    Tensors in and out; inside, the work runs on NumPy arrays on CPU and on torch tensors on CUDA (one
+    implementation over both, see ``_NumpyOps``/``_TorchOps``), with identical results.
+    """
+
+    def __init__(
+        self, grids: Sequence[GridSpec], view_size: int, max_tries: int, device: torch.device, backend: str = "auto"
+    ) -> None:
         self.grids = tuple(grids)
         self.radius = view_size // 2
         self.n_max = max(g.size for g in self.grids)
         self.side = self.n_max + 2 * self.radius
         self.max_tries = max_tries
+        self.attempts_per_round = 1
+        """layouts tried per env in one batched round; set from the solvable fraction by the env core"""
         self.device = device
         p, r = self.side, self.radius
         s_count = len(self.grids)
         templates = np.full((s_count, p, p), WALL, dtype=np.uint8)
         candidates = np.zeros((s_count, p, p), dtype=bool)
-        n_cand = max(g.size**2 - 3 for g in self.grids)
-        cand_cells = np.zeros((s_count, n_cand), dtype=np.int64)
+        cand_cells = np.zeros((s_count, max(g.size**2 - 3 for g in self.grids)), dtype=np.int64)
         starts = np.zeros(s_count, dtype=np.int64)
         for s, g in enumerate(self.grids):
             n = g.size
@@ -136,91 +189,124 @@ class LayoutSampler:
             flat = np.flatnonzero(candidates[s])
             cand_cells[s, : len(flat)] = flat
             starts[s] = (r + n - 1) * p + r + n // 2
-        t = lambda a: torch.as_tensor(a, device=device)  # noqa: E731
-        self.templates = t(templates.reshape(s_count, p * p))
-        self.candidates = t(candidates.reshape(s_count, p * p))
-        self.cand_cells = t(cand_cells)
-        self.n_cand = t(np.array([g.size**2 - 3 for g in self.grids], dtype=np.int64))
         holes = np.array([g.holes for g in self.grids], dtype=np.int64)
-        self.pick_holes = t(holes <= (self.n_cand.cpu().numpy() - holes))
-        self.n_pick = t(np.minimum(holes, self.n_cand.cpu().numpy() - holes))
-        self.starts = t(starts)
-        self.sizes = t(np.array([g.size for g in self.grids], dtype=np.int64))
-        self._pow2 = t(np.array([1 << i for i in range(p)], dtype=np.int64))
+        n_cand = np.array([g.size**2 - 3 for g in self.grids], dtype=np.int64)
+        tables = {
+            "templates": templates.reshape(s_count, p * p),
+            "candidates": candidates.reshape(s_count, p * p),
+            "cand_cells": cand_cells,
+            "n_cand": n_cand,
+            "pick_holes": holes <= n_cand - holes,
+            "n_pick": np.minimum(holes, n_cand - holes),
+            "starts": starts,
+            "sizes": np.array([g.size for g in self.grids], dtype=np.int64),
+            "pow2": np.array([1 << i for i in range(p)], dtype=np.int64),
+        }
+        if backend == "auto":
+            backend = "numpy" if device.type == "cpu" else "torch"
+        if backend == "numpy" and device.type != "cpu":
+            raise ValueError("the numpy layout backend runs on CPU only")
+        self.ops = _NumpyOps if backend == "numpy" else _TorchOps
+        # Torch copies on the env's device (the core reads templates and starts) and the work arrays.
+        self.templates = torch.as_tensor(tables["templates"], device=device)
+        self.starts = torch.as_tensor(tables["starts"], device=device)
+        self._x = {k: (v if self.ops is _NumpyOps else torch.as_tensor(v, device=device)) for k, v in tables.items()}
 
-    # ------------------------------------------------------------------ sampling
+    # ------------------------------------------------------------------ public, tensors in and out
     def sample(self, keys: torch.Tensor, stages: torch.Tensor) -> torch.Tensor:
-        """Solvable hole masks ``(k, P*P)`` for episode keys ``(k,)`` on grid stages ``(k,)``.
+        """Solvable hole masks ``(k, P*P)`` bool for episode keys ``(k,)`` on grid stages ``(k,)``.
 
-        Raises LayoutError naming the grid if some env finds no solvable layout within ``max_tries``.
+        Each round tries ``attempts_per_round`` layouts per env at once (attempt ``a`` is a hash of the key and
+        ``a``) and keeps the first solvable one, so an env's layout does not depend on the round size. Raises
+        LayoutError naming the grid if some env finds no solvable layout within ``max_tries``.
         """
-        k = keys.shape[0]
-        holes = torch.zeros((k, self.side * self.side), dtype=torch.bool, device=self.device)
-        todo = torch.arange(k, device=self.device)
-        for attempt in range(self.max_tries):
-            attempt_keys = rng.combine(keys[todo], rng.ATTEMPT + attempt)
-            mask = self.hole_masks(attempt_keys, stages[todo])
-            ok = self.solvable(mask, stages[todo])
-            holes[todo[ok]] = mask[ok]
-            todo = todo[~ok]
-            if todo.numel() == 0:
-                return holes
-        g = self.grids[int(stages[todo[0]])]
-        raise LayoutError(
-            f"no solvable layout found for size={g.size}, holes={g.holes} within {self.max_tries} tries; "
-            "use fewer holes or raise env.max_layout_tries"
-        )
+        ops = self.ops
+        keys_x, stages_x = ops.convert(keys), ops.convert(stages)
+        k = keys_x.shape[0]
+        holes = ops.zeros_bool((k, self.side * self.side), keys_x)
+        todo = ops.arange(k, keys_x)
+        attempt = 0
+        while todo.shape[0]:
+            if attempt >= self.max_tries:
+                g = self.grids[int(stages_x[todo[0]])]
+                raise LayoutError(
+                    f"no solvable layout found for size={g.size}, holes={g.holes} within {self.max_tries} tries; "
+                    "use fewer holes or raise env.max_layout_tries"
+                )
+            n, tries = todo.shape[0], min(self.attempts_per_round, self.max_tries - attempt)
+            salts = rng.ATTEMPT + attempt + ops.arange(tries, keys_x)
+            trial_keys = rng.combine(ops.repeat_each(keys_x[todo], tries), ops.tile(salts, n))
+            trial_stages = ops.repeat_each(stages_x[todo], tries)
+            masks = self._hole_masks(trial_keys, trial_stages)
+            ok = self._solvable(masks, trial_stages).reshape(n, tries)
+            found = ok.any(1)
+            chosen = masks.reshape(n, tries, -1)[ops.arange(n, keys_x), ops.argmax_rows(ok)]
+            holes[todo[found]] = chosen[found]
+            todo = todo[~found]
+            attempt += tries
+        return ops.back(holes, self.device)
 
     def hole_masks(self, keys: torch.Tensor, stages: torch.Tensor) -> torch.Tensor:
-        """Uniformly random H-subsets of the candidate cells (no solvability check), as ``(k, P*P)`` masks.
+        """Uniformly random hole sets (no solvability check) as ``(k, P*P)`` bool masks."""
+        return self.ops.back(self._hole_masks(self.ops.convert(keys), self.ops.convert(stages)), self.device)
 
-        Draws min(H, M - H) distinct candidates by drawing with replacement and redrawing duplicates (the result
-        is uniform over subsets by symmetry); when H > M/2 the drawn cells are the ones left free.
-        """
-        k, dev = keys.shape[0], self.device
-        n_pick, n_cand = self.n_pick[stages], self.n_cand[stages]
+    def solvable(self, holes: torch.Tensor, stages: torch.Tensor) -> torch.Tensor:
+        """Whether both goals are 4-connected to the start, for hole masks ``(k, P*P)``; ``(k,)`` bool."""
+        return self.ops.back(self._solvable(self.ops.convert(holes), self.ops.convert(stages)), self.device)
+
+    def probe(self, samples: int = 1024) -> list[float]:
+        """Fraction of random layouts that are solvable, per stage (used to refuse near-impossible grids early)."""
+        fractions = []
+        for s in range(len(self.grids)):
+            keys = rng.seed_keys(torch.arange(samples) + 0xC0FFEE * (s + 1)).to(self.device)
+            stages = torch.full((samples,), s, dtype=torch.int64, device=self.device)
+            fractions.append(float(self.solvable(self.hole_masks(keys, stages), stages).float().mean()))
+        return fractions
+
+    # ------------------------------------------------------------------ work, on NumPy or torch arrays
+    def _hole_masks(self, keys, stages):
+        """Draws min(H, M - H) distinct candidates by drawing with replacement and redrawing duplicates (uniform
+        over subsets by symmetry); when H > M/2 the drawn cells are the ones left free."""
+        ops, x = self.ops, self._x
+        k = keys.shape[0]
+        n_pick, n_cand = x["n_pick"][stages], x["n_cand"][stages]
         width = int(n_pick.max()) if k else 0
-        cells = torch.zeros((k, self.side * self.side + 1), dtype=torch.bool, device=dev)
+        cells = ops.zeros_bool((k, self.side * self.side + 1), keys)
         if width > 0:
             draw_keys = rng.combine(keys, rng.HOLE_DRAW)[:, None]
-            positions = torch.arange(width, device=dev)
+            positions = ops.arange(width, keys)
             valid = positions[None, :] < n_pick[:, None]
-            values = self._draw(draw_keys, positions, 0, n_cand)
-            values = torch.where(valid, values, _SORT_SENTINEL)
+            values = ops.where(valid, self._draw(draw_keys, positions, 0, n_cand), _SORT_SENTINEL)
             for round_ in range(1, _MAX_DEDUPE_ROUNDS + 1):
-                values, _ = values.sort(dim=1)
-                dup = torch.zeros_like(valid)
-                dup[:, 1:] = (values[:, 1:] == values[:, :-1]) & (values[:, 1:] < _SORT_SENTINEL)
+                values = ops.sort_rows(values)
+                dup = (values[:, 1:] == values[:, :-1]) & (values[:, 1:] < _SORT_SENTINEL)
                 if not bool(dup.any()):
                     break
-                values = torch.where(dup, self._draw(draw_keys, positions, round_, n_cand), values)
+                redraw = self._draw(draw_keys, positions, round_, n_cand)
+                values[:, 1:] = ops.where(dup, redraw[:, 1:], values[:, 1:])
             else:  # pragma: no cover - each round halves the duplicates; 256 rounds do not fail in practice
                 raise LayoutError("hole sampling did not converge")
-            flat = torch.gather(self.cand_cells[stages], 1, values.clamp(max=self.cand_cells.shape[1] - 1))
-            flat = torch.where(valid, flat, self.side * self.side)
-            cells.scatter_(1, flat, True)
+            flat = ops.gather_rows(x["cand_cells"][stages], values.clip(max=x["cand_cells"].shape[1] - 1))
+            ops.set_true(cells, ops.where(valid, flat, self.side * self.side))
         picked = cells[:, :-1]
-        cand = self.candidates[stages]
-        return torch.where(self.pick_holes[stages, None], picked, cand & ~picked)
+        cand = x["candidates"][stages]
+        return ops.where(x["pick_holes"][stages][:, None], picked, cand & ~picked)
 
-    def _draw(self, keys: torch.Tensor, positions: torch.Tensor, round_: int, n: torch.Tensor) -> torch.Tensor:
+    def _draw(self, keys, positions, round_: int, n):
         counters = rng.hash32((positions + round_ * _COUNTER_STRIDE + 0x9E3779B9) & rng.M32)
         return rng.below(rng.hash32(keys ^ counters[None, :]), n[:, None])
 
-    # ------------------------------------------------------------------ solvability
-    def solvable(self, holes: torch.Tensor, stages: torch.Tensor) -> torch.Tensor:
-        """Whether both goals are 4-connected to the start, for hole masks ``(k, P*P)``; returns ``(k,)`` bool."""
+    def _solvable(self, holes, stages):
+        """Flood fill from the start where each padded row is one int64 bit mask (bit c = column c)."""
+        ops, x = self.ops, self._x
         k, p, r = holes.shape[0], self.side, self.radius
-        if k == 0:
-            return torch.zeros(0, dtype=torch.bool, device=self.device)
-        free = (self.templates[stages] != WALL) & ~holes
-        free_rows = (free.view(k, p, p).to(torch.int64) * self._pow2).sum(-1)  # (k, P): bit c = column c
-        rows = torch.arange(k, device=self.device)
-        start = self.starts[stages]
-        reach = torch.zeros_like(free_rows)
-        reach[rows, start // p] = self._pow2[start % p]
-        n = self.sizes[stages]
-        adv_bit, user_bit = self._pow2[r], self._pow2[r + n - 1]
+        free = (x["templates"][stages] != WALL) & ~holes
+        free_rows = (ops.to_int64(free.reshape(k, p, p)) * x["pow2"]).sum(-1)  # (k, P)
+        start = x["starts"][stages]
+        reach = free_rows * 0
+        reach[ops.arange(k, free_rows), start // p] = x["pow2"][start % p]
+        n = x["sizes"][stages]
+        adv_bit, user_bit = x["pow2"][r], x["pow2"][r + n - 1]
         for step in range(p * p):
             grown = reach | (reach << 1) | (reach >> 1)
             grown[:, 1:] |= reach[:, :-1]
@@ -235,12 +321,3 @@ class LayoutSampler:
             reach = grown
         top = reach[:, r]
         return ((top & adv_bit) != 0) & ((top & user_bit) != 0)
-
-    def probe(self, samples: int = 1024) -> list[float]:
-        """Fraction of random layouts that are solvable, per stage (used to refuse near-impossible grids early)."""
-        fractions = []
-        for s in range(len(self.grids)):
-            keys = rng.seed_keys(torch.arange(samples, device=self.device) + 0xC0FFEE * (s + 1))
-            stages = torch.full((samples,), s, dtype=torch.int64, device=self.device)
-            fractions.append(float(self.solvable(self.hole_masks(keys, stages), stages).float().mean()))
-        return fractions

@@ -1,17 +1,22 @@
-"""Counter-based random numbers: every draw is a hash of (seed, env stream, episode, purpose, counter).
+"""Counter-based random numbers: every draw is a hash of (env seed, episode index, purpose, counter).
 
 Why not ``torch.Generator``: with a counter-based scheme an episode's layout and trigger step depend only on
-the seed, the env's stream index and the episode's index in that stream -- not on the batch size, on which
-other envs reset at the same step, or on the device. So env ``i`` of a batched env equals a single env on
-stream ``i``, CPU equals CUDA, and any episode can be regenerated from its key.
+the env's seed and the episode's index -- not on the batch size, on which other envs reset at the same step, or
+on the device. So env ``i`` of a batch seeded ``s`` equals a single env seeded ``s + i``, CPU equals CUDA, and
+any episode can be regenerated from its key.
 
-All values are 32-bit unsigned integers held in int64 tensors. Multiplications are split into 16-bit halves so
-that no intermediate overflows int64 (signed overflow is not something to rely on across devices).
+All values are 32-bit unsigned integers held in int64 arrays; no intermediate overflows int64. ``hash32`` and
+``combine`` work alike on Python ints, NumPy arrays and torch tensors (the layout sampler runs on NumPy on CPU,
+where small-array operations cost a fraction of torch's dispatch).
 """
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import torch
+
+Ints = TypeVar("Ints")  # int, numpy int64 array or torch int64 tensor
 
 M32 = 0xFFFFFFFF
 _GOLDEN = 0x9E3779B9
@@ -20,24 +25,21 @@ _GOLDEN = 0x9E3779B9
 STAGE, TROJAN, ON_STEP, OFF_FLAG, OFF_GAP, HOLE_DRAW, ATTEMPT = (0x1000 + 7919 * i for i in range(7))
 
 
-def _mul32(x: torch.Tensor, c: int) -> torch.Tensor:
-    lo, hi = c & 0xFFFF, c >> 16
-    return (x * lo + (((x * hi) & 0xFFFF) << 16)) & M32
+def hash32(x: Ints) -> Ints:
+    """A strong 32-bit integer hash of values in [0, 2^32) (ints, int64 arrays or tensors).
 
-
-def hash32(x: torch.Tensor) -> torch.Tensor:
-    """A strong 32-bit integer hash ('lowbias32', C. Wellons) of int64 tensors holding values in [0, 2^32)."""
+    The two-round xor-shift-multiply hash found by C. Wellons' hash-prospector (bias about 0.108). Both
+    multipliers are below 2^31, so every product stays below 2^63: no int64 overflow on any device.
+    """
     x = x ^ (x >> 16)
-    x = _mul32(x, 0x7FEB352D)
+    x = (x * 0x21F0AAAD) & M32
     x = x ^ (x >> 15)
-    x = _mul32(x, 0x846CA68B)
-    return x ^ (x >> 16)
+    x = (x * 0x735A2D97) & M32
+    return x ^ (x >> 15)
 
 
-def combine(key: torch.Tensor, value: torch.Tensor | int) -> torch.Tensor:
-    """Hash ``value`` into ``key``; broadcasts."""
-    if isinstance(value, int):
-        value = torch.tensor(value & M32, dtype=torch.int64, device=key.device)
+def combine(key: Ints, value) -> Ints:
+    """Hash ``value`` (an int or an array like ``key``) into ``key``; broadcasts."""
     return hash32(key ^ hash32((value + _GOLDEN) & M32))
 
 
@@ -53,6 +55,6 @@ def uniform(key: torch.Tensor, purpose: int) -> torch.Tensor:
     return (combine(key, purpose) >> 8).to(torch.float32) * (1.0 / (1 << 24))
 
 
-def below(bits: torch.Tensor, n: torch.Tensor | int) -> torch.Tensor:
+def below(bits: Ints, n) -> Ints:
     """Map uniform 32-bit values to integers in [0, n) (multiply-shift; bias below n / 2^32)."""
     return (bits * n) >> 32

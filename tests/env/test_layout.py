@@ -101,3 +101,18 @@ def test_layout_from_ascii_rejects_bad_maps():
         Layout.from_ascii("U . . . A\n. . . . .\n. . . . .\n. . . . .\n. . . . .")
     with pytest.raises(LayoutError, match="start cell"):
         Layout.from_ascii("A . . . U\n. . . . .\n. . . . .\n. . . . .\n. . O . .")
+
+
+def test_numpy_and_torch_backends_give_identical_results():
+    grids = [GridSpec(7, 3), GridSpec(11, 30), GridSpec(9, 50)]  # the last draws its free cells (H > M/2)
+    keys = rng.seed_keys(torch.arange(300))
+    stages = torch.arange(300) % 3
+    results = []
+    for backend in ("numpy", "torch"):
+        sampler = LayoutSampler(grids, view_size=3, max_tries=1000, device=torch.device("cpu"), backend=backend)
+        sampler.attempts_per_round = 3
+        masks = sampler.hole_masks(keys, stages)
+        easy = stages < 2
+        results.append((masks, sampler.solvable(masks, stages), sampler.sample(keys[easy], stages[easy])))
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
