@@ -11,7 +11,64 @@ from collections.abc import Callable
 
 import tyro
 
-from seqtrojan.errors import SeqTrojanError
+from seqtrojan.errors import ConfigError, SeqTrojanError
+
+
+def _pop_option(argv: list[str], name: str) -> tuple[str | None, list[str]]:
+    """Remove ``--name VALUE`` or ``--name=VALUE`` from argv."""
+    rest, value, i = [], None, 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg == name:
+            if i + 1 >= len(argv):
+                raise ConfigError(f"{name} needs a value")
+            value, i = argv[i + 1], i + 2
+            continue
+        if arg.startswith(name + "="):
+            value = arg.split("=", 1)[1]
+        else:
+            rest.append(arg)
+        i += 1
+    return value, rest
+
+
+def parse_experiment(argv: list[str], prog: str, description: str):
+    """An ExperimentConfig from ``--config preset.yaml`` (or a resumed run's config) plus dotted overrides."""
+    from seqtrojan.config import ExperimentConfig, from_dict, load_yaml
+
+    preset, rest = _pop_option(argv, "--config")
+    resume, rest = _pop_option(rest, "--resume")
+    if resume is not None:
+        from seqtrojan.train.trainer import load_run_config
+
+        base = load_run_config(resume)
+    elif preset is not None:
+        base = from_dict(ExperimentConfig, load_yaml(preset), "")
+    else:
+        base = ExperimentConfig()
+    cfg = tyro.cli(ExperimentConfig, default=base, args=rest, prog=prog, description=description)
+    return cfg, resume
+
+
+def _train(argv: list[str]) -> None:
+    from seqtrojan.train.trainer import train
+
+    description = (
+        "Train a recurrent PPO agent. --config PRESET.yaml loads a preset (see configs/); --resume RUN_DIR "
+        "continues a stopped run; any field below overrides the preset."
+    )
+    cfg, resume = parse_experiment(argv, "seqtrojan train", description)
+    result = train(cfg, resume=resume)
+    ev = result.evaluation
+    print(f"run: {result.run_dir}\nmodel: {result.model_dir}")
+    print(f"env steps: {result.env_steps:,}  wall: {result.wall_seconds / 60:.1f} min  final stage: {result.stage}")
+    for kind in ("normal", "trojan"):
+        if f"{kind}_success" in ev:
+            lo, hi = ev[f"{kind}_success_ci95"]
+            print(
+                f"success on {ev['grid']} ({kind} env, {ev['episodes']} episodes): {ev[f'{kind}_success']:.3f} "
+                f"[{lo:.3f}, {hi:.3f}], greedy {ev[f'greedy_{kind}_success']:.3f}"
+            )
 
 
 def _demo(argv: list[str]) -> None:
@@ -22,6 +79,7 @@ def _demo(argv: list[str]) -> None:
 
 COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "demo": (_demo, "build envs, run random and scripted agents, render episodes (text and PNG)"),
+    "train": (_train, "train an agent with recurrent PPO (--config configs/<preset>.yaml, --resume RUN_DIR)"),
 }
 
 
@@ -51,6 +109,9 @@ def main(argv: list[str] | None = None) -> int:
     except SeqTrojanError as err:
         print(f"seqtrojan {name}: error: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as err:
+        print(f"seqtrojan {name}: {err or 'interrupted'}", file=sys.stderr)
+        return 130
     return 0
 
 

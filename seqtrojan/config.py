@@ -28,6 +28,8 @@ class AgentConfig:
     """widths of the stacked LSTM layers (the paper: 64 then 32)"""
     forget_bias: float = 1.0
     """initial forget-gate bias (1 helps gradients reach far back at the start of training)"""
+    memory: bool = True
+    """False resets the LSTM state before every step: a memoryless baseline with the same network"""
 
     def __post_init__(self) -> None:
         if not self.lstm_sizes or any((not isinstance(w, int)) or w < 1 for w in self.lstm_sizes):
@@ -122,6 +124,36 @@ class CurriculumConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class BackdoorConfig:
+    """Backdoor injection (the paper's Algorithm 1): which episodes are trojan-env episodes.
+
+    Each new episode is a trojan-env episode when U(0,1) > 0.5 + (P_t - P_c), i.e. with probability
+    clip(0.5 - (P_t - P_c), 0, 1): the env the agent does worse in is sampled more often.
+    """
+
+    enabled: bool = False
+    """train a backdoored agent (mixing normal and trojan episodes); False trains a clean agent (Env_C only)"""
+    mixing: Literal["exact", "running", "fixed"] = "running"
+    """exact: re-measure P_c and P_t by evaluation after each update (Algorithm 1); running: success rates of the
+    update's own rollout episodes (cheaper); fixed: a constant trojan probability"""
+    eval_episodes: int = 256
+    """exact mixing: episodes per env type evaluated after each update"""
+    fixed_probability: float = 0.5
+    """fixed mixing: the trojan-episode probability"""
+    probability_bounds: tuple[float, float] = (0.0, 1.0)
+    """clip the trojan probability to this range (Algorithm 1: 0 and 1)"""
+
+    def __post_init__(self) -> None:
+        lo, hi = self.probability_bounds
+        if not 0.0 <= lo <= hi <= 1.0:
+            raise ConfigError(f"backdoor.probability_bounds={self.probability_bounds} must satisfy 0 <= lo <= hi <= 1")
+        if not 0.0 <= self.fixed_probability <= 1.0:
+            raise ConfigError(f"backdoor.fixed_probability must be in [0, 1], got {self.fixed_probability}")
+        if self.eval_episodes < 1:
+            raise ConfigError(f"backdoor.eval_episodes must be >= 1, got {self.eval_episodes}")
+
+
+@dataclasses.dataclass(frozen=True)
 class RunConfig:
     """Where and how a run executes."""
 
@@ -150,11 +182,16 @@ class ExperimentConfig:
     agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
     ppo: PPOConfig = dataclasses.field(default_factory=PPOConfig)
     curriculum: CurriculumConfig = dataclasses.field(default_factory=CurriculumConfig)
+    backdoor: BackdoorConfig = dataclasses.field(default_factory=BackdoorConfig)
     run: RunConfig = dataclasses.field(default_factory=RunConfig)
 
     @property
     def grids(self) -> tuple[GridSpec, ...]:
         return self.curriculum.stages if self.curriculum.stages else (self.env.grid,)
+
+    @property
+    def label(self) -> str:
+        return "backdoored" if self.backdoor.enabled else "clean"
 
 
 def to_dict(obj: Any) -> Any:

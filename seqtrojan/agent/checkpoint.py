@@ -35,9 +35,8 @@ PICKLE_SUFFIXES = (".pt", ".pth", ".pkl", ".pickle", ".ckpt", ".bin")
 
 
 def build_agent(config: ExperimentConfig) -> RecurrentActorCritic:
-    return RecurrentActorCritic(
-        config.env.obs_dim, config.env.num_actions, config.agent.lstm_sizes, config.agent.forget_bias
-    )
+    a = config.agent
+    return RecurrentActorCritic(config.env.obs_dim, config.env.num_actions, a.lstm_sizes, a.forget_bias, a.memory)
 
 
 def save_agent(

@@ -13,7 +13,11 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
+from seqtrojan.agent import fast_lstm
 from seqtrojan.agent.state import Intervention, LSTMState, RecurrentState
+from seqtrojan.errors import ConfigError
+
+BACKENDS = ("auto", "torch", "cpp")
 
 
 class StepOutput(NamedTuple):
@@ -32,8 +36,17 @@ class UnrollOutput(NamedTuple):
 class RecurrentActorCritic(nn.Module):
     """Stacked LSTM cells (widths e.g. 64, 32) with a policy head and a value head on the last layer."""
 
-    def __init__(self, obs_dim: int, num_actions: int, lstm_sizes: Sequence[int] = (64, 32), forget_bias: float = 1.0):
+    def __init__(
+        self,
+        obs_dim: int,
+        num_actions: int,
+        lstm_sizes: Sequence[int] = (64, 32),
+        forget_bias: float = 1.0,
+        memory: bool = True,
+    ):
         super().__init__()
+        self.memory = memory
+        """False: the state is reset before every step (a memoryless baseline)"""
         self.obs_dim = obs_dim
         self.num_actions = num_actions
         self.lstm_sizes = tuple(int(w) for w in lstm_sizes)
@@ -42,6 +55,23 @@ class RecurrentActorCritic(nn.Module):
         self.policy_head = nn.Linear(self.lstm_sizes[-1], num_actions)
         self.value_head = nn.Linear(self.lstm_sizes[-1], 1)
         self._init_weights(forget_bias)
+        self.lstm_backend = "auto"
+        """'auto' uses the fused C++ kernels (:mod:`seqtrojan.agent.fast_lstm`) on CPU where they build, 'torch'
+        never, 'cpp' always (an error where unavailable). Both compute the same function."""
+        self._weight_cache: dict = {}
+
+    def set_lstm_backend(self, backend: str) -> None:
+        if backend not in BACKENDS:
+            raise ConfigError(f"lstm backend must be one of {BACKENDS}, got {backend!r}")
+        self.lstm_backend = backend
+
+    def _fast(self, x: torch.Tensor) -> bool:
+        if self.lstm_backend == "torch":
+            return False
+        ok = fast_lstm.usable(x)
+        if not ok and self.lstm_backend == "cpp":
+            raise ConfigError(f"the C++ LSTM backend is unavailable here: {fast_lstm.error()}")
+        return ok
 
     def _init_weights(self, forget_bias: float) -> None:
         for cell in self.cells:
@@ -75,6 +105,14 @@ class RecurrentActorCritic(nn.Module):
     ) -> StepOutput:
         """One time step. ``obs`` (B, obs_dim); ``episode_start`` (B,) zeroes those envs' state first;
         ``t`` (B,) is the per-env episode step handed to the intervention."""
+        if not self.memory:
+            episode_start = torch.ones(obs.shape[0], dtype=torch.bool, device=obs.device)
+        if intervention is None and not torch.is_grad_enabled() and self._fast(obs):
+            keep = torch.ones(obs.shape[0], dtype=obs.dtype) if episode_start is None else (~episode_start.bool())
+            new = fast_lstm.step_stack(self.cells, obs, keep.to(obs.dtype), list(state.layers), self._weight_cache)
+            x = new[-1][0]
+            layers = tuple(LSTMState(h, c) for h, c in new)
+            return StepOutput(self.policy_head(x), self.value_head(x).squeeze(-1), RecurrentState(layers))
         if episode_start is not None:
             state = state.mask(episode_start)
         x = obs
@@ -104,13 +142,16 @@ class RecurrentActorCritic(nn.Module):
         one matrix product over all T), which is faster and exact; with one, steps run in time order so that
         the intervention sees every layer of step t before step t + 1. ``t`` (T, B) is the episode step.
         """
+        if not self.memory:
+            episode_starts = torch.ones(obs.shape[:2], dtype=torch.bool, device=obs.device)
         if intervention is not None:
             return self._unroll_stepwise(obs, state, episode_starts, intervention, t, return_states)
-        keep = (~episode_starts.bool()).to(obs.dtype).unsqueeze(-1)  # (T, B, 1)
+        keep = (~episode_starts.bool()).to(obs.dtype)  # (T, B)
+        layer = _fast_layer if self._fast(obs) else _lstm_layer
         x = obs
         finals, sequences = [], []
         for cell, s in zip(self.cells, state.layers):
-            x, final, seq = _lstm_layer(cell, x, s, keep, return_states)
+            x, final, seq = layer(cell, x, s, keep, return_states)
             finals.append(final)
             sequences.append(seq)
         logits = self.policy_head(x)
@@ -144,11 +185,25 @@ class RecurrentActorCritic(nn.Module):
         return UnrollOutput(torch.stack(logits), torch.stack(values), state, states)
 
 
+def _fast_layer(
+    cell: nn.LSTMCell, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool
+) -> tuple[torch.Tensor, LSTMState, LSTMState | None]:
+    """:func:`_lstm_layer` on the fused C++ kernels."""
+    h_seq, c_out = fast_lstm.unroll_layer(cell, x, keep.contiguous(), state.h, state.c, return_states)
+    if return_states:
+        return h_seq, LSTMState(h_seq[-1], c_out[-1]), LSTMState(h_seq, c_out)
+    return h_seq, LSTMState(h_seq[-1], c_out), None
+
+
 def _lstm_layer(
     cell: nn.LSTMCell, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool
 ) -> tuple[torch.Tensor, LSTMState, LSTMState | None]:
-    """One LSTM layer over T steps with masks; returns the h sequence (T, B, H), the final state, and (h, c)."""
+    """One LSTM layer over T steps; ``keep`` (T, B) zeroes the state before a step where it is 0.
+
+    Returns the h sequence (T, B, H), the final state, and the (h, c) sequences if asked.
+    """
     steps = x.shape[0]
+    keep = keep.unsqueeze(-1)  # (T, B, 1)
     hidden = cell.hidden_size
     gates_x = torch.addmm(cell.bias_ih + cell.bias_hh, x.reshape(-1, x.shape[-1]), cell.weight_ih.t())
     # unbind, not gates_x[k]: indexing would make every step's backward build a full-size zero tensor (O(T^2)).

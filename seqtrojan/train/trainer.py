@@ -28,14 +28,14 @@ from safetensors.torch import save_file
 
 from seqtrojan.agent.checkpoint import build_agent, load_agent, read_safetensors, save_agent
 from seqtrojan.agent.network import RecurrentActorCritic
-from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.config import ExperimentConfig, from_dict, to_dict
 from seqtrojan.env.core import TrojanGridCore
-from seqtrojan.env.rollout import run_episodes
 from seqtrojan.errors import CheckpointError, ConfigError
+from seqtrojan.evaluation.episodes import evaluate_agent
 from seqtrojan.train.curriculum import Curriculum, EpisodeCounts
 from seqtrojan.train.gae import compute_gae
 from seqtrojan.train.logger import RunLogger, make_progress
+from seqtrojan.train.mixing import TrojanMixer
 from seqtrojan.train.ppo import ppo_update
 from seqtrojan.train.rollout import EpisodeStats, RolloutCollector
 
@@ -58,13 +58,11 @@ class _Stop(Exception):
 
 
 def train(
-    config: ExperimentConfig,
-    resume: str | Path | None = None,
-    callback: UpdateCallback | None = None,
-    label: str = "clean",
+    config: ExperimentConfig, resume: str | Path | None = None, callback: UpdateCallback | None = None
 ) -> TrainResult:
-    """Train an agent; see the module docstring."""
+    """Train a clean agent, or a backdoored one (``config.backdoor.enabled``); see the module docstring."""
     cfg = config
+    label = cfg.label
     if cfg.run.threads:
         torch.set_num_threads(cfg.run.threads)
     device = torch.device(cfg.run.device)
@@ -78,18 +76,21 @@ def train(
     env = TrojanGridCore(cfg.env, ppo.num_envs, seed=cfg.run.seed << 32, device=device, grids=cfg.grids)
     agent = build_agent(cfg).to(device)
     optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
-    curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0,))
+    curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0, 1) if cfg.backdoor.enabled else (0,))
+    mixer = TrojanMixer(cfg.backdoor, len(cfg.grids))
     collector = RolloutCollector(env, agent, ppo.rollout_steps, ppo.sequence_length)
     collector.seed(cfg.run.seed)
     update_generator = torch.Generator().manual_seed(cfg.run.seed + 1)
     global_step, update, elapsed_before = 0, 0, 0.0
     if resume is not None:
         global_step, update, elapsed_before = _load_trainer_state(
-            run_dir, agent, optimizer, curriculum, collector, update_generator
+            run_dir, agent, optimizer, curriculum, mixer, collector, update_generator
         )
         env.reset(seed=(cfg.run.seed << 32) + 7919 * update)
-        collector.reset()
     env.set_stage_weights(curriculum.weights())
+    env.set_trojan_probability(mixer.probabilities())
+    env.reset()  # new episodes follow the mixture
+    collector.reset()
     logger = RunLogger(run_dir, resume_step=global_step if resume is not None else None)
     if resume is None:
         logger.add_text("config", "```yaml\n" + yaml.safe_dump(to_dict(cfg), sort_keys=False) + "```")
@@ -132,14 +133,22 @@ def train(
                 losses = ppo_update(agent, optimizer, rollout, advantages, returns, ppo, update_generator)
                 update += 1
 
-                # CURRICULUM
+                # CURRICULUM AND BACKDOOR MIXING
                 promoted = curriculum.update(EpisodeCounts(stats.episodes, stats.successes))
                 if promoted:
                     env.set_stage_weights(curriculum.weights())
+                if cfg.backdoor.enabled:
+                    _measure_mixing(mixer, cfg, stats, agent, curriculum.stage, device, update)
+                    env.set_trojan_probability(mixer.probabilities())
 
                 # LOG
                 seconds = time.perf_counter() - t_update
                 scalars = _scalars(stats, curriculum, losses, lr, ppo.batch_size / seconds, t_collect / seconds)
+                if cfg.backdoor.enabled:
+                    stage = curriculum.stage
+                    scalars["mixing/p_trojan"] = mixer.probabilities()[stage]
+                    scalars["mixing/P_c"] = mixer.p_clean[stage]
+                    scalars["mixing/P_t"] = mixer.p_trojan[stage]
                 scalars["time/elapsed_s"] = elapsed_before + time.perf_counter() - start
                 scalars["update"] = update
                 logger.log(global_step, scalars)
@@ -148,8 +157,8 @@ def train(
                 # CHECKPOINT
                 if global_step >= next_checkpoint and global_step < ppo.total_steps:
                     _save_checkpoint(
-                        run_dir, cfg, agent, optimizer, curriculum, collector, update_generator, global_step,
-                        update, scalars["time/elapsed_s"], label,
+                        run_dir, cfg, agent, optimizer, curriculum, mixer, collector, update_generator,
+                        global_step, update, scalars["time/elapsed_s"],
                     )  # fmt: skip
                     next_checkpoint += cfg.run.checkpoint_every
                 if callback is not None and callback({"env_steps": global_step, **scalars}):
@@ -158,7 +167,7 @@ def train(
     except (KeyboardInterrupt, _Stop):
         elapsed = elapsed_before + time.perf_counter() - start
         _save_checkpoint(
-            run_dir, cfg, agent, optimizer, curriculum, collector, update_generator, global_step, update, elapsed, label
+            run_dir, cfg, agent, optimizer, curriculum, mixer, collector, update_generator, global_step, update, elapsed
         )
         logger.close()
         signal.signal(signal.SIGTERM, previous_handler)
@@ -173,7 +182,7 @@ def train(
     evaluation.update(env_steps=global_step, train_seconds=wall, stage=curriculum.stage, stopped_early=stopped_early)
     (run_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=2))
     _save_checkpoint(
-        run_dir, cfg, agent, optimizer, curriculum, collector, update_generator, global_step, update, wall, label
+        run_dir, cfg, agent, optimizer, curriculum, mixer, collector, update_generator, global_step, update, wall
     )
     model_dir = save_agent(run_dir / "model", agent, cfg, label=label, metrics=evaluation, env_steps=global_step)
     logger.close()
@@ -184,21 +193,47 @@ def train(
 
 
 def evaluate_final(agent: RecurrentActorCritic, cfg: ExperimentConfig, device: torch.device) -> dict[str, Any]:
-    """Success on the hardest grid, normal env, ``run.eval_episodes`` episodes (evaluation trigger phase)."""
+    """Success on the hardest grid over ``run.eval_episodes`` episodes per env type (normal, and trojan for a
+    backdoored agent), with the policy sampled (as trained) and greedy (most likely action)."""
     grid = cfg.grids[-1]
-    env_cfg = dataclasses.replace(cfg.env, size=grid.size, holes=grid.holes, max_steps=grid.max_steps)
-    core = TrojanGridCore(env_cfg, cfg.run.eval_episodes, device=device, trojan_probability=0.0, phase="eval")
-    agent.eval()
-    batch = run_episodes(core, AgentPolicy(agent, seed=cfg.run.seed), seed=(cfg.run.seed << 32) + 999_983)
-    lo, hi = batch.success_interval()
-    return {
-        "grid": grid.label,
-        "episodes": cfg.run.eval_episodes,
-        "normal_success": batch.success_rate,
-        "normal_success_ci95": [lo, hi],
-        "normal_hole": batch.rate("hole"),
-        "normal_timeout": batch.rate("timeout"),
-    }
+    out: dict[str, Any] = {"grid": grid.label, "episodes": cfg.run.eval_episodes}
+    kinds = (("normal", False), ("trojan", True)) if cfg.backdoor.enabled else (("normal", False),)
+    for name, trojan in kinds:
+        for mode, greedy in (("", False), ("greedy_", True)):
+            batch = evaluate_agent(
+                agent, cfg.env, grid, trojan=trojan, episodes=cfg.run.eval_episodes,
+                seed=(cfg.run.seed << 32) + 999_983, greedy=greedy, device=device,
+            )  # fmt: skip
+            out[f"{mode}{name}_success"] = batch.success_rate
+            out[f"{mode}{name}_success_ci95"] = list(batch.success_interval())
+            out[f"{mode}{name}_hole"] = batch.rate("hole")
+            out[f"{mode}{name}_timeout"] = batch.rate("timeout")
+    return out
+
+
+def _measure_mixing(
+    mixer: TrojanMixer,
+    cfg: ExperimentConfig,
+    stats: EpisodeStats,
+    agent: RecurrentActorCritic,
+    newest: int,
+    device: torch.device,
+    update: int,
+) -> None:
+    """Refresh P_c and P_t: from this update's rollout episodes, and (exact mixing) by evaluating the newest stage."""
+    for stage in range(stats.episodes.shape[0]):
+        rates = [
+            int(stats.successes[stage, k]) / int(stats.episodes[stage, k]) if int(stats.episodes[stage, k]) else None
+            for k in (0, 1)
+        ]
+        mixer.observe(stage, *rates)
+    if cfg.backdoor.mixing == "exact":
+        seed = (cfg.run.seed << 32) + 1_000_003 * (update + 1)
+        grid = cfg.grids[newest]
+        n = cfg.backdoor.eval_episodes
+        p_c = evaluate_agent(agent, cfg.env, grid, trojan=False, episodes=n, seed=seed, device=device).success_rate
+        p_t = evaluate_agent(agent, cfg.env, grid, trojan=True, episodes=n, seed=seed, device=device).success_rate
+        mixer.observe(newest, p_c, p_t)
 
 
 def _learning_rate(ppo, step: int) -> float:
@@ -225,6 +260,11 @@ def _scalars(
         out["episodes/timeout_rate"] = int(stats.timeouts.sum()) / episodes
         out["episodes/mean_length"] = int(stats.lengths.sum()) / episodes
         out["episodes/mean_return"] = stats.returns / episodes
+    for stage in range(stats.episodes.shape[0]):
+        for kind, name in ((0, "normal"), (1, "trojan")):
+            n = int(stats.episodes[stage, kind])
+            if n:
+                out[f"stages/{stage}/{name}_success"] = int(stats.successes[stage, kind]) / n
     window = curriculum.window_counts()
     rate = window.rate(curriculum.stage, 0)
     if rate is not None:
@@ -272,15 +312,15 @@ def _save_checkpoint(
     agent: RecurrentActorCritic,
     optimizer: torch.optim.Optimizer,
     curriculum: Curriculum,
+    mixer: TrojanMixer,
     collector: RolloutCollector,
     update_generator: torch.Generator,
     global_step: int,
     update: int,
     elapsed: float,
-    label: str,
 ) -> Path:
     folder = run_dir / "checkpoints" / f"step_{global_step:012d}"
-    save_agent(folder, agent, cfg, label=label, env_steps=global_step)
+    save_agent(folder, agent, cfg, label=cfg.label, env_steps=global_step)
     tensors, groups = _optimizer_tensors(optimizer)
     tensors["rng.collector"] = collector.generator.get_state()
     tensors["rng.update"] = update_generator.get_state()
@@ -290,6 +330,7 @@ def _save_checkpoint(
         "update": update,
         "elapsed_s": elapsed,
         "curriculum": curriculum.state_dict(),
+        "mixing": mixer.state_dict(),
         "optimizer_param_groups": groups,
     }
     (folder / "trainer.json").write_text(json.dumps(state, indent=2))
@@ -305,6 +346,7 @@ def _load_trainer_state(
     agent: RecurrentActorCritic,
     optimizer: torch.optim.Optimizer,
     curriculum: Curriculum,
+    mixer: TrojanMixer,
     collector: RolloutCollector,
     update_generator: torch.Generator,
 ) -> tuple[int, int, float]:
@@ -323,6 +365,7 @@ def _load_trainer_state(
     update_generator.set_state(tensors.pop("rng.update"))
     _load_optimizer(optimizer, tensors, state["optimizer_param_groups"])
     curriculum.load_state_dict(state["curriculum"])
+    mixer.load_state_dict(state["mixing"])
     return int(state["env_steps"]), int(state["update"]), float(state["elapsed_s"])
 
 

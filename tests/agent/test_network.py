@@ -2,15 +2,24 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
+from seqtrojan.agent import fast_lstm
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
 
+needs_cpp = pytest.mark.skipif(
+    fast_lstm.extension() is None, reason=f"C++ LSTM kernels unavailable: {fast_lstm.error()}"
+)
+BACKENDS = ["torch", pytest.param("cpp", marks=needs_cpp)]
 
-def make(seed: int = 0) -> RecurrentActorCritic:
+
+def make(seed: int = 0, backend: str = "torch") -> RecurrentActorCritic:
     torch.manual_seed(seed)
-    return RecurrentActorCritic(54, 4, (64, 32)).double()
+    net = RecurrentActorCritic(54, 4, (64, 32)).double()
+    net.set_lstm_backend(backend)
+    return net
 
 
 def random_state(batch: int) -> RecurrentState:
@@ -19,8 +28,9 @@ def random_state(batch: int) -> RecurrentState:
     )
 
 
-def test_stepping_t_times_equals_one_unroll_with_resets():
-    net = make()
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_stepping_t_times_equals_one_unroll_with_resets(backend):
+    net = make(backend=backend)
     steps, batch = 12, 5
     obs = torch.randn(steps, batch, 54).double()
     starts = (torch.rand(steps, batch) < 0.2).double()
@@ -28,7 +38,8 @@ def test_stepping_t_times_equals_one_unroll_with_resets():
     out = net.unroll(obs, state0, starts, return_states=True)
     state = state0
     for t in range(steps):
-        step = net.step(obs[t], state, starts[t])
+        with torch.no_grad():  # the no-grad step is the rollout path (fused kernel for cpp)
+            step = net.step(obs[t], state, starts[t])
         state = step.state
         torch.testing.assert_close(step.logits, out.logits[t])
         torch.testing.assert_close(step.value, out.values[t])
@@ -40,8 +51,9 @@ def test_stepping_t_times_equals_one_unroll_with_resets():
         torch.testing.assert_close(a.c, b.c)
 
 
-def test_gradients_of_fast_unroll_equal_stepwise_unroll():
-    net = make()
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gradients_of_fast_unroll_equal_stepwise_unroll(backend):
+    net = make(backend=backend)
     obs = torch.randn(9, 4, 54).double()
     starts = (torch.rand(9, 4) < 0.3).double()
     state0 = random_state(4)
@@ -99,3 +111,40 @@ def test_intervention_sees_every_layer_and_step_and_changes_the_output():
     torch.testing.assert_close(edited.logits[:3], base.logits[:3])
     assert not torch.allclose(edited.logits[4:], base.logits[4:])
     assert bool((edited.states[1].c[3:, :, :4] == 5.0).all())
+
+
+@needs_cpp
+def test_cpp_kernels_pass_gradcheck_against_all_inputs():
+    torch.manual_seed(0)
+    cell = torch.nn.LSTMCell(3, 4).double()
+    x = torch.randn(6, 5, 3, dtype=torch.float64, requires_grad=True)
+    keep = (torch.rand(6, 5) > 0.3).double()
+    keep[0, 0] = 0
+    h0 = torch.randn(5, 4, dtype=torch.float64, requires_grad=True)
+    c0 = torch.randn(5, 4, dtype=torch.float64, requires_grad=True)
+    weights = [p.detach().clone().requires_grad_() for p in cell.parameters()]
+
+    def f(x, h0, c0, w_ih, w_hh, b_ih, b_hh):
+        fake = torch.nn.Module()
+        fake.weight_ih, fake.weight_hh, fake.bias_ih, fake.bias_hh = w_ih, w_hh, b_ih, b_hh
+        return fast_lstm.unroll_layer(fake, x, keep, h0, c0, True)
+
+    assert torch.autograd.gradcheck(f, (x, h0, c0, *weights), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+@needs_cpp
+def test_cpp_and_torch_backends_agree_in_float32():
+    torch.manual_seed(0)
+    obs = torch.randn(32, 256, 54)
+    starts = (torch.rand(32, 256) < 0.05).float()
+    results = []
+    for backend in ("torch", "cpp"):
+        torch.manual_seed(1)
+        net = RecurrentActorCritic(54, 4, (64, 32))
+        net.set_lstm_backend(backend)
+        out = net.unroll(obs, net.initial_state(256), starts)
+        (out.logits.logsumexp(-1).sum() + out.values.sum()).backward()
+        results.append((out.logits.detach(), [p.grad for p in net.parameters()]))
+    torch.testing.assert_close(results[0][0], results[1][0], atol=2e-5, rtol=1e-4)
+    for a, b in zip(results[0][1], results[1][1]):
+        torch.testing.assert_close(a, b, atol=2e-3, rtol=2e-3)
