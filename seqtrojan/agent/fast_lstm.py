@@ -19,6 +19,7 @@ float32 use inline approximations with about 3e-7 maximum error, the size of flo
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import platform
@@ -151,10 +152,8 @@ class _Releaser:
         self.buffers = buffers
 
     def __del__(self) -> None:
-        try:
+        with contextlib.suppress(Exception):
             _pool_put(*self.buffers)
-        except Exception:  # noqa: S110 - interpreter shutdown
-            pass
 
 
 # ---------------------------------------------------------------------------------------------- autograd
@@ -190,7 +189,7 @@ class _MaskedLSTMLayer(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, d_h_seq, d_c):
-        keep, w_ih, w_hh = ctx.saved_tensors
+        keep, w_ih, _w_hh = ctx.saved_tensors
         wc, xh, gates, c_seq, c_prev = ctx.buffers
         steps, batch, four_h = gates.shape
         hidden = four_h // 4

@@ -11,7 +11,6 @@ update is kept).
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as _dt
 import json
 import math
