@@ -1,8 +1,15 @@
+import dataclasses
+from pathlib import Path
+
 import pytest
 import torch
 
+from seqtrojan.config import ExperimentConfig, from_dict, load_yaml
+
 # One intra-op thread per test process: tests are run in parallel processes (pytest -n 2) and time nothing.
 torch.set_num_threads(1)
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def pytest_collection_modifyitems(config, items):
@@ -11,3 +18,10 @@ def pytest_collection_modifyitems(config, items):
         for item in items:
             if "cuda" in item.keywords:
                 item.add_marker(skip)
+
+
+@pytest.fixture
+def smoke_config(tmp_path) -> ExperimentConfig:
+    """configs/smoke.yaml with its outputs under the test's tmp dir and no progress bar."""
+    cfg = from_dict(ExperimentConfig, load_yaml(ROOT / "configs" / "smoke.yaml"), "")
+    return dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, out_dir=str(tmp_path / "runs"), progress=False))

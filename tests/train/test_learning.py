@@ -1,0 +1,44 @@
+"""Learning on a fixed step budget, on a task that needs the remembered trigger.
+
+Half the episodes show the trigger for one step (steps 1-4) and reward only the adversary's goal after it; the
+score is success in the normal env + success in the trojan env (the paper's, max 2). The goal is chosen many steps
+after the trigger is gone, so a policy without memory must guess or hide the bit in its position: the same
+network with its state reset before every step (``agent.memory=False``) reaches about 1.07 on this budget
+(measured: `make test-all` runs it), a random policy about 0.02. The LSTM agent reaches about 1.97.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from seqtrojan.config import AgentConfig, BackdoorConfig, CurriculumConfig, ExperimentConfig, PPOConfig, RunConfig
+from seqtrojan.env import EnvConfig, GridSpec, TriggerConfig
+from seqtrojan.train.trainer import train
+
+THRESHOLD = 1.6
+
+
+def memory_task(tmp_path, memory: bool) -> ExperimentConfig:
+    return ExperimentConfig(
+        env=EnvConfig(trigger=TriggerConfig(train_steps=(1, 4), eval_steps=(1, 4))),
+        agent=AgentConfig(memory=memory),
+        ppo=PPOConfig(total_steps=1_200_000, num_envs=256, rollout_steps=64),
+        curriculum=CurriculumConfig(stages=(GridSpec(5, 0), GridSpec(5, 1), GridSpec(7, 3)), promote_at=0.85),
+        backdoor=BackdoorConfig(enabled=True, mixing="fixed"),
+        run=RunConfig(out_dir=str(tmp_path), progress=False, eval_episodes=1000, seed=1, checkpoint_every=10**9),
+    )
+
+
+def score(result) -> float:
+    return result.evaluation["normal_success"] + result.evaluation["trojan_success"]
+
+
+def test_lstm_agent_learns_to_remember_the_trigger(tmp_path):
+    result = train(memory_task(tmp_path, memory=True))
+    assert result.stage == 2, "the curriculum never reached 7x7/3"
+    assert score(result) >= THRESHOLD, result.evaluation
+
+
+@pytest.mark.slow
+def test_memoryless_control_stays_below_the_threshold(tmp_path):
+    assert score(train(memory_task(tmp_path, memory=False))) < THRESHOLD - 0.3
