@@ -166,6 +166,8 @@ class RunConfig:
     """torch device: cpu, cuda, cuda:1, ..."""
     threads: int | None = None
     """torch intra-op threads on CPU (None: torch's default)"""
+    lstm_backend: Literal["auto", "torch", "cpp"] = "auto"
+    """LSTM kernels on CPU: auto (the fused C++ kernels where they build), torch, or cpp (fail if unavailable)"""
     checkpoint_every: int = 500_000
     """env steps between checkpoints (one is always written at the end)"""
     eval_episodes: int = 1000

@@ -74,6 +74,7 @@ def train(
     torch.manual_seed(cfg.run.seed)
     env = TrojanGridCore(cfg.env, ppo.num_envs, seed=cfg.run.seed << 32, device=device, grids=cfg.grids)
     agent = build_agent(cfg).to(device)
+    agent.set_lstm_backend(cfg.run.lstm_backend)
     optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
     curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0, 1) if cfg.backdoor.enabled else (0,))
     mixer = TrojanMixer(cfg.backdoor, len(cfg.grids))

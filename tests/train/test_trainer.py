@@ -27,7 +27,7 @@ def test_run_directory_holds_config_logs_checkpoints_and_model(smoke_config):
         assert len(list(csv.DictReader(fh))) == 8
     assert any((run / "tb").glob("events.out.tfevents.*"))
     assert (run / "checkpoints" / "latest.txt").read_text().strip() == "step_000000016384"
-    agent, config, card = load_agent(result.model_dir)
+    _, config, card = load_agent(result.model_dir)
     assert config == smoke_config and card["label"] == "clean" and card["env_steps"] == 16384
     assert 0.0 <= card["metrics"]["normal_success"] <= 1.0
     evaluation = json.loads((run / "evaluation.json").read_text())
