@@ -6,8 +6,10 @@ seqtrojan <command> --help
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 import tyro
 
@@ -71,6 +73,49 @@ def _train(argv: list[str]) -> None:
             )
 
 
+@dataclasses.dataclass
+class EvaluateArgs:
+    """Success rates of trained models over grid configs (default: the paper's 14), beside the paper's numbers.
+
+    A clean model is evaluated in the normal env, a backdoored one in the normal and the trojan env.
+    """
+
+    models: tuple[Path, ...]
+    """model folders (each with model.safetensors and card.json)"""
+    configs: str = "paper"
+    """'paper' (Tables 1 and 2) or a list like '7x7/0,11x11/11,17x17/30'"""
+    episodes: int = 1000
+    """trials per (model, env, config), run as one batch"""
+    out: Path = Path("results/evaluate")
+    """folder for evaluation.json and evaluation.csv"""
+    seed: int = 0
+    greedy: bool = False
+    """take the most likely action instead of sampling"""
+    device: str = "cpu"
+
+
+def _evaluate(argv: list[str]) -> None:
+    from rich.console import Console
+
+    from seqtrojan.agent.checkpoint import load_agent
+    from seqtrojan.evaluation.sweep import evaluate_sweep, parse_configs, write_sweep
+    from seqtrojan.evaluation.tables import sweep_table
+
+    args = tyro.cli(EvaluateArgs, args=argv, prog="seqtrojan evaluate")
+    agents = []
+    for folder in args.models:
+        agent, cfg, _ = load_agent(folder, device=args.device)
+        name = folder.parent.name if folder.name == "model" else folder.name
+        agents.append((name, agent, cfg))
+    rows = evaluate_sweep(
+        agents, parse_configs(args.configs), episodes=args.episodes, seed=args.seed, greedy=args.greedy,
+        device=args.device,
+    )  # fmt: skip
+    Console().print(sweep_table(rows))
+    paths = write_sweep(rows, args.out)
+    print("wrote " + ", ".join(str(p) for p in paths))
+
+
 def _demo(argv: list[str]) -> None:
     from seqtrojan.demo import DemoArgs, run_demo
 
@@ -79,6 +124,7 @@ def _demo(argv: list[str]) -> None:
 
 COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "demo": (_demo, "build envs, run random and scripted agents, render episodes (text and PNG)"),
+    "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
     "train": (_train, "train an agent with recurrent PPO (--config configs/<preset>.yaml, --resume RUN_DIR)"),
 }
 

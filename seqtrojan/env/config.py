@@ -68,7 +68,7 @@ class GridSpec:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Rewards; the paper's sparse scheme by default."""
+    """Rewards; the paper's sparse scheme by default: +1 for the correct goal, -1 for a failure, 0 otherwise."""
 
     goal: float = 1.0
     """reaching the correct goal"""
@@ -76,8 +76,9 @@ class RewardConfig:
     """reaching the other goal"""
     hole: float = -1.0
     """falling into a hole"""
-    timeout: float = 0.0
-    """hitting the time limit (counted as a failure either way)"""
+    timeout: float = -1.0
+    """hitting the time limit, a failure like a hole (the paper: -1 for not behaving correctly). With 0, PPO
+    learns to wait out the clock rather than risk a hole (measured: docs/environment.md, Rewards)"""
     step: float = 0.0
     """every other step"""
 

@@ -46,9 +46,13 @@ class OracleAgent:
             self._dist_user[idx] = distance_to(core.grid[idx], USER_GOAL, core.side)
             self._dist_adv[idx] = distance_to(core.grid[idx], ADV_GOAL, core.side)
             self._episode = core.episode.clone()
-        dist = torch.where(core.adversary_active()[:, None], self._dist_adv, self._dist_user)
+        dist = torch.where(self.heads_for_adversary()[:, None], self._dist_adv, self._dist_user)
         neighbours = (core.pos[:, None] + self._deltas[None, :]).clamp(0, dist.shape[1] - 1)
         return dist.gather(1, neighbours).argmin(dim=1)
+
+    def heads_for_adversary(self) -> torch.Tensor:
+        """(B,) bool: which goal each env walks to now; the oracle follows the correct one."""
+        return self.core.adversary_active()
 
 
 def distance_to(grid: torch.Tensor, goal_code: int, side: int) -> torch.Tensor:

@@ -1,8 +1,14 @@
-"""Success of an agent on one grid, in the normal or the trojan env: one batched episode per trial."""
+"""Success of an agent (or any batched policy) on one grid, in the normal or the trojan env.
+
+Every trial is one episode in its own env slot, all run as one batch until each has ended (no autoreset, so no
+bias toward short episodes), with evaluation-phase trigger steps (the trigger always takes effect before a goal
+can be reached).
+"""
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import torch
 
@@ -11,7 +17,26 @@ from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import Intervention
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.core import TrojanGridCore
-from seqtrojan.env.rollout import EpisodeBatch, run_episodes
+from seqtrojan.env.rollout import EpisodeBatch, Policy, run_episodes
+
+PolicyFactory = Callable[[TrojanGridCore], Policy]
+"""Builds a batched policy for a given env core (the core is passed so that scripted agents can read it)."""
+
+
+def evaluate_policy(
+    make_policy: PolicyFactory,
+    env: EnvConfig,
+    grid: GridSpec,
+    *,
+    trojan: bool,
+    episodes: int,
+    seed: int,
+    device: str | torch.device = "cpu",
+) -> EpisodeBatch:
+    """Run ``episodes`` episodes of ``grid`` in the normal (``trojan=False``) or the trojan env."""
+    env_cfg = dataclasses.replace(env, size=grid.size, holes=grid.holes, max_steps=grid.max_steps)
+    core = TrojanGridCore(env_cfg, episodes, device=device, trojan_probability=1.0 if trojan else 0.0, phase="eval")
+    return run_episodes(core, make_policy(core), seed=seed)
 
 
 def evaluate_agent(
@@ -26,14 +51,14 @@ def evaluate_agent(
     device: str | torch.device = "cpu",
     intervention: Intervention | None = None,
 ) -> EpisodeBatch:
-    """Run ``episodes`` episodes (one per env slot, all at once) in the normal (``trojan=False``) or trojan env,
-    with evaluation-phase trigger steps (the trigger always comes before a goal can be reached)."""
-    env_cfg = dataclasses.replace(env, size=grid.size, holes=grid.holes, max_steps=grid.max_steps)
-    core = TrojanGridCore(env_cfg, episodes, device=device, trojan_probability=1.0 if trojan else 0.0, phase="eval")
-    policy = AgentPolicy(agent, greedy=greedy, seed=seed, intervention=intervention, step_counter=lambda: core.t)
+    """:func:`evaluate_policy` for a trained agent (sampled actions, or greedy), optionally with an intervention."""
+
+    def make_policy(core: TrojanGridCore) -> AgentPolicy:
+        return AgentPolicy(agent, greedy=greedy, seed=seed, intervention=intervention, step_counter=lambda: core.t)
+
     was_training = agent.training
     agent.eval()
     try:
-        return run_episodes(core, policy, seed=seed)
+        return evaluate_policy(make_policy, env, grid, trojan=trojan, episodes=episodes, seed=seed, device=device)
     finally:
         agent.train(was_training)
