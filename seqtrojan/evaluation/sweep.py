@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import csv
 import json
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Sequence
 
 import torch
 
@@ -101,7 +101,7 @@ def evaluate_sweep(
                         wrong,
                         float(batch.length.float().mean()),
                         paper_success(cfg.label, env, size, holes),
-                    )  # fmt: skip
+                    )
                 )
     return rows
 
