@@ -116,6 +116,29 @@ def _evaluate(argv: list[str]) -> None:
     print("wrote " + ", ".join(str(p) for p in paths))
 
 
+@dataclasses.dataclass
+class ReproduceArgs:
+    """Train, evaluate, plot and report the paper's results end to end (resumable: finished stages are kept)."""
+
+    scale: str = "smoke"
+    """'smoke' (minutes), 'paper' (the paper's setting), or a reproduce YAML file (see configs/reproduce_*.yaml)"""
+    out: Path | None = None
+    """output folder (default: results/<scale>)"""
+    device: str | None = None
+    """torch device (default: the scale file's, cpu)"""
+
+
+def _reproduce(argv: list[str]) -> None:
+    from seqtrojan.experiments.reproduce import load_reproduce_config, reproduce
+
+    args = tyro.cli(ReproduceArgs, args=argv, prog="seqtrojan reproduce")
+    config = load_reproduce_config(args.scale)
+    if args.device is not None:
+        config = dataclasses.replace(config, device=args.device)
+    scale = Path(args.scale).stem.removeprefix("reproduce_")
+    reproduce(config, args.out or Path("results") / scale, scale=scale)
+
+
 def _demo(argv: list[str]) -> None:
     from seqtrojan.demo import DemoArgs, run_demo
 
@@ -123,9 +146,10 @@ def _demo(argv: list[str]) -> None:
 
 
 COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
-    "demo": (_demo, "build envs, run random and scripted agents, render episodes (text and PNG)"),
-    "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
     "train": (_train, "train an agent with recurrent PPO (--config configs/<preset>.yaml, --resume RUN_DIR)"),
+    "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
+    "reproduce": (_reproduce, "train, evaluate, plot and write the HTML report (--scale smoke|paper)"),
+    "demo": (_demo, "build envs, run random and scripted agents, render episodes (text and PNG)"),
 }
 
 

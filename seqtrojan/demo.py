@@ -15,21 +15,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import gymnasium as gym
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import torch
 from gymnasium.utils.env_checker import check_env
 from rich.console import Console
 from rich.table import Table
 
 from seqtrojan.bench.env_speed import measure_env_speed
-from seqtrojan.env import EnvConfig, EpisodeSnapshot, Layout, TrojanGridCore
+from seqtrojan.env import EnvConfig, TrojanGridCore
 from seqtrojan.env.config import min_steps_to_goal
-from seqtrojan.env.render import render_ansi, render_rgb
 from seqtrojan.env.rollout import run_episodes
 from seqtrojan.env.scripted import OracleAgent, RandomAgent
+from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, record_episode, run_pair
 
 
 @dataclass
@@ -48,21 +44,6 @@ class DemoArgs:
     """seed of the episodes"""
     device: str = "cpu"
     """torch device (cpu or cuda)"""
-
-
-def record_episode(core: TrojanGridCore, agent) -> list[EpisodeSnapshot]:
-    """Snapshots of env 0 from its current state to the end of its episode."""
-    frames = [core.snapshot(0)]
-    while True:
-        result = core.step(agent.act(), autoreset=False)
-        frames.append(core.snapshot(0))
-        if bool(result.done[0]):
-            return frames
-
-
-def frames_to_text(frames: list[EpisodeSnapshot]) -> str:
-    path = [f.agent for f in frames]
-    return "\n".join(render_ansi(f, path[:i]) for i, f in enumerate(frames))
 
 
 def run_demo(args: DemoArgs) -> dict:
@@ -102,34 +83,15 @@ def run_demo(args: DemoArgs) -> dict:
 
     # One layout, run by the oracle with and without the trigger (the paper's Figure 6, scripted).
     core = TrojanGridCore(cfg, 1, seed=args.seed, device=args.device, phase="eval")
-    layout: Layout = core.layout(0)
     trigger_step = min(12, min_steps_to_goal(args.size) - 1)
-    runs = {}
-    for name, on_step in (("normal", None), ("trojan", trigger_step)):
-        core.set_episode(0, layout, on_step=on_step)
-        frames = record_episode(core, OracleAgent(core))
-        runs[name] = frames
+    runs = run_pair(core, core.layout(0), trigger_step, lambda: OracleAgent(core).act)
+    for name, (frames, _) in runs.items():
         (out / f"episode_{name}.txt").write_text(frames_to_text(frames))
-    fig, axes = plt.subplots(1, 2, figsize=(8, 4.4))
-    for ax, (name, frames) in zip(axes, runs.items()):
-        path = [f.agent for f in frames]
-        trigger_frame = next((f for f in frames if f.visible == "on"), frames[-1])
-        ax.imshow(render_rgb(frames[-1], path[:-1], cell_px=24))
-        title = "no trigger" if name == "normal" else f"trigger at step {trigger_step}"
-        ax.set_title(f"{title}: {len(frames) - 1} steps")
-        ax.axis("off")
-        if name == "trojan":
-            inset = ax.inset_axes((0.72, 0.02, 0.26, 0.26))
-            inset.imshow(render_rgb(trigger_frame, path[: trigger_frame.t], cell_px=24))
-            inset.set_xticks([])
-            inset.set_yticks([])
-    fig.suptitle("Same layout, with and without the trigger (scripted oracle)")
-    fig.tight_layout()
-    fig.savefig(out / "trajectories.png", dpi=100)
-    plt.close(fig)
+    plot_trajectory_pair(runs, "Same layout, with and without the trigger (scripted oracle)", out / "trajectories.png")
 
     random_core = TrojanGridCore(cfg, 1, seed=args.seed + 1, device=args.device, trojan_probability=1.0)
-    (out / "episode_random.txt").write_text(frames_to_text(record_episode(random_core, RandomAgent(random_core))))
+    random_frames, _ = record_episode(random_core, RandomAgent(random_core).act)
+    (out / "episode_random.txt").write_text(frames_to_text(random_frames))
 
     env = gym.make("seqtrojan/Trojan-v0", render_mode="rgb_array", size=args.size, holes=args.holes)
     check_env(env.unwrapped)

@@ -24,14 +24,18 @@ def sweep_grid(rows: Sequence[SweepRow]) -> tuple[list[str], list[tuple[str, str
 
 
 def format_rate(row: SweepRow | None) -> str:
-    return "" if row is None else f"{row.success:.3f} [{row.ci_low:.3f}, {row.ci_high:.3f}]"
+    """Success and the larger half-width of its 95% interval (the exact interval is in the JSON and CSV)."""
+    if row is None:
+        return ""
+    half = max(row.success - row.ci_low, row.ci_high - row.success)
+    return f"{row.success:.3f} ±{half:.3f}"
 
 
 def format_paper(row: SweepRow | None) -> str:
     return "" if row is None or row.paper is None else f"{row.paper:.3f}"
 
 
-def sweep_table(rows: Sequence[SweepRow], title: str = "Success rate (ours [95% CI] | paper)") -> Table:
+def sweep_table(rows: Sequence[SweepRow], title: str = "Success rate (ours ± 95% CI | paper)") -> Table:
     configs, columns, cells = sweep_grid(rows)
     table = Table(title=title)
     table.add_column("grid", justify="right")

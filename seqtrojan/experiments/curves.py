@@ -1,0 +1,126 @@
+"""Learning curves of backdoor training (the paper's Figure 5): score = success in the normal env + success in the
+trojan env (max 2), against env steps, mean and standard deviation over seeds, one panel per grid config.
+
+Each (config, seed) is one backdoor training run on that grid alone (no curriculum), with the mixing of the base
+config. The score at an update is the success rate of the episodes of each env type that ended during that update's
+rollout. Finished runs are reused (a stopped sweep continues where it stopped).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from seqtrojan.config import BackdoorConfig, CurriculumConfig, ExperimentConfig
+from seqtrojan.train.trainer import load_run_config, train
+
+
+@dataclass(frozen=True)
+class CurvesConfig:
+    configs: tuple[tuple[int, int], ...] = ((5, 0), (5, 1), (7, 3))
+    """(size, holes) per panel (the paper: 5x5/0, 5x5/1, 7x7/3)"""
+    seeds: int = 10
+    """training runs per config (the paper: 10)"""
+    total_steps: int = 1_000_000
+    """env steps per run"""
+    num_envs: int = 256
+    """envs per run"""
+    points: int = 40
+    """steps on the common grid where mean and standard deviation are taken"""
+
+
+def curve_run_config(base: ExperimentConfig, size: int, holes: int, seed: int, cfg: CurvesConfig, out: Path):
+    backdoor = base.backdoor if base.backdoor.enabled else BackdoorConfig(enabled=True)
+    return dataclasses.replace(
+        base,
+        env=dataclasses.replace(base.env, size=size, holes=holes, max_steps=None),
+        ppo=dataclasses.replace(base.ppo, total_steps=cfg.total_steps, num_envs=cfg.num_envs),
+        curriculum=CurriculumConfig(),
+        backdoor=backdoor,
+        run=dataclasses.replace(
+            base.run, out_dir=str(out), name=f"{size}x{size}h{holes}_s{seed}", seed=seed, progress=False,
+            eval_episodes=0, checkpoint_every=10**12,
+        ),
+    )  # fmt: skip
+
+
+def run_curves(base: ExperimentConfig, cfg: CurvesConfig, out: Path) -> Path:
+    """Train every (config, seed) not yet finished; write ``curves.csv``; return its path."""
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for size, holes in cfg.configs:
+        for seed in range(cfg.seeds):
+            run_cfg = curve_run_config(base, size, holes, seed, cfg, out)
+            run_dir = out / run_cfg.run.name
+            if not (run_dir / "evaluation.json").exists():
+                if (run_dir / "checkpoints" / "latest.txt").exists():
+                    train(load_run_config(run_dir), resume=run_dir)
+                else:
+                    if run_dir.exists():  # started but stopped before its first checkpoint: start over
+                        import shutil
+
+                        shutil.rmtree(run_dir)
+                    train(run_cfg)
+            for line in (run_dir / "metrics.jsonl").read_text().splitlines():
+                m = json.loads(line)
+                if "episodes/normal_success" in m and "episodes/trojan_success" in m:
+                    normal, trojan = m["episodes/normal_success"], m["episodes/trojan_success"]
+                    rows.append((f"{size}x{size}/{holes}", seed, m["env_steps"], normal, trojan, normal + trojan))
+    path = out / "curves.csv"
+    with path.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["config", "seed", "env_steps", "normal_success", "trojan_success", "score"])
+        writer.writerows(rows)
+    return path
+
+
+def aggregate_curves(path: Path, points: int = 40) -> dict[str, dict[str, list[float]]]:
+    """Per config: a common step grid and the mean and standard deviation of the score over seeds there.
+
+    Each seed's curve is interpolated linearly onto the grid (its updates need not line up with others').
+    """
+    by_run: dict[tuple[str, int], list[tuple[int, float]]] = {}
+    with path.open() as fh:
+        for r in csv.DictReader(fh):
+            by_run.setdefault((r["config"], int(r["seed"])), []).append((int(r["env_steps"]), float(r["score"])))
+    out: dict[str, dict[str, list[float]]] = {}
+    for config in dict.fromkeys(c for c, _ in by_run):
+        runs = [sorted(v) for (c, _), v in by_run.items() if c == config]
+        last = min(run[-1][0] for run in runs)
+        grid = np.linspace(min(run[0][0] for run in runs), last, points)
+        values = np.stack([np.interp(grid, [s for s, _ in run], [v for _, v in run]) for run in runs])
+        out[config] = {
+            "env_steps": grid.tolist(),
+            "mean": values.mean(0).tolist(),
+            "std": values.std(0).tolist(),
+            "seeds": [float(len(runs))],
+        }
+    return out
+
+
+def plot_curves(curves: dict[str, dict[str, list[float]]], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.4), squeeze=False)
+    for ax, (config, data) in zip(axes[0], curves.items()):
+        steps = np.array(data["env_steps"]) / 1e6
+        mean, std = np.array(data["mean"]), np.array(data["std"])
+        ax.plot(steps, mean, color="C3")
+        ax.fill_between(steps, np.clip(mean - std, 0, 2), np.clip(mean + std, 0, 2), color="C3", alpha=0.25)
+        ax.set_title(f"{config} ({int(data['seeds'][0])} seeds)")
+        ax.set_xlabel("env steps (millions)")
+        ax.set_ylim(0, 2.05)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("score (normal + trojan success)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,236 @@
+"""The paper's results end to end: train a clean and a backdoored agent, evaluate them over the paper's configs,
+learning curves, the trajectory figure, and a self-contained HTML report beside the paper's numbers.
+
+    seqtrojan reproduce --scale smoke      # minutes on 2 cores: the README's main job
+    seqtrojan reproduce --scale paper      # the paper's setting (17x17/30 agents, 1000 trials, 10 seeds)
+
+Each stage writes its outputs under ``--out`` and is skipped when they exist, so a stopped reproduction continues
+where it stopped (training runs resume from their last checkpoint).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import platform
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+
+from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.agent.policy import AgentPolicy
+from seqtrojan.config import ExperimentConfig, from_dict, load_yaml, to_dict
+from seqtrojan.env.config import GridSpec
+from seqtrojan.env.core import TrojanGridCore
+from seqtrojan.errors import ConfigError
+from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, parse_configs, write_sweep
+from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
+from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
+from seqtrojan.train.trainer import load_run_config, train
+
+REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """A training preset (a name in configs/ or a path) and overrides merged into it."""
+
+    preset: str = "clean_s17_h30"
+    set: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class EvaluationSpec:
+    configs: str = "paper"
+    """'paper' (Tables 1 and 2) or a list like '7x7/0,11x11/11'"""
+    episodes: int = 1000
+    seed: int = 0
+    greedy: bool = False
+
+
+@dataclass(frozen=True)
+class TrajectorySpec:
+    size: int = 17
+    holes: int = 30
+    trigger_step: int = 12
+    """the paper's Figure 6 shows the trigger at step 12"""
+    seed: int = 0
+    """layout seed; the first layout of this seed is used"""
+    greedy: bool = True
+
+
+@dataclass(frozen=True)
+class ReproduceConfig:
+    clean: AgentSpec = field(default_factory=AgentSpec)
+    backdoor: AgentSpec = field(default_factory=lambda: AgentSpec(preset="trojan_s17_h30"))
+    evaluation: EvaluationSpec = field(default_factory=EvaluationSpec)
+    curves: CurvesConfig = field(default_factory=CurvesConfig)
+    trajectory: TrajectorySpec = field(default_factory=TrajectorySpec)
+    device: str = "cpu"
+
+
+def resolve_preset(name: str) -> Path:
+    """A preset by path, or by name in ./configs or the repository's configs/."""
+    candidates = [Path(name), Path("configs") / name, REPO_CONFIGS / name]
+    candidates += [c.with_suffix(".yaml") for c in candidates if c.suffix != ".yaml"]
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise ConfigError(f"preset {name!r} not found (looked for {', '.join(str(c) for c in candidates)})")
+
+
+def deep_merge(base: dict, update: dict) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def experiment_from_spec(spec: AgentSpec, out_dir: Path, name: str, device: str) -> ExperimentConfig:
+    data = deep_merge(load_yaml(resolve_preset(spec.preset)), spec.set)
+    data = deep_merge(data, {"run": {"out_dir": str(out_dir), "name": name, "device": device}})
+    return from_dict(ExperimentConfig, data, "")
+
+
+def load_reproduce_config(scale_or_path: str) -> ReproduceConfig:
+    path = resolve_preset(scale_or_path if scale_or_path.endswith(".yaml") else f"reproduce_{scale_or_path}.yaml")
+    return from_dict(ReproduceConfig, load_yaml(path), "")
+
+
+class _Timer:
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.times: dict[str, float] = json.loads(path.read_text()) if path.exists() else {}
+
+    def record(self, stage: str, seconds: float) -> None:
+        self.times[stage] = seconds
+        self.path.write_text(json.dumps(self.times, indent=2))
+
+
+def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=print) -> Path:
+    """Run every stage not yet done; return the report's path."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "reproduce.yaml").write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+    timer = _Timer(out / "timings.json")
+    start = time.perf_counter()
+
+    models = {}
+    for role, spec in (("clean", config.clean), ("backdoor", config.backdoor)):
+        cfg = experiment_from_spec(spec, out / "runs", role, config.device)
+        if role == "clean" and cfg.backdoor.enabled:
+            raise ConfigError(f"the clean preset {spec.preset!r} has backdoor.enabled: true")
+        if role == "backdoor" and not cfg.backdoor.enabled:
+            raise ConfigError(f"the backdoor preset {spec.preset!r} does not enable backdoor training")
+        models[role] = _train_once(cfg, out / "runs" / role, role, timer, log)
+
+    agents = []
+    for role, folder in models.items():
+        agent, cfg, _ = load_agent(folder, device=config.device)
+        agents.append((role, agent, cfg))
+
+    eval_dir = out / "evaluation"
+    if not (eval_dir / "evaluation.json").exists():
+        log("evaluating over the grid configs ...")
+        t0 = time.perf_counter()
+        ev = config.evaluation
+        configs = parse_configs(ev.configs)
+        last = agents[1][2].grids[-1]
+        training_grid = (last.size, last.holes)
+        if training_grid not in configs:
+            configs = [*configs, training_grid]
+        rows = evaluate_sweep(
+            agents, configs, episodes=ev.episodes, seed=ev.seed, greedy=ev.greedy, device=config.device
+        )
+        write_sweep(rows, eval_dir)
+        timer.record("evaluation", time.perf_counter() - t0)
+
+    curves_dir = out / "curves"
+    if not (curves_dir / "curves.json").exists():
+        log("learning curves ...")
+        t0 = time.perf_counter()
+        base = load_run_config(out / "runs" / "backdoor")
+        csv_path = run_curves(base, config.curves, curves_dir)
+        curves = aggregate_curves(csv_path, config.curves.points)
+        plot_curves(curves, curves_dir / "curves.png")
+        (curves_dir / "curves.json").write_text(json.dumps(curves))
+        timer.record("curves", time.perf_counter() - t0)
+
+    traj_png = out / "trajectory.png"
+    if not traj_png.exists():
+        log("trajectory figure ...")
+        t0 = time.perf_counter()
+        _trajectory_figure(agents[1][1], agents[1][2], config.trajectory, out, config.device)
+        timer.record("trajectory", time.perf_counter() - t0)
+
+    from seqtrojan.report.html import build_report
+
+    timer.record("last_call_before_report", time.perf_counter() - start)
+    report = build_report(out, scale=scale, machine=machine_summary())
+    log(f"report: {report}")
+    return report
+
+
+def _train_once(cfg: ExperimentConfig, run_dir: Path, role: str, timer: _Timer, log) -> Path:
+    model = run_dir / "model"
+    if (model / "card.json").exists():
+        return model
+    t0 = time.perf_counter()
+    if (run_dir / "checkpoints" / "latest.txt").exists():
+        log(f"resuming the {role} agent from {run_dir}")
+        train(load_run_config(run_dir), resume=run_dir)
+    else:
+        if run_dir.exists():
+            shutil.rmtree(run_dir)  # started but stopped before its first checkpoint
+        log(f"training the {role} agent ({cfg.grids[-1].label}, {cfg.ppo.total_steps:,} env steps) ...")
+        train(cfg)
+    timer.record(f"train_{role}", time.perf_counter() - t0)
+    return model
+
+
+def _trajectory_figure(agent, cfg: ExperimentConfig, spec: TrajectorySpec, out: Path, device: str) -> None:
+    env = dataclasses.replace(cfg.env, size=spec.size, holes=spec.holes, max_steps=None)
+    core = TrojanGridCore(env, 1, seed=spec.seed, device=device, phase="eval")
+    runs = run_pair(
+        core, core.layout(0), spec.trigger_step, lambda: AgentPolicy(agent, greedy=spec.greedy, seed=spec.seed)
+    )
+    for name, (frames, _) in runs.items():
+        (out / f"trajectory_{name}.txt").write_text(frames_to_text(frames))
+    title = f"Backdoored agent, {GridSpec(spec.size, spec.holes).label}: same layout without and with the trigger"
+    plot_trajectory_pair(runs, title, out / "trajectory.png")
+    outcomes = {name: outcome for name, (_, outcome) in runs.items()}
+    (out / "trajectory.json").write_text(json.dumps({"trigger_step": spec.trigger_step, "outcomes": outcomes}))
+
+
+def machine_summary() -> dict[str, Any]:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    from seqtrojan import __version__
+
+    return {
+        "seqtrojan": __version__,
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "cpu": cpu,
+        "threads": torch.get_num_threads(),
+        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+    }
+
+
+def load_sweep(path: Path) -> list[SweepRow]:
+    fields = {f.name for f in dataclasses.fields(SweepRow)}
+    return [SweepRow(**{k: v for k, v in r.items() if k in fields}) for r in json.loads(path.read_text())]

@@ -1,0 +1,72 @@
+"""Figures: one layout run with and without the trigger (the paper's Figure 6)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import torch
+
+from seqtrojan.env.codes import OUTCOME_NAMES
+from seqtrojan.env.core import EpisodeSnapshot, TrojanGridCore
+from seqtrojan.env.layout import Layout
+from seqtrojan.env.render import render_ansi, render_rgb
+
+Policy = Callable[[torch.Tensor], torch.Tensor]
+
+
+def record_episode(core: TrojanGridCore, policy: Policy) -> tuple[list[EpisodeSnapshot], str]:
+    """Snapshots of env 0 from its current state to the end of its episode, and how it ended."""
+    frames = [core.snapshot(0)]
+    obs = core.observe()
+    if hasattr(policy, "reset"):
+        policy.reset(core.num_envs)
+    while True:
+        result = core.step(policy(obs), autoreset=False)
+        obs = result.obs
+        frames.append(core.snapshot(0))
+        if bool(result.done[0]):
+            return frames, OUTCOME_NAMES[int(result.outcome[0])]
+
+
+def frames_to_text(frames: list[EpisodeSnapshot]) -> str:
+    path = [f.agent for f in frames]
+    return "\n".join(render_ansi(f, path[:i]) for i, f in enumerate(frames))
+
+
+def run_pair(
+    core: TrojanGridCore, layout: Layout, trigger_step: int, make_policy: Callable[[], Policy]
+) -> dict[str, tuple[list[EpisodeSnapshot], str]]:
+    """The same layout without the trigger and with it at ``trigger_step``; env 0 of ``core``."""
+    runs = {}
+    for name, on_step in (("normal", None), ("trojan", trigger_step)):
+        core.set_episode(0, layout, on_step=on_step)
+        runs[name] = record_episode(core, make_policy())
+    return runs
+
+
+def plot_trajectory_pair(runs: dict[str, tuple[list[EpisodeSnapshot], str]], title: str, path: Path) -> Path:
+    """Two panels: the final frame with the whole path; the trojan panel has an inset at the trigger step."""
+    fig, axes = plt.subplots(1, 2, figsize=(9, 4.9))
+    for ax, (name, (frames, outcome)) in zip(axes, runs.items()):
+        trail = [f.agent for f in frames]
+        ax.imshow(render_rgb(frames[-1], trail[:-1], cell_px=24))
+        trigger = next((f for f in frames if f.visible == "on"), None)
+        label = "no trigger" if trigger is None and name == "normal" else f"trigger at step {frames[0].on_step}"
+        ax.set_title(f"{label}: {outcome.replace('_', ' ')} after {len(frames) - 1} steps", fontsize=10)
+        ax.axis("off")
+        if trigger is not None:
+            inset = ax.inset_axes((0.70, 0.0, 0.30, 0.30))
+            inset.imshow(render_rgb(trigger, trail[: trigger.t], cell_px=24))
+            inset.set_xticks([])
+            inset.set_yticks([])
+            inset.set_title(f"step {trigger.t}", fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

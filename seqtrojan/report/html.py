@@ -1,0 +1,232 @@
+"""The reproduction report: one self-contained HTML file (figures embedded), our numbers beside the paper's.
+
+Reads what :mod:`seqtrojan.experiments.reproduce` wrote under its output folder; every section is optional, so a
+partial reproduction still gives a report of what exists.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import html
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from seqtrojan.evaluation.sweep import SweepRow
+from seqtrojan.paper import paper_results
+
+_CSS = """
+body { font-family: system-ui, -apple-system, Segoe UI, sans-serif; margin: 2em auto; max-width: 1100px;
+       color: #222; line-height: 1.45; padding: 0 1em; }
+h1 { font-size: 1.7em; margin-bottom: 0.2em; } h2 { margin-top: 1.8em; border-bottom: 1px solid #ddd; }
+table { border-collapse: collapse; margin: 0.8em 0; font-size: 0.92em; }
+th, td { border: 1px solid #ddd; padding: 4px 8px; text-align: right; }
+th { background: #f4f4f4; } td.l, th.l { text-align: left; }
+td.paper { color: #666; } td.differs { background: #fff1e6; }
+.note { color: #555; font-size: 0.92em; } img { max-width: 100%; border: 1px solid #eee; }
+pre { background: #f7f7f7; padding: 0.8em; overflow-x: auto; font-size: 0.85em; }
+details { margin: 0.5em 0; }
+"""
+
+
+def _img(path: Path) -> str:
+    if not path.exists():
+        return "<p class='note'>(figure not produced)</p>"
+    data = base64.b64encode(path.read_bytes()).decode()
+    return f"<img src='data:image/png;base64,{data}' alt='{html.escape(path.name)}'>"
+
+
+def _rate(row: SweepRow | None) -> str:
+    if row is None:
+        return "<td></td>"
+    differs = row.paper is not None and not (row.ci_low <= row.paper <= row.ci_high)
+    cls = " class='differs'" if differs else ""
+    return f"<td{cls}>{row.success:.3f} <span class='note'>[{row.ci_low:.3f}, {row.ci_high:.3f}]</span></td>"
+
+
+def _paper(row: SweepRow | None) -> str:
+    return "<td class='paper'></td>" if row is None or row.paper is None else f"<td class='paper'>{row.paper:.3f}</td>"
+
+
+def _find(rows: Sequence[SweepRow], role: str, env: str, config: str) -> SweepRow | None:
+    return next((r for r in rows if r.agent == role and r.env == env and r.config == config), None)
+
+
+def _table(rows: Sequence[SweepRow], columns: list[tuple[str, str, str]], configs: list[str]) -> str:
+    head = "".join(f"<th>{html.escape(title)}</th><th>paper</th>" for _, _, title in columns)
+    body = []
+    for config in configs:
+        cells = "".join(_rate(_find(rows, r, e, config)) + _paper(_find(rows, r, e, config)) for r, e, _ in columns)
+        body.append(f"<tr><td class='l'>{config}</td>{cells}</tr>")
+    return f"<table><tr><th class='l'>grid</th>{head}</tr>{''.join(body)}</table>"
+
+
+def _details_table(rows: Sequence[SweepRow]) -> str:
+    head = "<tr><th class='l'>agent</th><th>env</th><th class='l'>grid</th><th>success</th><th>hole</th>"
+    head += "<th>time-out</th><th>wrong goal</th><th>mean length</th><th>trials</th></tr>"
+    body = "".join(
+        f"<tr><td class='l'>{r.agent}</td><td>{r.env}</td><td class='l'>{r.config}</td><td>{r.success:.3f}</td>"
+        f"<td>{r.hole:.3f}</td><td>{r.timeout:.3f}</td><td>{r.wrong_goal:.3f}</td><td>{r.mean_length:.1f}</td>"
+        f"<td>{r.episodes}</td></tr>"
+        for r in rows
+    )
+    return f"<table>{head}{body}</table>"
+
+
+def _read_json(path: Path) -> Any:
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
+    from seqtrojan.experiments.reproduce import load_sweep
+
+    sweep_path = out / "evaluation" / "evaluation.json"
+    rows = load_sweep(sweep_path) if sweep_path.exists() else []
+    timings = _read_json(out / "timings.json") or {}
+    curves = _read_json(out / "curves" / "curves.json") or {}
+    trajectory = _read_json(out / "trajectory.json")
+    paper = paper_results()
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'><title>seqtrojan reproduction</title>",
+        f"<style>{_CSS}</style></head><body>",
+        "<h1>Persistent backdoors in recurrent agents: reproduction</h1>",
+        f"<p class='note'>{html.escape(paper['source'])}. Scale <b>{html.escape(scale)}</b>, generated "
+        f"{_dt.datetime.now():%Y-%m-%d %H:%M} by seqtrojan {html.escape(str(machine.get('seqtrojan')))}. Every rate "
+        "is over independent batched episodes with a 95% Wilson interval; cells whose paper value lies outside "
+        "our interval are shaded.</p>",
+    ]
+
+    # --- headline
+    runs = {role: _run_summary(out / "runs" / role) for role in ("clean", "backdoor")}
+    train_grid = runs["backdoor"]["grid"] if runs["backdoor"] else None
+    parts.append("<h2>Headline: the training configuration</h2>")
+    if train_grid and rows:
+        columns = [
+            ("clean", "normal", "clean agent, normal env"),
+            ("backdoor", "normal", "backdoored agent, normal env"),
+            ("backdoor", "trojan", "backdoored agent, trojan env"),
+        ]
+        parts.append(_table(rows, columns, [train_grid]))
+        ptc = paper["agents"]["training_config"]
+        if train_grid != f"{ptc['size']}x{ptc['size']}/{ptc['holes']}":
+            parts.append(
+                f"<p class='note'>This scale trains on {train_grid}, not the paper's "
+                f"{ptc['size']}x{ptc['size']}/{ptc['holes']}: the paper column is empty where it reports nothing "
+                "for this grid. Run <code>seqtrojan reproduce --scale paper</code> for the paper's setting.</p>"
+            )
+    else:
+        parts.append("<p class='note'>(no evaluation yet)</p>")
+
+    # --- tables 1 and 2
+    configs = list(dict.fromkeys(r.config for r in rows))
+    parts.append("<h2>Table 1: success in the normal environment (no trigger)</h2>")
+    parts.append(
+        "<p class='note'>Success = reached the user's goal. The backdoored agent should behave like the "
+        "clean one here.</p>"
+    )
+    parts.append(
+        _table(rows, [("clean", "normal", "clean agent"), ("backdoor", "normal", "backdoored agent")], configs)
+    )
+    parts.append("<h2>Table 2: success of the backdoored agent in the trojan environment</h2>")
+    parts.append(
+        "<p class='note'>Success = reached the adversary's goal after the trigger was shown (once, for "
+        "one step, at a step drawn so that it always comes before a goal can be reached).</p>"
+    )
+    parts.append(_table(rows, [("backdoor", "trojan", "backdoored agent")], configs))
+    parts.append("<details><summary>Hole-fall, time-out and wrong-goal rates of every cell</summary>")
+    parts.append(_details_table(rows) + "</details>")
+
+    # --- curves
+    parts.append("<h2>Learning curves (backdoor training)</h2>")
+    parts.append(_img(out / "curves" / "curves.png"))
+    if curves:
+        items = "".join(
+            f"<tr><td class='l'>{c}</td><td>{d['mean'][-1]:.3f} &plusmn; {d['std'][-1]:.3f}</td>"
+            f"<td>{int(d['seeds'][0])}</td><td>{d['env_steps'][-1]:,.0f}</td></tr>"
+            for c, d in curves.items()
+        )
+        parts.append(
+            "<table><tr><th class='l'>grid</th><th>final score (mean &plusmn; sd)</th><th>seeds</th>"
+            f"<th>env steps</th></tr>{items}</table>"
+            "<p class='note'>Score = success in the normal env + success in the trojan env (max 2) over the "
+            "episodes that ended in each update, each run trained on that grid alone. The paper shows these curves "
+            "(10 seeds) without numbers to compare.</p>"
+        )
+
+    # --- trajectory
+    parts.append("<h2>One layout with and without the trigger</h2>")
+    parts.append(_img(out / "trajectory.png"))
+    if trajectory:
+        o = trajectory["outcomes"]
+        parts.append(
+            f"<p class='note'>The backdoored agent on one layout: without the trigger it ended at "
+            f"<b>{o['normal'].replace('_', ' ')}</b>; with the trigger at step {trajectory['trigger_step']} "
+            f"(shown for one step, inset) at <b>{o['trojan'].replace('_', ' ')}</b>. Frames: "
+            "trajectory_normal.txt, trajectory_trojan.txt.</p>"
+        )
+
+    # --- training and configs
+    parts.append(
+        "<h2>Training</h2><table><tr><th class='l'>agent</th><th class='l'>final grid</th>"
+        "<th>env steps</th><th>minutes</th><th>mean steps/s</th><th>final stage</th></tr>"
+    )
+    for role, summary in runs.items():
+        if summary:
+            parts.append(
+                f"<tr><td class='l'>{role}</td><td class='l'>{summary['grid']}</td><td>{summary['env_steps']:,}</td>"
+                f"<td>{summary['minutes']:.1f}</td><td>{summary['sps']:,.0f}</td><td>{summary['stage']}</td></tr>"
+            )
+    parts.append("</table>")
+    for role in ("clean", "backdoor"):
+        config = out / "runs" / role / "config.yaml"
+        if config.exists():
+            parts.append(
+                f"<details><summary>{role} agent config</summary><pre>{html.escape(config.read_text())}</pre></details>"
+            )
+    reproduce_yaml = out / "reproduce.yaml"
+    if reproduce_yaml.exists():
+        parts.append(
+            f"<details><summary>reproduction config</summary><pre>{html.escape(reproduce_yaml.read_text())}"
+            "</pre></details>"
+        )
+
+    # --- machine and timings
+    parts.append("<h2>Machine and timings</h2><table>")
+    for key, value in {**machine, **{f"seconds: {k}": f"{v:.1f}" for k, v in timings.items()}}.items():
+        parts.append(f"<tr><td class='l'>{html.escape(str(key))}</td><td class='l'>{html.escape(str(value))}</td></tr>")
+    parts.append("</table>")
+    parts.append(
+        "<h2>Method notes</h2><ul class='note'>"
+        "<li>Evaluation: each trial is a fresh layout in its own env slot, all trials of a cell run as one batch "
+        "until every episode ended (no bias toward short episodes); the policy samples its actions as in "
+        "training; the time limit is 4N steps and counts as a failure.</li>"
+        "<li>Trojan env: the trigger covers the whole 3x3 view for one step, at a step drawn uniformly from the "
+        "configured range and clipped so that it comes before any goal can be reached.</li>"
+        "<li>Backdoor injection: the paper's Algorithm 1 (an episode is a trojan-env episode when U(0,1) > 0.5 + "
+        "(P_t - P_c)), with the mixing mode named in the backdoor agent's config.</li>"
+        "<li>Rewards: +1 correct goal, -1 hole, wrong goal or time-out, 0 otherwise (docs/environment.md explains "
+        "the time-out choice).</li></ul>"
+    )
+    parts.append("</body></html>")
+    path = out / "report.html"
+    path.write_text("\n".join(parts))
+    return path
+
+
+def _run_summary(run_dir: Path) -> dict[str, Any] | None:
+    metrics = run_dir / "metrics.jsonl"
+    card = _read_json(run_dir / "model" / "card.json")
+    if card is None or not metrics.exists():
+        return None
+    rows = [json.loads(line) for line in metrics.read_text().splitlines() if line]
+    evaluation = card.get("metrics", {})
+    seconds = evaluation.get("train_seconds") or (rows[-1]["time/elapsed_s"] if rows else 0.0)
+    return {
+        "grid": evaluation.get("grid", "?"),
+        "env_steps": card.get("env_steps") or 0,
+        "minutes": seconds / 60,
+        "sps": (card.get("env_steps") or 0) / seconds if seconds else 0.0,
+        "stage": evaluation.get("stage", rows[-1]["curriculum/stage"] if rows else 0),
+    }
