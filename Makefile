@@ -1,12 +1,12 @@
 # Two commands on a fresh machine:
-#   make demo   set up, then run the main job (writes outputs/demo/)
-#   make test   set up, then lint and run the test suite
+#   make reproduce   set up, then run the main job: a small end-to-end reproduction (writes results/smoke/report.html)
+#   make test        set up, then lint and run the test suite
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-all lint bench-env clean
+.PHONY: setup reproduce reproduce-paper demo test test-all lint bench clean
 
 setup: $(STAMP)
 
@@ -17,6 +17,12 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet torch==2.13.0
 	$(BIN)/pip install --quiet -e ".[dev]"
 	touch $(STAMP)
+
+reproduce: setup
+	$(BIN)/seqtrojan reproduce --scale smoke --out results/smoke
+
+reproduce-paper: setup
+	$(BIN)/seqtrojan reproduce --scale paper --out results/paper
 
 demo: setup
 	$(BIN)/seqtrojan demo --out outputs/demo
@@ -31,8 +37,9 @@ test: lint
 test-all: lint
 	$(BIN)/python -m pytest -n 2 -q
 
-bench-env: setup
+bench: setup
 	$(BIN)/python benchmarks/env_throughput.py
+	$(BIN)/python benchmarks/train_throughput.py
 
 clean:
-	rm -rf $(VENV) outputs .pytest_cache .ruff_cache
+	rm -rf $(VENV) outputs results .pytest_cache .ruff_cache

@@ -1,0 +1,83 @@
+"""The end-to-end reproduction on a tiny scale: every stage's outputs, the report, and resuming."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from seqtrojan.config import from_dict
+from seqtrojan.errors import ConfigError
+from seqtrojan.experiments.curves import aggregate_curves
+from seqtrojan.experiments.reproduce import ReproduceConfig, deep_merge, load_reproduce_config, reproduce
+
+TINY_STAGES = [{"size": 5, "holes": 0}, {"size": 5, "holes": 1}]
+TINY_SET = {
+    "env": {"size": 5, "holes": 1},
+    "ppo": {"total_steps": 8192, "num_envs": 64, "rollout_steps": 32, "num_minibatches": 2, "update_epochs": 2},
+    "curriculum": {"stages": TINY_STAGES},
+    "run": {"eval_episodes": 32, "checkpoint_every": 4096, "progress": False},
+}
+TINY = {
+    "clean": {"preset": "clean_s17_h30", "set": TINY_SET},
+    "backdoor": {"preset": "trojan_s17_h30", "set": deep_merge(TINY_SET, {"backdoor": {"eval_episodes": 16}})},
+    "evaluation": {"configs": "7x7/0,7x7/7", "episodes": 32},
+    "curves": {"configs": [[5, 0], [5, 1]], "seeds": 2, "total_steps": 4096, "num_envs": 32, "points": 5},
+    "trajectory": {"size": 5, "holes": 1, "trigger_step": 2},
+}
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("repro")
+    report = reproduce(from_dict(ReproduceConfig, TINY), out, scale="tiny", log=lambda *_: None)
+    return out, report
+
+
+def test_every_stage_writes_its_outputs(tiny_run):
+    out, report = tiny_run
+    for path in (
+        "runs/clean/model/card.json", "runs/backdoor/model/card.json", "evaluation/evaluation.json",
+        "evaluation/evaluation.csv", "curves/curves.csv", "curves/curves.json", "curves/curves.png",
+        "trajectory.png", "trajectory_normal.txt", "trajectory_trojan.txt", "timings.json", "reproduce.yaml",
+    ):  # fmt: skip
+        assert (out / path).exists(), path
+    rows = json.loads((out / "evaluation" / "evaluation.json").read_text())
+    cells = {(r["agent"], r["env"], r["config"]) for r in rows}
+    assert ("backdoor", "trojan", "7x7/7") in cells and ("clean", "normal", "5x5/1") in cells  # + training grid
+    assert next(r for r in rows if r["config"] == "7x7/7" and r["agent"] == "clean")["paper"] == 0.928
+    assert set(json.loads((out / "timings.json").read_text())) >= {"train_clean", "train_backdoor", "curves"}
+
+
+def test_report_is_self_contained_with_tables_figures_and_configs(tiny_run):
+    _, report = tiny_run
+    text = report.read_text()
+    for heading in ("Headline", "Table 1", "Table 2", "Learning curves", "with and without the trigger",
+                    "Training", "Machine and timings"):  # fmt: skip
+        assert heading in text, heading
+    assert len(re.findall(r"src='data:image/png;base64,", text)) == 2
+    assert "0.928" in text and "0.549" in text  # the paper's numbers beside ours
+    assert "backdoor agent config" in text and not re.findall(r"src='(?!data:)", text)  # nothing external
+
+
+def test_a_second_call_reuses_finished_stages(tiny_run):
+    out, _ = tiny_run
+    before = (out / "runs" / "clean" / "model" / "card.json").stat().st_mtime
+    reproduce(from_dict(ReproduceConfig, TINY), out, scale="tiny", log=lambda *_: None)
+    assert (out / "runs" / "clean" / "model" / "card.json").stat().st_mtime == before
+
+
+def test_curves_are_aggregated_over_seeds(tiny_run):
+    out, _ = tiny_run
+    curves = aggregate_curves(out / "curves" / "curves.csv", points=5)
+    assert set(curves) == {"5x5/0", "5x5/1"}
+    data = curves["5x5/0"]
+    assert data["seeds"] == [2.0] and len(data["mean"]) == 5 and all(0 <= m <= 2 for m in data["mean"])
+
+
+def test_scale_files_load_and_bad_presets_are_named(tmp_path):
+    assert load_reproduce_config("smoke").evaluation.episodes == 200
+    assert load_reproduce_config("paper").curves.seeds == 10
+    with pytest.raises(ConfigError, match="preset 'nope' not found"):
+        reproduce(from_dict(ReproduceConfig, {"clean": {"preset": "nope"}}), tmp_path)
