@@ -36,7 +36,7 @@ def tiny_run(tmp_path_factory):
 
 
 def test_every_stage_writes_its_outputs(tiny_run):
-    out, report = tiny_run
+    out, _ = tiny_run
     for path in (
         "runs/clean/model/card.json", "runs/backdoor/model/card.json", "evaluation/evaluation.json",
         "evaluation/evaluation.csv", "curves/curves.csv", "curves/curves.json", "curves/curves.png",
