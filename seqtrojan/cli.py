@@ -139,6 +139,36 @@ def _reproduce(argv: list[str]) -> None:
     reproduce(config, args.out or Path("results") / scale, scale=scale)
 
 
+def _analyze(argv: list[str]) -> None:
+    from seqtrojan.analysis.pipeline import AnalysisConfig, run_analysis
+
+    @dataclasses.dataclass
+    class AnalyzeArgs:
+        """Record the LSTM states of a clean and a backdoored agent, classify unit responses, plot them, edit the
+        goal units, sweep for unintentional triggers and search for new ones (see seqtrojan.analysis)."""
+
+        clean: Path
+        """the clean model folder"""
+        backdoor: Path
+        """the backdoored model folder"""
+        out: Path = Path("results/analysis")
+        config: AnalysisConfig = dataclasses.field(default_factory=AnalysisConfig)
+        device: str = "cpu"
+
+    args = tyro.cli(AnalyzeArgs, args=argv, prog="seqtrojan analyze")
+    summary = run_analysis(args.clean, args.backdoor, args.out, args.config, device=args.device)
+    totals = summary["responses"]["step_units_total"]
+    print(
+        f"step-type units: clean {totals['clean']}, backdoored {totals['backdoor']} -> "
+        f"{summary['responses']['finding']}"
+    )
+    for r in summary["interventions"]["results"]:
+        print(
+            f"  {r['direction']:<10} editing {r['units']:<12} switch {r['switch_rate']:.3f}  hole {r['hole_rate']:.3f}"
+        )
+    print(f"wrote {args.out}/analysis.json and {args.out}/figures/")
+
+
 def _demo(argv: list[str]) -> None:
     from seqtrojan.demo import DemoArgs, run_demo
 
@@ -148,6 +178,7 @@ def _demo(argv: list[str]) -> None:
 COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "train": (_train, "train an agent with recurrent PPO (--config configs/<preset>.yaml, --resume RUN_DIR)"),
     "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
+    "analyze": (_analyze, "LSTM state traces, response types, interventions, unintentional triggers, search"),
     "reproduce": (_reproduce, "train, evaluate, plot and write the HTML report (--scale smoke|paper)"),
     "demo": (_demo, "build envs, run random and scripted agents, render episodes (text and PNG)"),
 }

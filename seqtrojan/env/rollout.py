@@ -34,12 +34,13 @@ class EpisodeBatch:
         return wilson_interval(int(self.success.sum()), int(self.success.numel()), confidence)
 
 
-def run_episodes(core: TrojanGridCore, policy: Policy, seed: int | None = None) -> EpisodeBatch:
-    """Reset every env (with ``seed`` if given), step until each has finished one episode, return outcomes.
+def run_episodes(core: TrojanGridCore, policy: Policy, seed: int | None = None, fresh: bool = True) -> EpisodeBatch:
+    """Step until every env has finished one episode; return the outcomes.
 
-    A policy with a ``reset(num_envs)`` method (a recurrent agent) is reset first.
+    ``fresh`` resets every env first (with ``seed`` if given); ``fresh=False`` runs the episodes already set up
+    (e.g. hand-built with ``core.set_episode``). A policy with a ``reset(num_envs)`` method is reset first.
     """
-    obs = core.reset(seed=seed)
+    obs = core.reset(seed=seed) if fresh else core.observe()
     if hasattr(policy, "reset"):
         policy.reset(core.num_envs)
     b = core.num_envs

@@ -1,0 +1,1 @@
+"""Looking inside recurrent agents: state traces, response types, interventions, unintentional triggers, search."""

@@ -1,0 +1,218 @@
+"""Searching on purpose for inputs that switch the backdoored agent's goal (the paper's open problem 3).
+
+Two searches, both reporting their success rate and their cost per trigger found:
+
+* :func:`evolve_layouts`: an evolutionary search over ordinary hole layouts (same grid and hole count as training,
+  solvable, no trigger) for layouts on which the agent, in the normal env, ends at the adversary's goal.
+  Fitness = P(adversary goal) over ``rollouts`` sampled episodes + 0.1 * the mean peak activation of the goal units
+  (a dense signal while no episode flips yet). Mutation moves a few holes; unsolvable children are redrawn.
+* :func:`search_sequences`: gradient ascent on relaxed observation sequences (softmax over the six cell codes of
+  each view cell, the trigger code excluded) to drive the goal units to their trojan-env level; the relaxed
+  sequence is then rounded to one-hot observations and counted as found when the rounded one still drives the
+  activation past ``success_at``. Such sequences need not be realisable by walking a grid: they probe the network.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.agent.policy import AgentPolicy
+from seqtrojan.agent.state import LSTMState
+from seqtrojan.analysis.unintentional import GoalUnits
+from seqtrojan.env.codes import HOLE, NUM_CHANNELS, OUTCOME_NAMES, TRIGGER
+from seqtrojan.env.config import EnvConfig
+from seqtrojan.env.core import TrojanGridCore
+from seqtrojan.env.layout import Layout
+from seqtrojan.env.rollout import run_episodes
+
+
+@dataclass(frozen=True)
+class LayoutSearchConfig:
+    size: int = 17
+    holes: int = 30
+    population: int = 32
+    rollouts: int = 16
+    """sampled episodes per layout per generation"""
+    generations: int = 25
+    elite: int = 8
+    moves: int = 2
+    """holes moved per mutation"""
+    restarts: int = 4
+    success_at: float = 0.5
+    """a layout is a trigger when at least this fraction of its episodes end at the adversary's goal"""
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class LayoutSearchResult:
+    found: bool
+    generations: int
+    best_rate: float
+    best_layout: list[list[int]]
+    episodes: int
+    seconds: float
+
+
+class _PeakActivation:
+    """An intervention that leaves the state alone and records each env's peak goal-unit activation."""
+
+    def __init__(self, goal: GoalUnits, batch: int) -> None:
+        self.goal = goal
+        self.peak = np.full(batch, -np.inf)
+
+    def __call__(self, layer: int, t, state: LSTMState) -> LSTMState:
+        if layer == self.goal.layer:
+            x = (state.h if self.goal.which == "h" else state.c).detach().cpu().numpy()
+            self.peak = np.maximum(self.peak, self.goal.activation(x))
+        return state
+
+
+def _mutate(layout: np.ndarray, moves: int, rng: np.random.Generator) -> np.ndarray:
+    n = layout.shape[0]
+    protected = {(0, 0), (0, n - 1), (n - 1, n // 2)}
+    for _ in range(100):
+        child = layout.copy()
+        holes = np.argwhere(child == HOLE)
+        free = [tuple(p) for p in np.argwhere(child == 0) if tuple(p) not in protected]
+        for _ in range(min(moves, len(holes), len(free))):
+            r, c = holes[rng.integers(len(holes))]
+            child[r, c] = 0
+            fr, fc = free[rng.integers(len(free))]
+            child[fr, fc] = HOLE
+            holes = np.argwhere(child == HOLE)
+            free = [tuple(p) for p in np.argwhere(child == 0) if tuple(p) not in protected]
+        if Layout(child).is_solvable():
+            return child
+    return layout.copy()
+
+
+def core_step_counter(core: TrojanGridCore):
+    """A callable giving the core's per-env episode step (what interventions receive as ``t``)."""
+    return lambda: core.t
+
+
+def evolve_layouts(
+    agent: RecurrentActorCritic, env: EnvConfig, goal: GoalUnits, cfg: LayoutSearchConfig
+) -> list[LayoutSearchResult]:
+    results = []
+    env_cfg = dataclasses.replace(env, size=cfg.size, holes=cfg.holes, max_steps=None)
+    batch = cfg.population * cfg.rollouts
+    adv = OUTCOME_NAMES.index("adversary_goal")
+    for restart in range(cfg.restarts):
+        start = time.perf_counter()
+        rng = np.random.default_rng(cfg.seed + restart)
+        seeder = TrojanGridCore(env_cfg, cfg.population, seed=(cfg.seed + restart) * 7919, phase="eval")
+        population = [seeder.layout(i).cells for i in range(cfg.population)]
+        core = TrojanGridCore(env_cfg, batch, seed=cfg.seed, phase="eval")
+        best_rate, best_layout, episodes = 0.0, population[0], 0
+        found, generations = False, 0
+        step_counter = core_step_counter(core)
+        for _ in range(cfg.generations):
+            generations += 1
+            probe = _PeakActivation(goal, batch)
+            policy = AgentPolicy(agent, seed=int(rng.integers(2**31)), intervention=probe, step_counter=step_counter)
+            for i in range(batch):
+                core.set_episode(i, Layout(population[i // cfg.rollouts]))
+            out = run_episodes(core, policy, fresh=False)
+            episodes += batch
+            rates = (out.outcome.numpy() == adv).reshape(cfg.population, cfg.rollouts).mean(1)
+            peaks = probe.peak.reshape(cfg.population, cfg.rollouts).mean(1)
+            fitness = rates + 0.1 * np.clip(peaks, -1.0, 2.0)
+            order = np.argsort(-fitness)
+            if rates[order[0]] >= best_rate:
+                best_rate, best_layout = float(rates[order[0]]), population[order[0]]
+            if rates.max() >= cfg.success_at:
+                found = True
+                best_rate, best_layout = float(rates.max()), population[int(rates.argmax())]
+                break
+            elite = [population[i] for i in order[: cfg.elite]]
+            population = elite + [
+                _mutate(elite[int(rng.integers(len(elite)))], cfg.moves, rng)
+                for _ in range(cfg.population - len(elite))
+            ]
+        results.append(
+            LayoutSearchResult(
+                found, generations, best_rate, np.asarray(best_layout).tolist(), episodes, time.perf_counter() - start
+            )
+        )
+    return results
+
+
+@dataclass(frozen=True)
+class SequenceSearchConfig:
+    length: int = 24
+    """observations per sequence"""
+    restarts: int = 32
+    """sequences optimised in parallel"""
+    steps: int = 300
+    lr: float = 0.1
+    success_at: float = 0.5
+    """found when the rounded sequence drives the goal activation at its last step at least this high"""
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class SequenceSearchResult:
+    restarts: int
+    found: int
+    relaxed_activation: list[float]
+    rounded_activation: list[float]
+    seconds: float
+    forward_steps: int
+
+
+def search_sequences(
+    agent: RecurrentActorCritic, goal: GoalUnits, cfg: SequenceSearchConfig, view_cells: int = 9
+) -> tuple[SequenceSearchResult, np.ndarray]:
+    """Returns the summary and the rounded sequences' cell codes (restarts, length, view_cells)."""
+    start = time.perf_counter()
+    gen = torch.Generator().manual_seed(cfg.seed)
+    logits = (0.1 * torch.randn(cfg.length, cfg.restarts, view_cells, NUM_CHANNELS, generator=gen)).requires_grad_()
+    forbid = torch.zeros(NUM_CHANNELS)
+    forbid[TRIGGER] = -1e9
+    optimizer = torch.optim.Adam([logits], lr=cfg.lr)
+    starts = torch.zeros(cfg.length, cfg.restarts)
+    units = torch.tensor(goal.units)
+    normal, trojan = torch.tensor(goal.normal_mean), torch.tensor(goal.trojan_mean)
+    direction = trojan - normal
+
+    def activation(obs: torch.Tensor) -> torch.Tensor:
+        out = agent.unroll(obs, agent.initial_state(cfg.restarts), starts, return_states=True)
+        layer = out.states[goal.layer]
+        x = (layer.h if goal.which == "h" else layer.c)[-1][:, units]
+        return ((x - normal) * direction).sum(-1) / (direction * direction).sum()
+
+    for p in agent.parameters():
+        p.requires_grad_(False)
+    try:
+        for _ in range(cfg.steps):
+            obs = torch.softmax(logits + forbid, -1).reshape(cfg.length, cfg.restarts, -1)
+            loss = -activation(obs).mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        with torch.no_grad():
+            relaxed = activation(torch.softmax(logits + forbid, -1).reshape(cfg.length, cfg.restarts, -1))
+            codes = (logits + forbid).argmax(-1)  # (L, R, cells)
+            rounded = activation(
+                torch.nn.functional.one_hot(codes, NUM_CHANNELS).float().reshape(cfg.length, cfg.restarts, -1)
+            )
+    finally:
+        for p in agent.parameters():
+            p.requires_grad_(True)
+    found = int((rounded >= cfg.success_at).sum())
+    result = SequenceSearchResult(
+        cfg.restarts,
+        found,
+        relaxed.tolist(),
+        rounded.tolist(),
+        time.perf_counter() - start,
+        cfg.restarts * cfg.length * (2 * cfg.steps + 2),
+    )
+    return result, codes.permute(1, 0, 2).numpy()
