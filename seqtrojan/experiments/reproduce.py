@@ -1,5 +1,6 @@
 """The paper's results end to end: train a clean and a backdoored agent, evaluate them over the paper's configs,
-learning curves, the trajectory figure, and a self-contained HTML report beside the paper's numbers.
+learning curves, the trajectory figure, the analysis of their internal states (response types, interventions,
+unintentional triggers, searches), and a self-contained HTML report beside the paper's numbers.
 
     seqtrojan reproduce --scale smoke      # minutes on 2 cores: the README's main job
     seqtrojan reproduce --scale paper      # the paper's setting (17x17/30 agents, 1000 trials, 10 seeds)
@@ -25,6 +26,7 @@ import yaml
 
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.agent.policy import AgentPolicy
+from seqtrojan.analysis.pipeline import AnalysisConfig, run_analysis
 from seqtrojan.config import ExperimentConfig, from_dict, load_yaml, to_dict
 from seqtrojan.env.config import GridSpec
 from seqtrojan.env.core import TrojanGridCore
@@ -72,6 +74,7 @@ class ReproduceConfig:
     evaluation: EvaluationSpec = field(default_factory=EvaluationSpec)
     curves: CurvesConfig = field(default_factory=CurvesConfig)
     trajectory: TrajectorySpec = field(default_factory=TrajectorySpec)
+    analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
     device: str = "cpu"
 
 
@@ -170,6 +173,12 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
         t0 = time.perf_counter()
         _trajectory_figure(agents[1][1], agents[1][2], config.trajectory, out, config.device)
         timer.record("trajectory", time.perf_counter() - t0)
+
+    if not (out / "analysis" / "analysis.json").exists():
+        log("looking inside the agents ...")
+        t0 = time.perf_counter()
+        run_analysis(models["clean"], models["backdoor"], out / "analysis", config.analysis, config.device, log)
+        timer.record("analysis", time.perf_counter() - t0)
 
     from seqtrojan.report.html import build_report
 

@@ -167,6 +167,11 @@ def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
             "trajectory_normal.txt, trajectory_trojan.txt.</p>"
         )
 
+    # --- looking inside
+    analysis = _read_json(out / "analysis" / "analysis.json")
+    if analysis:
+        parts.append(_analysis_section(analysis, out / "analysis"))
+
     # --- training and configs
     parts.append(
         "<h2>Training</h2><table><tr><th class='l'>agent</th><th class='l'>final grid</th>"
@@ -213,6 +218,109 @@ def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
     path = out / "report.html"
     path.write_text("\n".join(parts))
     return path
+
+
+def _ci(pair: Sequence[float]) -> str:
+    return f"<span class='note'>[{pair[0]:.3f}, {pair[1]:.3f}]</span>"
+
+
+def _analysis_section(a: dict[str, Any], folder: Path) -> str:
+    cfg = a["config"]
+    parts = [
+        "<h2>Looking inside: response types</h2>",
+        f"<p class='note'>h and c of every unit at every step, {cfg['episodes']} episodes per agent and env on "
+        f"{cfg['size']}x{cfg['size']} with {cfg['holes'][0]}-{cfg['holes'][1]} holes, trigger at step "
+        f"{cfg['trigger_step']}. Rule: a unit responds when its trojan-env mean moves at least "
+        f"{a['responses']['rule']['threshold']} normal-env standard deviations from the normal-env mean within "
+        f"{a['responses']['rule']['response_window']} steps of the trigger; it is a step response when the mean "
+        f"deviation over steps +{a['responses']['rule']['late_start']}..+{a['responses']['rule']['late_end']} stays "
+        f"at least {a['responses']['rule']['persist_fraction']} of that, else an impulse.</p>",
+        "<table><tr><th class='l'>agent</th><th class='l'>state</th><th>impulse</th><th>none</th><th>step</th></tr>",
+    ]
+    for agent, layers in a["responses"]["agents"].items():
+        for key, value in layers.items():
+            c = value["counts"]
+            parts.append(
+                f"<tr><td class='l'>{agent}</td><td class='l'>{key}</td><td>{c['impulse']}</td>"
+                f"<td>{c['none']}</td><td>{c['step']}</td></tr>"
+            )
+    parts.append("</table>")
+    parts.append(
+        f"<p>Paper: step responses appear only in the backdoored agent. Here: <b>{a['responses']['finding']}</b> "
+        f"(step-type units: clean {a['responses']['step_units_total']['clean']}, backdoored "
+        f"{a['responses']['step_units_total']['backdoor']}).</p>"
+    )
+    for name in ("backdoor", "clean"):
+        parts.append(_img(folder / "figures" / f"responses_{name}.png"))
+    heatmaps = sorted((folder / "figures").glob("heatmap_*.png"))
+    if heatmaps:
+        parts.append("<details><summary>Heatmaps of all units (mean over episodes; the supplement's figures)</summary>")
+        parts += [_img(p) for p in heatmaps]
+        parts.append("</details>")
+
+    goal, inter = a["goal_units"], a["interventions"]
+    parts.append("<h2>Looking inside: editing the goal units</h2>")
+    parts.append(
+        f"<p class='note'>Goal units: layer {goal['layer']} {goal['which']}, units {list(goal['units'])} "
+        f"({html.escape(goal['source'])}). From the trigger step on, they are set to their mean value in the "
+        f"other env after the trigger; the control edits as many random other units of the same layer. "
+        f"{inter['results'][0]['episodes']} episodes per arm on {inter['grid']}.</p>"
+        "<table><tr><th class='l'>direction</th><th class='l'>edited</th><th>switch rate [95% CI]</th>"
+        "<th>hole rate [95% CI]</th><th>time-out</th></tr>"
+    )
+    for r in inter["results"]:
+        env, goal_name = ("normal", "adversary's") if r["direction"] == "activate" else ("trojan", "user's")
+        parts.append(
+            f"<tr><td class='l'>{r['direction']} ({env} env &rarr; {goal_name} goal)</td>"
+            f"<td class='l'>{r['units']}</td>"
+            f"<td>{r['switch_rate']:.3f} {_ci(r['switch_ci'])}</td><td>{r['hole_rate']:.3f} {_ci(r['hole_ci'])}</td>"
+            f"<td>{r['timeout_rate']:.3f}</td></tr>"
+        )
+    parts.append("</table>")
+
+    un = a["unintentional"]
+    parts.append("<h2>Unintentional triggers</h2>")
+    parts.append(
+        "<p class='note'>Activation: the backdoored agent reaches the adversary's goal in the normal env (no trigger "
+        "ever shown). Deactivation: it reaches the user's goal in the trojan env despite the trigger. The paper saw "
+        "activation on every trial of 23x23/0 (its Table 1: 0.0 success).</p>"
+        "<table><tr><th class='l'>grid</th><th>activation rate [95% CI]</th><th>deactivation rate [95% CI]</th>"
+        "<th>episodes</th></tr>"
+    )
+    for row in un["summaries"]:
+        parts.append(
+            f"<tr><td class='l'>{row['grid']}</td><td>{row['activation_rate']:.3f} {_ci(row['activation_ci'])}</td>"
+            f"<td>{row['deactivation_rate']:.3f} {_ci(row['deactivation_ci'])}</td><td>{row['episodes']}</td></tr>"
+        )
+    parts.append(
+        f"</table><p class='note'>{un['findings']} findings saved (findings.json: layout, trigger step, "
+        "actions; each replays exactly).</p>"
+    )
+    parts += [_img(folder / "figures" / name) for name in un["plotted"]]
+
+    se = a["search"]
+    lay, seq = se["layouts"], se["sequences"]
+    parts.append("<h2>Searching for triggers on purpose</h2>")
+    per = f"{lay['seconds_per_found']:.1f} s" if lay["seconds_per_found"] else "n/a (none found)"
+    per_seq = f"{seq['seconds_per_found']:.2f} s" if seq["seconds_per_found"] else "n/a (none found)"
+    lc = lay["config"]
+    parts.append(
+        "<table><tr><th class='l'>search</th><th>found / tried</th><th>cost per trigger found</th>"
+        "<th>work</th></tr>"
+        f"<tr><td class='l'>evolution over {lc['size']}x{lc['size']}/{lc['holes']} hole layouts (no trigger; a layout "
+        f"counts when &ge; {lc['success_at']:.0%} of its episodes end at the adversary's goal)</td>"
+        f"<td>{lay['found']} / {lay['restarts']}</td><td>{per}</td><td>{lay['episodes']:,} episodes, "
+        f"{lay['seconds']:.0f} s</td></tr>"
+        f"<tr><td class='l'>gradient ascent on relaxed observation sequences of length "
+        f"{seq['config']['length']} (trigger code excluded), rounded to one-hot</td>"
+        f"<td>{seq['found']} / {seq['restarts']}</td><td>{per_seq}</td><td>{seq['forward_steps']:,} network "
+        f"steps, {seq['seconds']:.1f} s</td></tr></table>"
+        "<p class='note'>Sequence search counts a sequence as found when the rounded observations drive the goal "
+        f"units' activation to &ge; {seq['config']['success_at']} (0 = normal-env level, 1 = trojan-env level); such "
+        "sequences probe the network and need not be walkable in a grid. Layout search is realisable: the found "
+        "layouts are ordinary solvable grids.</p>"
+    )
+    return "\n".join(parts)
 
 
 def _run_summary(run_dir: Path) -> dict[str, Any] | None:

@@ -25,6 +25,26 @@ TINY = {
     "evaluation": {"configs": "7x7/0,7x7/7", "episodes": 32},
     "curves": {"configs": [[5, 0], [5, 1]], "seeds": 2, "total_steps": 4096, "num_envs": 32, "points": 5},
     "trajectory": {"size": 5, "holes": 1, "trigger_step": 2},
+    "analysis": {
+        "size": 7,
+        "holes": [2, 3],
+        "episodes": 40,
+        "trigger_step": 2,
+        "rule": {"min_episodes": 5, "response_window": 2, "late_start": 3, "late_end": 6},
+        "intervention_episodes": 32,
+        "unintentional_configs": "7x7/0,7x7/3",
+        "unintentional_episodes": 32,
+        "layout_search": {
+            "size": 7,
+            "holes": 3,
+            "population": 4,
+            "rollouts": 4,
+            "generations": 2,
+            "elite": 2,
+            "restarts": 1,
+        },
+        "sequence_search": {"length": 6, "restarts": 4, "steps": 10},
+    },
 }
 
 
@@ -41,6 +61,8 @@ def test_every_stage_writes_its_outputs(tiny_run):
         "runs/clean/model/card.json", "runs/backdoor/model/card.json", "evaluation/evaluation.json",
         "evaluation/evaluation.csv", "curves/curves.csv", "curves/curves.json", "curves/curves.png",
         "trajectory.png", "trajectory_normal.txt", "trajectory_trojan.txt", "timings.json", "reproduce.yaml",
+        "analysis/analysis.json", "analysis/responses.json", "analysis/interventions.json", "analysis/search.json",
+        "analysis/findings.json", "analysis/traces/backdoor_trojan.safetensors", "analysis/figures/responses_clean.png",
     ):  # fmt: skip
         assert (out / path).exists(), path
     rows = json.loads((out / "evaluation" / "evaluation.json").read_text())
@@ -54,9 +76,10 @@ def test_report_is_self_contained_with_tables_figures_and_configs(tiny_run):
     _, report = tiny_run
     text = report.read_text()
     for heading in ("Headline", "Table 1", "Table 2", "Learning curves", "with and without the trigger",
+                    "response types", "editing the goal units", "Unintentional triggers", "on purpose",
                     "Training", "Machine and timings"):  # fmt: skip
         assert heading in text, heading
-    assert len(re.findall(r"src='data:image/png;base64,", text)) == 2
+    assert len(re.findall(r"src='data:image/png;base64,", text)) >= 4 + 8  # curves, trajectory, 2 responses, heatmaps
     assert "0.928" in text and "0.549" in text  # the paper's numbers beside ours
     assert "backdoor agent config" in text and not re.findall(r"src='(?!data:)", text)  # nothing external
 
