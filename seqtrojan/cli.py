@@ -7,6 +7,7 @@ seqtrojan <command> --help
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -169,6 +170,89 @@ def _analyze(argv: list[str]) -> None:
     print(f"wrote {args.out}/analysis.json and {args.out}/figures/")
 
 
+def _dig(data: dict, *keys: str):
+    for key in keys:
+        data = data[key]
+    return data
+
+
+def _defend(argv: list[str]) -> None:
+    from seqtrojan.defense.pipeline import DefenseConfig, run_defense
+
+    @dataclasses.dataclass
+    class DefendArgs:
+        """Run the online state monitor and the mitigations (fine-pruning, fine-tuning, unit reset) on a model."""
+
+        model: Path
+        """the model folder to defend"""
+        out: Path = Path("results/defense")
+        config: DefenseConfig = dataclasses.field(default_factory=DefenseConfig)
+        device: str = "cpu"
+
+    args = tyro.cli(DefendArgs, args=argv, prog="seqtrojan defend")
+    result = run_defense(args.model, args.out, args.config, device=args.device)
+    mon = result["monitor"]
+    rate = lambda *keys: _dig(mon, *keys, "rate")  # noqa: E731
+    print(
+        f"monitor on {mon['grid']}: false alarms {rate('normal_alarm', 'false_alarm'):.3f}, detection "
+        f"{rate('trojan_alarm', 'detected'):.3f}; attack success {rate('trojan_undefended', 'attack_success'):.3f}"
+        f" -> {rate('trojan_reset', 'attack_success'):.3f} with resets; clean success "
+        f"{rate('normal_undefended', 'success'):.3f} -> {rate('normal_reset', 'success'):.3f}"
+    )
+    for name, m in result["mitigation"].items():
+        if isinstance(m, dict) and "attack_success" in m:
+            print(f"  {name:<24} attack {m['attack_success']['rate']:.3f}  clean {m['clean_success']['rate']:.3f}")
+    print(f"wrote {args.out}/defense.json")
+
+
+def _zoo(argv: list[str]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from seqtrojan.defense.offline import detect_zoo
+    from seqtrojan.zoo.build import ZooConfig, build_zoo
+
+    @dataclasses.dataclass
+    class ZooBuild:
+        """Train a zoo of clean and backdoored agents (resumable; local process pool or Ray)."""
+
+        out: Path = Path("results/zoo")
+        config: ZooConfig = dataclasses.field(default_factory=ZooConfig)
+        workers: int = 2
+        backend: str = "local"
+        """local (process pool) or ray"""
+
+    @dataclasses.dataclass
+    class ZooDetect:
+        """Score offline backdoor detection from weights on a zoo (k-fold, ROC-AUC / cross-entropy / Brier)."""
+
+        zoo: Path = Path("results/zoo")
+        folds: int = 5
+        seed: int = 0
+
+    if not argv or argv[0] not in ("build", "detect"):
+        print("usage: seqtrojan zoo {build,detect} [options]   (seqtrojan zoo build --help)", file=sys.stderr)
+        raise SystemExit(2)
+    if argv[0] == "build":
+        args = tyro.cli(ZooBuild, args=argv[1:], prog="seqtrojan zoo build")
+        print(f"wrote {build_zoo(args.config, args.out, workers=args.workers, backend=args.backend)}")
+        return
+    args = tyro.cli(ZooDetect, args=argv[1:], prog="seqtrojan zoo detect")
+    result = detect_zoo(args.zoo, args.folds, args.seed)
+    (args.zoo / "detection.json").write_text(json.dumps(result, indent=2))
+    table = Table(title=f"Offline detection on {args.zoo} (held-out, {result['scores'][0]['folds']}-fold)")
+    for col in ("features", "n", "ROC-AUC", "cross-entropy", "Brier"):
+        table.add_column(col, justify="right")
+    for r in result["scores"]:
+        table.add_row(
+            r["group"], str(r["features"]), f"{r['roc_auc']:.3f}", f"{r['cross_entropy']:.3f}", f"{r['brier']:.3f}"
+        )
+    Console().print(table)
+    for r in result["rejected"]:
+        print(f"rejected {r['model']}: {r['reason']}")
+    print(f"wrote {args.zoo}/detection.json")
+
+
 def _demo(argv: list[str]) -> None:
     from seqtrojan.demo import DemoArgs, run_demo
 
@@ -179,6 +263,8 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "train": (_train, "train an agent with recurrent PPO (--config configs/<preset>.yaml, --resume RUN_DIR)"),
     "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
     "analyze": (_analyze, "LSTM state traces, response types, interventions, unintentional triggers, search"),
+    "defend": (_defend, "online state monitor and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),
+    "zoo": (_zoo, "zoo build: train clean and backdoored agents; zoo detect: offline detection scored like TrojAI"),
     "reproduce": (_reproduce, "train, evaluate, plot and write the HTML report (--scale smoke|paper)"),
     "demo": (_demo, "build envs, run random and scripted agents, render episodes (text and PNG)"),
 }

@@ -168,6 +168,8 @@ class RunConfig:
     """torch intra-op threads on CPU (None: torch's default)"""
     lstm_backend: Literal["auto", "torch", "cpp"] = "auto"
     """LSTM kernels on CPU: auto (the fused C++ kernels where they build), torch, or cpp (fail if unavailable)"""
+    init_from: str | None = None
+    """start from this model folder's weights (fine-tuning) instead of a fresh initialisation"""
     checkpoint_every: int = 500_000
     """env steps between checkpoints (one is always written at the end)"""
     eval_episodes: int = 1000

@@ -74,6 +74,14 @@ def train(
     torch.manual_seed(cfg.run.seed)
     env = TrojanGridCore(cfg.env, ppo.num_envs, seed=cfg.run.seed << 32, device=device, grids=cfg.grids)
     agent = build_agent(cfg).to(device)
+    if cfg.run.init_from is not None and resume is None:
+        start_from, _, _ = load_agent(cfg.run.init_from)
+        try:
+            agent.load_state_dict(start_from.state_dict())
+        except RuntimeError as err:
+            raise ConfigError(
+                f"run.init_from={cfg.run.init_from!r} does not fit this config's network: {err}"
+            ) from None
     agent.set_lstm_backend(cfg.run.lstm_backend)
     optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
     curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0, 1) if cfg.backdoor.enabled else (0,))

@@ -1,0 +1,1 @@
+"""Defenses: the online state monitor, offline detection from weights, and mitigation."""

@@ -1,0 +1,183 @@
+"""The online monitor (the paper's section 6): watch the LSTM's internal states, raise an alarm when they leave the
+range seen on clean episodes, and optionally reset them.
+
+Calibration uses only the deployed agent's own clean (normal-env) episodes -- no knowledge of any trigger: per
+unit (every layer's h and c) the mean and standard deviation over all steps; the score of a step is the largest
+|z| over units; the threshold is the ``1 - false_alarm_target`` quantile of the per-episode peak score over a
+held-out half of the calibration episodes. During an episode the monitor scores the state after every step;
+above the threshold it raises an alarm and, with ``action="reset"``, zeroes that env's state before the next step
+(as at an episode start).
+
+:func:`measure_monitor` reports, over fresh episodes and with 95% intervals: the false-alarm rate (normal env),
+the detection rate (trojan env, an alarm at or after the trigger), alarms before the trigger, the steps from
+trigger to alarm, the attack success (adversary's goal in the trojan env) without and with the monitor's reset,
+and the clean success without and with it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.agent.state import LSTMState, RecurrentState
+from seqtrojan.analysis.traces import record_traces
+from seqtrojan.env.codes import OUTCOME_NAMES
+from seqtrojan.env.config import EnvConfig, GridSpec
+from seqtrojan.env.core import TrojanGridCore
+from seqtrojan.env.rollout import run_episodes
+from seqtrojan.errors import ConfigError
+from seqtrojan.stats import wilson_interval
+
+
+@dataclass(frozen=True)
+class MonitorConfig:
+    calibration_episodes: int = 500
+    """clean episodes of the deployed agent used to calibrate (half for statistics, half for the threshold)"""
+    false_alarm_target: float = 0.01
+    """per-episode false-alarm rate the threshold is set for"""
+    eval_episodes: int = 1000
+    """fresh episodes per measurement"""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.false_alarm_target < 1:
+            raise ConfigError(f"false_alarm_target must be in (0, 1), got {self.false_alarm_target}")
+        if self.calibration_episodes < 20:
+            raise ConfigError(f"calibration_episodes must be >= 20, got {self.calibration_episodes}")
+
+
+class StateMonitor:
+    """Per-unit z-scores of all layers' h and c against clean-episode statistics."""
+
+    def __init__(self, mean: list[np.ndarray], std: list[np.ndarray], threshold: float) -> None:
+        self.mean = [torch.as_tensor(m, dtype=torch.float32) for m in mean]  # per layer: (2 * units,) h then c
+        self.std = [torch.as_tensor(s, dtype=torch.float32) for s in std]
+        self.threshold = threshold
+
+    @classmethod
+    def calibrate(
+        cls, agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, cfg: MonitorConfig,
+        device: str | torch.device = "cpu",
+    ) -> StateMonitor:  # fmt: skip
+        trace = record_traces(
+            agent,
+            env,
+            [grid],
+            episodes=cfg.calibration_episodes,
+            trojan=False,
+            trigger_step=None,
+            seed=cfg.seed,
+            device=device,
+        )
+        half = cfg.calibration_episodes // 2
+        mean, std = [], []
+        for layer in range(len(trace.h)):
+            x = np.concatenate([trace.h[layer], trace.c[layer]], axis=-1)[:half]  # (E, T, 2U)
+            rows = x[trace.mask[:half]]
+            mean.append(rows.mean(0))
+            std.append(rows.std(0) + 1e-3)
+        monitor = cls(mean, std, threshold=float("inf"))
+        peaks = []
+        for e in range(half, cfg.calibration_episodes):
+            steps = trace.mask[e]
+            layers = [np.concatenate([trace.h[i][e], trace.c[i][e]], -1)[steps] for i in range(len(trace.h))]
+            peaks.append(max(float(np.abs((x - m) / s).max()) for x, m, s in zip(layers, mean, std)))
+        monitor.threshold = float(np.quantile(peaks, 1.0 - cfg.false_alarm_target))
+        return monitor
+
+    def score(self, state: RecurrentState) -> torch.Tensor:
+        """(B,) largest |z| over every unit of every layer."""
+        scores = []
+        for layer, m, s in zip(state.layers, self.mean, self.std):
+            x = torch.cat([layer.h, layer.c], -1)
+            scores.append(((x - m.to(x.device)) / s.to(x.device)).abs().amax(-1))
+        return torch.stack(scores).amax(0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"threshold": self.threshold, "units": [int(m.numel()) for m in self.mean]}
+
+
+class MonitoredPolicy:
+    """A batched agent policy with the monitor watching (and, with ``reset=True``, resetting) its state."""
+
+    def __init__(
+        self, agent: RecurrentActorCritic, monitor: StateMonitor, core: TrojanGridCore, reset: bool, seed: int = 0
+    ) -> None:
+        self.agent, self.monitor, self.core, self.reset_on_alarm = agent, monitor, core, reset
+        self.generator = torch.Generator(device=core.device).manual_seed(seed)
+        self.state: RecurrentState | None = None
+        self.first_alarm = torch.full((core.num_envs,), -1, dtype=torch.int64)
+        self.alarms = torch.zeros(core.num_envs, dtype=torch.int64)
+
+    def reset(self, num_envs: int) -> None:
+        self.state = self.agent.initial_state(num_envs)
+        self.first_alarm.fill_(-1)
+        self.alarms.zero_()
+
+    @torch.no_grad()
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        if self.state is None:
+            self.reset(obs.shape[0])
+        out = self.agent.step(obs, self.state)
+        state = out.state
+        alarm = (self.monitor.score(state) > self.monitor.threshold).cpu()
+        t = self.core.t.cpu()
+        self.first_alarm = torch.where(alarm & (self.first_alarm < 0), t, self.first_alarm)
+        self.alarms += alarm.long()
+        if self.reset_on_alarm and bool(alarm.any()):
+            keep = (~alarm).to(state.layers[0].h.dtype).to(obs.device)[:, None]
+            state = RecurrentState(tuple(LSTMState(s.h * keep, s.c * keep) for s in state.layers))
+        self.state = state
+        u = torch.rand(out.logits.shape, device=obs.device, generator=self.generator).clamp_(min=1e-20)
+        return (out.logits - torch.log(-torch.log(u))).argmax(-1)
+
+
+def _rate(flags: np.ndarray) -> dict[str, Any]:
+    k, n = int(flags.sum()), int(flags.size)
+    return {"rate": k / n if n else 0.0, "ci95": list(wilson_interval(k, n))}
+
+
+def measure_monitor(
+    agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, monitor: StateMonitor, cfg: MonitorConfig,
+    device: str | torch.device = "cpu",
+) -> dict[str, Any]:  # fmt: skip
+    env_cfg = dataclasses.replace(env, size=grid.size, holes=grid.holes, max_steps=grid.max_steps)
+    seed = cfg.seed + 1_000_003  # fresh episodes, not the calibration ones
+    adv, user = OUTCOME_NAMES.index("adversary_goal"), OUTCOME_NAMES.index("user_goal")
+    out: dict[str, Any] = {"grid": grid.label, "episodes": cfg.eval_episodes, "monitor": monitor.to_dict()}
+    for env_name, trojan in (("normal", False), ("trojan", True)):
+        for action in ("alarm", "reset"):
+            core = TrojanGridCore(env_cfg, cfg.eval_episodes, device=device, phase="eval",
+                                  trojan_probability=1.0 if trojan else 0.0)  # fmt: skip
+            policy = MonitoredPolicy(agent, monitor, core, reset=action == "reset", seed=cfg.seed)
+            batch = run_episodes(core, policy, seed=seed)
+            outcome = batch.outcome.numpy()
+            first = policy.first_alarm.numpy()
+            key = f"{env_name}_{action}"
+            if trojan:
+                trigger = core.on_step.cpu().numpy()
+                out[key] = {
+                    "attack_success": _rate(outcome == adv),
+                    "user_goal": _rate(outcome == user),
+                    "detected": _rate(first >= trigger),
+                    "alarm_before_trigger": _rate((first >= 0) & (first < trigger)),
+                    "median_steps_to_detect": float(np.median(first[first >= trigger] - trigger[first >= trigger]))
+                    if (first >= trigger).any() else None,
+                }  # fmt: skip
+            else:
+                out[key] = {"success": _rate(outcome == user), "false_alarm": _rate(first >= 0)}
+    # Without the monitor at all: the same episodes, plain policy.
+    from seqtrojan.evaluation.episodes import evaluate_agent
+
+    for env_name, trojan in (("normal", False), ("trojan", True)):
+        batch = evaluate_agent(agent, env, grid, trojan=trojan, episodes=cfg.eval_episodes, seed=seed, device=device)
+        outcome = batch.outcome.numpy()
+        out[f"{env_name}_undefended"] = {
+            "attack_success" if trojan else "success": _rate(outcome == (adv if trojan else user))
+        }
+    return out

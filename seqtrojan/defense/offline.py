@@ -1,0 +1,155 @@
+"""Offline detection from the weights alone (the paper's second proposal and its open problem 1), scored the way
+the TrojAI program scores detectors: ROC-AUC, cross-entropy and Brier score of predicted probabilities on
+held-out models.
+
+Features are size-invariant statistics of the LSTM parameters, so that a zoo of varied architectures shares one
+feature space: per gate (input, forget, cell, output) of the first and the last LSTM layer, statistics of the
+input weights, the recurrent weights and the biases (mean, std, max |w|, skewness, kurtosis, RMS), spectra of the
+weight blocks (largest singular value over RMS, effective rank), and, for the first layer, the relative norm of
+the input weights reading each of the six cell codes (a defender knows the input encoding). The detector is a
+standardised logistic regression; predictions for every model come from stratified k-fold cross-validation, so
+each model is scored by a detector that never saw it. Feature groups are also scored alone, to tell what works.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS
+from seqtrojan.errors import SeqTrojanError
+
+GATES = ("input", "forget", "cell", "output")
+GROUPS = ("gate_stats", "spectral", "input_codes")
+
+
+def _moments(w: np.ndarray) -> dict[str, float]:
+    w = w.ravel().astype(np.float64)
+    mean, std = float(w.mean()), float(w.std()) + 1e-12
+    z = (w - mean) / std
+    return {
+        "mean": mean, "std": std, "absmax": float(np.abs(w).max()), "rms": float(np.sqrt((w**2).mean())),
+        "skew": float((z**3).mean()), "kurtosis": float((z**4).mean() - 3.0),
+    }  # fmt: skip
+
+
+def _spectral(w: np.ndarray) -> dict[str, float]:
+    s = np.linalg.svd(w.astype(np.float64), compute_uv=False)
+    rms = float(np.sqrt((w.astype(np.float64) ** 2).mean())) + 1e-12
+    p = s**2 / max(float((s**2).sum()), 1e-12)
+    return {"top_sv_over_rms": float(s[0]) / rms, "effective_rank": float(np.exp(-(p * np.log(p + 1e-12)).sum()))}
+
+
+def weight_features(tensors: dict[str, np.ndarray], obs_dim: int) -> dict[str, float]:
+    """Named features of one model's parameters (``cells.<i>.weight_ih`` etc.); see the module docstring."""
+    layers = sorted({int(k.split(".")[1]) for k in tensors if k.startswith("cells.")})
+    feats: dict[str, float] = {}
+    for tag, layer in (("first", layers[0]), ("last", layers[-1])):
+        w_ih = tensors[f"cells.{layer}.weight_ih"]
+        w_hh = tensors[f"cells.{layer}.weight_hh"]
+        bias = tensors[f"cells.{layer}.bias_ih"] + tensors[f"cells.{layer}.bias_hh"]
+        hidden = w_hh.shape[1]
+        for g, gate in enumerate(GATES):
+            rows = slice(g * hidden, (g + 1) * hidden)
+            for block, w in (("ih", w_ih[rows]), ("hh", w_hh[rows]), ("bias", bias[rows])):
+                for name, value in _moments(w).items():
+                    feats[f"gate_stats/{tag}.{gate}.{block}.{name}"] = value
+                if block != "bias":
+                    for name, value in _spectral(w).items():
+                        feats[f"spectral/{tag}.{gate}.{block}.{name}"] = value
+        if tag == "first" and w_ih.shape[1] == obs_dim and obs_dim % NUM_CHANNELS == 0:
+            per_code = np.linalg.norm(w_ih.reshape(w_ih.shape[0], -1, NUM_CHANNELS), axis=(0, 1))  # (6,)
+            per_code = per_code / (per_code.mean() + 1e-12)
+            for code, value in zip(CELL_NAMES, per_code):
+                feats[f"input_codes/{code}"] = float(value)
+    return feats
+
+
+@dataclass(frozen=True)
+class ZooModel:
+    model_id: str
+    label: int  # 1 backdoored, 0 clean
+    features: dict[str, float]
+    truth: dict[str, Any]
+
+
+def load_zoo_features(zoo: Path) -> tuple[list[ZooModel], list[dict[str, str]]]:
+    """Features of every model in ``zoo/models``; models that cannot be loaded (pickled, corrupt, mismatched
+    card) are listed as rejected with the reason, and the rest go on."""
+    models, rejected = [], []
+    folder = zoo / "models"
+    if not folder.is_dir():
+        raise SeqTrojanError(f"{str(zoo)!r} is not a zoo (no models/ folder)")
+    for path in sorted(p for p in folder.iterdir() if p.is_dir()):
+        try:
+            agent, cfg, _ = load_agent(path)
+            truth = json.loads((path / "label.json").read_text())
+        except (SeqTrojanError, OSError, json.JSONDecodeError) as err:
+            rejected.append({"model": path.name, "reason": str(err)})
+            continue
+        tensors = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
+        label = 1 if truth.get("label") == "backdoored" else 0
+        models.append(ZooModel(path.name, label, weight_features(tensors, cfg.env.obs_dim), truth))
+    return models, rejected
+
+
+def _matrix(models: list[ZooModel], group: str | None) -> tuple[np.ndarray, list[str]]:
+    names = sorted(set.intersection(*(set(m.features) for m in models)))
+    if group is not None:
+        names = [n for n in names if n.startswith(group + "/")]
+    return np.array([[m.features[n] for n in names] for m in models], dtype=np.float64), names
+
+
+def cross_validated_scores(models: list[ZooModel], group: str | None = None, folds: int = 5, seed: int = 0) -> dict:
+    """Out-of-fold probabilities of 'backdoored' for every model, and ROC-AUC, cross-entropy and Brier score."""
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.metrics import brier_score_loss, log_loss, roc_auc_score
+    from sklearn.model_selection import StratifiedKFold
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    x, names = _matrix(models, group)
+    y = np.array([m.label for m in models])
+    if len(set(y)) < 2:
+        raise SeqTrojanError("offline detection needs both clean and backdoored models in the zoo")
+    folds = max(2, min(folds, int(np.bincount(y).min())))
+    x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+    probs = np.zeros(len(y))
+    for train, test in StratifiedKFold(folds, shuffle=True, random_state=seed).split(x, y):
+        clf = make_pipeline(StandardScaler(), LogisticRegression(C=0.1, max_iter=2000))
+        clf.fit(x[train], y[train])
+        probs[test] = clf.predict_proba(x[test])[:, 1]
+    clipped = np.clip(probs, 1e-6, 1 - 1e-6)
+    return {
+        "group": group or "all", "features": len(names), "models": len(y), "folds": folds,
+        "roc_auc": float(roc_auc_score(y, probs)), "cross_entropy": float(log_loss(y, clipped)),
+        "brier": float(brier_score_loss(y, probs)),
+        "predictions": [{"model": m.model_id, "label": int(t), "p_backdoored": float(p)}
+                        for m, t, p in zip(models, y, probs)],
+    }  # fmt: skip
+
+
+def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> dict[str, Any]:
+    """Score the detector with all features and with each feature group alone; AUC by trigger value too."""
+    models, rejected = load_zoo_features(zoo)
+    results = {"rejected": rejected, "scores": []}
+    for group in (None, *GROUPS):
+        results["scores"].append(cross_validated_scores(models, group, folds, seed))
+    full = results["scores"][0]["predictions"]
+    by_value: dict[str, list[tuple[int, float]]] = {}
+    for m, pred in zip(models, full):
+        if m.label == 1 and m.truth.get("trigger"):
+            by_value.setdefault(m.truth["trigger"]["value"], []).append((1, pred["p_backdoored"]))
+    clean = [(0, p["p_backdoored"]) for m, p in zip(models, full) if m.label == 0]
+    from sklearn.metrics import roc_auc_score
+
+    results["auc_by_trigger_value"] = {
+        value: float(roc_auc_score([t for t, _ in pairs + clean], [p for _, p in pairs + clean]))
+        for value, pairs in by_value.items() if clean
+    }  # fmt: skip
+    return results

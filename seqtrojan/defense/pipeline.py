@@ -1,0 +1,68 @@
+"""``seqtrojan defend``: the online monitor and the mitigations on one model; ``seqtrojan zoo``: build a zoo and
+score offline detection on it. Results are JSON files that the report reads."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.analysis.responses import ResponseRule, classify_units
+from seqtrojan.analysis.traces import record_traces
+from seqtrojan.analysis.unintentional import GoalUnits
+from seqtrojan.defense.mitigation import MitigationConfig, run_mitigation
+from seqtrojan.defense.monitor import MonitorConfig, StateMonitor, measure_monitor
+from seqtrojan.env.config import GridSpec
+
+
+@dataclass(frozen=True)
+class DefenseConfig:
+    monitor: MonitorConfig = field(default_factory=MonitorConfig)
+    mitigation: MitigationConfig = field(default_factory=MitigationConfig)
+    grid: tuple[int, int] | None = None
+    """(size, holes) to defend on; None: the model's training grid"""
+    oracle_episodes: int = 300
+    """trojan-env episodes used only by the oracle that locates the step-type units (needs the trigger)"""
+
+
+def run_defense(model: Path, out: Path, cfg: DefenseConfig, device: str = "cpu",
+                log: Callable[[str], None] = print) -> dict[str, Any]:  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
+    agent, acfg, card = load_agent(model, device=device)
+    grid = GridSpec(*cfg.grid) if cfg.grid is not None else acfg.grids[-1]
+    result: dict[str, Any] = {"model": str(model), "label": card["label"], "grid": grid.label}
+    log(f"calibrating the monitor on {cfg.monitor.calibration_episodes} clean episodes of {grid.label} ...")
+    monitor = StateMonitor.calibrate(agent, acfg.env, grid, cfg.monitor, device)
+    result["monitor"] = measure_monitor(agent, acfg.env, grid, monitor, cfg.monitor, device)
+    goal = _oracle_goal_units(agent, acfg, grid, cfg) if acfg.backdoor.enabled else None
+    if goal is not None:
+        result["oracle_goal_units"] = dataclasses.asdict(goal)
+    log("mitigation: fine-pruning, fine-tuning, unit reset ...")
+    result["mitigation"] = run_mitigation(agent, acfg, grid, cfg.mitigation, out / "mitigation", goal)
+    (out / "defense.json").write_text(json.dumps(result, indent=2))
+    return result
+
+
+def _oracle_goal_units(agent, acfg, grid: GridSpec, cfg: DefenseConfig) -> GoalUnits | None:
+    """The backdoored agent's step-type units, found with trigger episodes (so: an oracle, an upper bound)."""
+    trigger = max(1, min(12, (grid.size - 1) + (grid.size - 1) // 2 - 2))
+    kw = {"episodes": cfg.oracle_episodes, "trigger_step": trigger, "seed": cfg.monitor.seed + 11}
+    normal = record_traces(agent, acfg.env, [grid], trojan=False, **kw)
+    trojan = record_traces(agent, acfg.env, [grid], trojan=True, **kw)
+    rule = ResponseRule(min_episodes=max(10, cfg.oracle_episodes // 10), late_start=4, late_end=12)
+    best = None
+    for layer in range(len(agent.lstm_sizes)):
+        for which in ("c", "h"):
+            try:
+                units = classify_units(normal, trojan, layer, which, trigger, rule).units("step")
+            except Exception:  # too few long episodes on a small grid: no oracle
+                continue
+            if best is None or len(units) > len(best[2]):
+                best = (layer, which, units)
+    if best is None or len(best[2]) == 0:
+        return None
+    return GoalUnits.from_traces(normal, trojan, best[0], best[1], best[2], trigger)

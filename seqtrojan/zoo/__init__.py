@@ -1,0 +1,1 @@
+"""Model zoos of clean and backdoored agents, built locally or on Ray."""

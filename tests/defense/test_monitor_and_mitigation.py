@@ -1,0 +1,79 @@
+"""The online monitor and the mitigations on tiny untrained agents (mechanics, not effect sizes)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from seqtrojan.agent.checkpoint import build_agent
+from seqtrojan.agent.state import LSTMState, RecurrentState
+from seqtrojan.analysis.traces import record_traces
+from seqtrojan.config import AgentConfig, ExperimentConfig
+from seqtrojan.defense.mitigation import MitigationConfig, least_active_units, prune_units, run_mitigation
+from seqtrojan.defense.monitor import MonitorConfig, MonitoredPolicy, StateMonitor, measure_monitor
+from seqtrojan.env import EnvConfig, GridSpec, TrojanGridCore
+from seqtrojan.errors import ConfigError
+
+CFG = ExperimentConfig(env=EnvConfig(size=7, holes=3), agent=AgentConfig(lstm_sizes=(16, 8)))
+GRID = GridSpec(7, 3)
+
+
+@pytest.fixture(scope="module")
+def agent():
+    torch.manual_seed(0)
+    return build_agent(CFG).eval()
+
+
+@pytest.fixture(scope="module")
+def monitor(agent):
+    return StateMonitor.calibrate(agent, CFG.env, GRID, MonitorConfig(calibration_episodes=100))
+
+
+def test_calibration_sets_a_threshold_from_clean_episodes(monitor):
+    assert np.isfinite(monitor.threshold) and monitor.threshold > 0
+    assert [m.numel() for m in monitor.mean] == [32, 16]  # h and c of each layer
+
+
+def test_far_states_score_above_the_threshold_and_are_reset(agent, monitor):
+    near = RecurrentState(tuple(LSTMState(m[: m.numel() // 2][None].clone(), m[m.numel() // 2 :][None].clone())
+                                for m in monitor.mean))  # fmt: skip
+    far = RecurrentState(tuple(LSTMState(s.h + 50.0, s.c) for s in near.layers))
+    assert float(monitor.score(near)[0]) < 1e-4 and float(monitor.score(far)[0]) > monitor.threshold
+    core = TrojanGridCore(CFG.env, 2, seed=0)
+    policy = MonitoredPolicy(agent, monitor, core, reset=True)
+    policy.reset(2)
+    monitor_strict = StateMonitor([m.numpy() for m in monitor.mean], [s.numpy() for s in monitor.std], threshold=-1.0)
+    policy.monitor = monitor_strict  # every state alarms: every state is reset
+    policy(core.observe())
+    assert all(float(s.h.abs().sum()) == 0.0 for s in policy.state.layers)
+    assert policy.first_alarm.tolist() == [0, 0] and policy.alarms.tolist() == [1, 1]
+
+
+def test_measurement_reports_every_rate(agent, monitor):
+    out = measure_monitor(agent, CFG.env, GRID, monitor, MonitorConfig(calibration_episodes=100, eval_episodes=64))
+    for key in ("normal_alarm", "normal_reset", "trojan_alarm", "trojan_reset", "normal_undefended",
+                "trojan_undefended"):  # fmt: skip
+        assert key in out
+    detected = out["trojan_alarm"]["detected"]
+    assert 0 <= detected["rate"] <= 1 and detected["ci95"][0] <= detected["rate"] <= detected["ci95"][1]
+    with pytest.raises(ConfigError, match="false_alarm_target"):
+        MonitorConfig(false_alarm_target=1.5)
+
+
+def test_pruned_units_stay_silent(agent):
+    units = least_active_units(agent, CFG, GRID, episodes=40, fraction=0.25, seed=0)
+    assert len(units) == 2
+    pruned = prune_units(agent, 1, units)
+    trace = record_traces(pruned, CFG.env, [GRID], episodes=20, trojan=True, trigger_step=2)
+    assert np.abs(trace.h[1][..., units]).max() == 0 and np.abs(trace.c[1][..., units]).max() == 0
+    assert np.abs(trace.h[1]).max() > 0  # the others still work
+    assert not torch.equal(agent.cells[1].weight_hh, pruned.cells[1].weight_hh)
+
+
+def test_mitigation_measures_before_and_after(tmp_path, agent):
+    result = run_mitigation(
+        agent, CFG, GRID, MitigationConfig(finetune_steps=2048, calibration_episodes=32, eval_episodes=32), tmp_path
+    )
+    for key in ("before", "pruned", "fine_pruned", "fine_tuned"):
+        assert set(result[key]) == {"clean_success", "attack_success"}
