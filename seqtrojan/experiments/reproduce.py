@@ -28,6 +28,8 @@ from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.analysis.pipeline import AnalysisConfig, run_analysis
 from seqtrojan.config import ExperimentConfig, from_dict, load_yaml, to_dict
+from seqtrojan.defense.offline import detect_zoo
+from seqtrojan.defense.pipeline import DefenseConfig, run_defense
 from seqtrojan.env.config import GridSpec
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import ConfigError
@@ -35,6 +37,7 @@ from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, parse_configs, 
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
 from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
 from seqtrojan.train.trainer import load_run_config, train
+from seqtrojan.zoo.build import ZooConfig, build_zoo
 
 REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -75,6 +78,10 @@ class ReproduceConfig:
     curves: CurvesConfig = field(default_factory=CurvesConfig)
     trajectory: TrajectorySpec = field(default_factory=TrajectorySpec)
     analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
+    defense: DefenseConfig = field(default_factory=DefenseConfig)
+    zoo: ZooConfig | None = None
+    """a zoo for offline detection; None skips it"""
+    zoo_workers: int = 2
     device: str = "cpu"
 
 
@@ -179,6 +186,19 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
         t0 = time.perf_counter()
         run_analysis(models["clean"], models["backdoor"], out / "analysis", config.analysis, config.device, log)
         timer.record("analysis", time.perf_counter() - t0)
+
+    if not (out / "defense" / "defense.json").exists():
+        log("defending the backdoored agent ...")
+        t0 = time.perf_counter()
+        run_defense(models["backdoor"], out / "defense", config.defense, config.device, log)
+        timer.record("defense", time.perf_counter() - t0)
+
+    if config.zoo is not None and not (out / "zoo" / "detection.json").exists():
+        log(f"building a zoo of {config.zoo.size} models and scoring offline detection ...")
+        t0 = time.perf_counter()
+        build_zoo(config.zoo, out / "zoo", workers=config.zoo_workers, log=log)
+        timer.record("zoo_build", time.perf_counter() - t0)
+        (out / "zoo" / "detection.json").write_text(json.dumps(detect_zoo(out / "zoo"), indent=2))
 
     from seqtrojan.report.html import build_report
 

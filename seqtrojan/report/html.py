@@ -172,6 +172,12 @@ def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
     if analysis:
         parts.append(_analysis_section(analysis, out / "analysis"))
 
+    # --- defenses
+    defense = _read_json(out / "defense" / "defense.json")
+    detection = _read_json(out / "zoo" / "detection.json")
+    if defense or detection:
+        parts.append(_defense_section(defense, detection))
+
     # --- training and configs
     parts.append(
         "<h2>Training</h2><table><tr><th class='l'>agent</th><th class='l'>final grid</th>"
@@ -320,6 +326,73 @@ def _analysis_section(a: dict[str, Any], folder: Path) -> str:
         "sequences probe the network and need not be walkable in a grid. Layout search is realisable: the found "
         "layouts are ordinary solvable grids.</p>"
     )
+    return "\n".join(parts)
+
+
+def _r(entry: dict[str, Any]) -> str:
+    return f"{entry['rate']:.3f} {_ci(entry['ci95'])}"
+
+
+def _defense_section(defense: dict[str, Any] | None, detection: dict[str, Any] | None) -> str:
+    parts = ["<h2>Defenses</h2>"]
+    if defense:
+        m = defense["monitor"]
+        parts.append(
+            f"<h3>Online state monitor</h3><p class='note'>Calibrated only on the deployed agent's own clean episodes "
+            f"(no trigger knowledge); threshold {m['monitor']['threshold']:.2f} (largest |z| over all h and c units) "
+            f"for a 1% per-episode false-alarm target; {m['episodes']} fresh episodes per row on {m['grid']}.</p>"
+            "<table><tr><th class='l'>measure</th><th>value [95% CI]</th></tr>"
+            f"<tr><td class='l'>false-alarm rate (normal env)</td><td>{_r(m['normal_alarm']['false_alarm'])}</td></tr>"
+            f"<tr><td class='l'>detection rate (trojan env, alarm at or after the trigger)</td>"
+            f"<td>{_r(m['trojan_alarm']['detected'])}</td></tr>"
+            f"<tr><td class='l'>alarm before the trigger (trojan env)</td>"
+            f"<td>{_r(m['trojan_alarm']['alarm_before_trigger'])}</td></tr>"
+            f"<tr><td class='l'>median steps from trigger to alarm</td>"
+            f"<td>{m['trojan_alarm']['median_steps_to_detect']}</td></tr>"
+            f"<tr><td class='l'>attack success without the monitor</td>"
+            f"<td>{_r(m['trojan_undefended']['attack_success'])}</td></tr>"
+            f"<tr><td class='l'>attack success with alarm-and-reset</td><td>{_r(m['trojan_reset']['attack_success'])}"
+            f"</td></tr><tr><td class='l'>clean success without the monitor</td>"
+            f"<td>{_r(m['normal_undefended']['success'])}</td></tr>"
+            f"<tr><td class='l'>clean success with alarm-and-reset</td><td>{_r(m['normal_reset']['success'])}</td></tr>"
+            "</table>"
+        )
+        mit = defense["mitigation"]
+        names = {
+            "before": "no mitigation", "pruned": f"pruned {len(mit['pruned_units'])} least-active units",
+            "fine_pruned": "fine-pruning (pruned, then fine-tuned on clean episodes)",
+            "fine_tuned": "fine-tuning on clean episodes", "reset_goal_units_oracle": "holding the step units at "
+            "their normal level (oracle: needs the trigger to find them)",
+        }  # fmt: skip
+        parts.append(
+            "<h3>Mitigation</h3><table><tr><th class='l'>model</th><th>clean success</th><th>attack success</th></tr>"
+        )
+        for key, label in names.items():
+            if key in mit:
+                parts.append(
+                    f"<tr><td class='l'>{label}</td><td>{_r(mit[key]['clean_success'])}</td>"
+                    f"<td>{_r(mit[key]['attack_success'])}</td></tr>"
+                )
+        parts.append("</table>")
+    if detection:
+        parts.append(
+            "<h3>Offline detection from the weights (zoo)</h3><p class='note'>Standardised logistic regression on "
+            "size-invariant statistics of the LSTM parameters; every model scored by a detector trained without it "
+            f"(stratified {detection['scores'][0]['folds']}-fold), the way TrojAI scores detectors.</p>"
+            "<table><tr><th class='l'>features</th><th>#</th><th>models</th><th>ROC-AUC</th><th>cross-entropy</th>"
+            "<th>Brier</th></tr>"
+        )
+        for r in detection["scores"]:
+            parts.append(
+                f"<tr><td class='l'>{r['group']}</td><td>{r['features']}</td><td>{r['models']}</td>"
+                f"<td>{r['roc_auc']:.3f}</td><td>{r['cross_entropy']:.3f}</td><td>{r['brier']:.3f}</td></tr>"
+            )
+        parts.append("</table>")
+        if detection.get("auc_by_trigger_value"):
+            items = ", ".join(f"{k}: {v:.3f}" for k, v in detection["auc_by_trigger_value"].items())
+            parts.append(f"<p class='note'>ROC-AUC against the clean models, by the trigger's cell code: {items}.</p>")
+        for r in detection.get("rejected", []):
+            parts.append(f"<p class='note'>Rejected {html.escape(r['model'])}: {html.escape(r['reason'])}</p>")
     return "\n".join(parts)
 
 

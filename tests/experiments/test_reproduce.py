@@ -45,6 +45,21 @@ TINY = {
         },
         "sequence_search": {"length": 6, "restarts": 4, "steps": 10},
     },
+    "defense": {
+        "monitor": {"calibration_episodes": 40, "eval_episodes": 32},
+        "mitigation": {"finetune_steps": 2048, "calibration_episodes": 32, "eval_episodes": 32},
+        "oracle_episodes": 40,
+    },
+    "zoo": {
+        "clean": 2,
+        "backdoored": 2,
+        "total_steps": 2048,
+        "num_envs": 32,
+        "eval_episodes": 16,
+        "lstm_sizes": [[8]],
+        "curricula": [[{"size": 5, "holes": 0}]],
+    },
+    "zoo_workers": 1,
 }
 
 
@@ -63,6 +78,7 @@ def test_every_stage_writes_its_outputs(tiny_run):
         "trajectory.png", "trajectory_normal.txt", "trajectory_trojan.txt", "timings.json", "reproduce.yaml",
         "analysis/analysis.json", "analysis/responses.json", "analysis/interventions.json", "analysis/search.json",
         "analysis/findings.json", "analysis/traces/backdoor_trojan.safetensors", "analysis/figures/responses_clean.png",
+        "defense/defense.json", "zoo/manifest.json", "zoo/detection.json",
     ):  # fmt: skip
         assert (out / path).exists(), path
     rows = json.loads((out / "evaluation" / "evaluation.json").read_text())
@@ -77,6 +93,7 @@ def test_report_is_self_contained_with_tables_figures_and_configs(tiny_run):
     text = report.read_text()
     for heading in ("Headline", "Table 1", "Table 2", "Learning curves", "with and without the trigger",
                     "response types", "editing the goal units", "Unintentional triggers", "on purpose",
+                    "Online state monitor", "Mitigation", "Offline detection",
                     "Training", "Machine and timings"):  # fmt: skip
         assert heading in text, heading
     assert len(re.findall(r"src='data:image/png;base64,", text)) >= 4 + 8  # curves, trajectory, 2 responses, heatmaps
