@@ -50,11 +50,13 @@ def measure_speed(size: int, holes: int, num_envs: int, backend: str, device: st
     return statistics.median(rates[1:])
 
 
-def time_to_90(seed: int, device: str, out_dir: str) -> dict:
+def time_to_90(seed: int, device: str, out_dir: str, curriculum: bool = True) -> dict:
     cfg = from_dict(ExperimentConfig, load_yaml(ROOT / "configs" / "clean_7x7.yaml"), "")
     cfg = dataclasses.replace(
         cfg, run=dataclasses.replace(cfg.run, out_dir=out_dir, seed=seed, device=device, progress=False)
     )
+    if not curriculum:
+        cfg = dataclasses.replace(cfg, curriculum=dataclasses.replace(cfg.curriculum, stages=()))
     last = len(cfg.grids) - 1
     hit: dict = {}
 
@@ -65,7 +67,7 @@ def time_to_90(seed: int, device: str, out_dir: str) -> dict:
         return False
 
     result = train(cfg, callback=stop)
-    return {"seed": seed, **hit, "eval_success": result.evaluation["normal_success"]}
+    return {"seed": seed, "curriculum": curriculum, **hit, "eval_success": result.evaluation["normal_success"]}
 
 
 def main() -> None:
@@ -93,22 +95,25 @@ def main() -> None:
                     table.add_row(f"{size}x{size}/{holes}", str(envs), *(f"{rates[b]:,.0f}" for b in backends))
             console.print(table)
         if args.part in ("time", "all"):
-            runs = [time_to_90(seed, args.device, tmp) for seed in range(args.seeds)]
-            report["time_to_90"] = runs
-            table = Table(title="Time to 90% success on 7x7/3 (clean_7x7 preset)")
-            for col in ("seed", "env steps", "seconds", "eval success (1000 episodes)"):
-                table.add_column(col, justify="right")
-            for r in runs:
-                table.add_row(
-                    str(r["seed"]),
-                    f"{r.get('env_steps', 0):,}",
-                    f"{r.get('seconds', float('nan')):.1f}",
-                    f"{r['eval_success']:.3f}",
-                )
-            console.print(table)
-            secs = [r["seconds"] for r in runs if "seconds" in r]
-            if secs:
-                console.print(f"median {statistics.median(secs):.1f} s over {len(secs)} seeds")
+            report["time_to_90"] = []
+            for curriculum in (True, False):
+                runs = [time_to_90(seed, args.device, tmp, curriculum) for seed in range(args.seeds)]
+                report["time_to_90"] += runs
+                how = "with the curriculum 5x5/0 -> 5x5/1 -> 7x7/3" if curriculum else "directly on 7x7/3"
+                table = Table(title=f"Time to 90% success on 7x7/3, {how}")
+                for col in ("seed", "env steps", "seconds", "eval success (1000 episodes)"):
+                    table.add_column(col, justify="right")
+                for r in runs:
+                    table.add_row(
+                        str(r["seed"]),
+                        f"{r.get('env_steps', 0):,}",
+                        f"{r.get('seconds', float('nan')):.1f}",
+                        f"{r['eval_success']:.3f}",
+                    )
+                console.print(table)
+                secs = [r["seconds"] for r in runs if "seconds" in r]
+                if secs:
+                    console.print(f"median {statistics.median(secs):.1f} s over {len(secs)} seeds")
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2))
 

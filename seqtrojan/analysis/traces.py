@@ -110,7 +110,7 @@ def record_traces(
     *,
     episodes: int,
     trojan: bool,
-    trigger_step: int | None = 12,
+    trigger_step: int | None = None,
     seed: int = 0,
     greedy: bool = False,
     device: str | torch.device = "cpu",
