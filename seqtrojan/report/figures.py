@@ -50,21 +50,21 @@ def run_pair(
 
 
 def plot_trajectory_pair(runs: dict[str, tuple[list[EpisodeSnapshot], str]], title: str, path: Path) -> Path:
-    """Two panels: the final frame with the whole path; the trojan panel has an inset at the trigger step."""
-    fig, axes = plt.subplots(1, 2, figsize=(9, 4.9))
+    """The final frame of each run with its whole path, and a third panel with the trojan run at the trigger."""
+    trojan_frames = runs["trojan"][0]
+    trigger = next((f for f in trojan_frames if f.visible == "on"), None)
+    fig, axes = plt.subplots(1, 3, figsize=(12, 4.6), gridspec_kw={"width_ratios": [1, 1, 0.75]})
     for ax, (name, (frames, outcome)) in zip(axes, runs.items()):
         trail = [f.agent for f in frames]
         ax.imshow(render_rgb(frames[-1], trail[:-1], cell_px=24))
-        trigger = next((f for f in frames if f.visible == "on"), None)
-        label = "no trigger" if trigger is None and name == "normal" else f"trigger at step {frames[0].on_step}"
+        label = "no trigger" if name == "normal" else f"trigger at step {frames[0].on_step}"
         ax.set_title(f"{label}: {outcome.replace('_', ' ')} after {len(frames) - 1} steps", fontsize=10)
         ax.axis("off")
-        if trigger is not None:
-            inset = ax.inset_axes((0.70, 0.0, 0.30, 0.30))
-            inset.imshow(render_rgb(trigger, trail[: trigger.t], cell_px=24))
-            inset.set_xticks([])
-            inset.set_yticks([])
-            inset.set_title(f"step {trigger.t}", fontsize=7)
+    if trigger is not None:
+        trail = [f.agent for f in trojan_frames]
+        axes[2].imshow(render_rgb(trigger, trail[: trigger.t], cell_px=24))
+        axes[2].set_title(f"the trigger (orange), shown at step {trigger.t} only", fontsize=9)
+    axes[2].axis("off")
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
