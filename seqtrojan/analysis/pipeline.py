@@ -32,7 +32,7 @@ from seqtrojan.analysis.plots import plot_finding, plot_heatmaps, plot_unit_resp
 from seqtrojan.analysis.responses import Classification, ResponseRule, classify_units
 from seqtrojan.analysis.search import LayoutSearchConfig, SequenceSearchConfig, evolve_layouts, search_sequences
 from seqtrojan.analysis.traces import StateTrace, record_traces
-from seqtrojan.analysis.unintentional import GoalUnits, save_findings, sweep_unintentional
+from seqtrojan.analysis.unintentional import GoalUnits, save_findings, select_goal_units, sweep_unintentional
 from seqtrojan.env.config import GridSpec
 from seqtrojan.env.core import EpisodeSnapshot
 from seqtrojan.env.layout import Layout
@@ -58,6 +58,8 @@ class AnalysisConfig:
     unintentional_configs: str = "paper"
     """'paper' (includes 23x23/0, the paper's example) or a list like '23x23/0,27x27/27'"""
     unintentional_episodes: int = 1000
+    goal_units: int = 8
+    """how many units the goal-unit edits and plots use (see select_goal_units)"""
     findings_to_plot: int = 2
     """per kind (activation, deactivation)"""
     layout_search: LayoutSearchConfig = field(default_factory=LayoutSearchConfig)
@@ -286,15 +288,8 @@ def _representatives(classes, name: str, layers: int, per_type: int = 2) -> list
 
 
 def _goal_units(classes, agent, traces, cfg: AnalysisConfig) -> tuple[GoalUnits, str]:
-    """The backdoored agent's step units of the layer/state with the most; else its 4 most persistent units."""
-    layers = range(len(agent.lstm_sizes))
-    best = max((len(classes[("backdoor", layer, w)].units("step")), layer, w) for layer in layers for w in ("c", "h"))
-    count, layer, which = best
-    cl = classes[("backdoor", layer, which)]
-    if count > 0:
-        units, source = cl.units("step"), "step-type units"
-    else:
-        units, source = np.argsort(-cl.late)[:4], "no step-type units: the 4 units with the largest late deviation"
+    mine = {(layer, which): cl for (name, layer, which), cl in classes.items() if name == "backdoor"}
+    layer, which, units, source = select_goal_units(mine, cfg.goal_units)
     goal = GoalUnits.from_traces(
         traces[("backdoor", "normal")], traces[("backdoor", "trojan")], layer, which, units, cfg.trigger_step
     )

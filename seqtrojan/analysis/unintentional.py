@@ -57,6 +57,32 @@ class GoalUnits:
         return ((x - n) * d).sum(-1) / max(float((d * d).sum()), 1e-12)
 
 
+def select_goal_units(classes: dict, count: int) -> tuple[int, str, np.ndarray, str]:
+    """Pick the units that most plausibly keep the goal, from per-(layer, which) classifications.
+
+    Memory lives in the cell state, so c units come first: per layer, the ``count`` step-type c units with the
+    largest late deviation; the layer whose picks deviate most in total wins. Editing a few of the most persistent
+    units is what the paper did; editing every step-type unit (often most of a layer, since the agent's whole
+    trajectory changes after the trigger) also destroys its navigation. Falls back to h units, then to the most
+    persistent units whatever their type. Returns (layer, which, units, how they were chosen).
+    """
+    for which in ("c", "h"):
+        options = []
+        for (layer, w), cl in classes.items():
+            if w != which:
+                continue
+            step = cl.units("step")
+            picked = step[np.argsort(-cl.late[step])][:count]
+            if len(picked):
+                options.append((float(cl.late[picked].sum()), layer, picked))
+        if options:
+            _, layer, picked = max(options, key=lambda o: o[0])
+            return layer, which, picked, f"the {len(picked)} most persistent step-type {which} units of layer {layer}"
+    layer, which = max(classes, key=lambda key: float(np.sort(classes[key].late)[-count:].sum()))
+    picked = np.argsort(-classes[(layer, which)].late)[:count]
+    return layer, which, picked, f"no step-type units: the {len(picked)} most persistent {which} units of layer {layer}"
+
+
 @dataclass(frozen=True)
 class Finding:
     kind: str  # activation / deactivation

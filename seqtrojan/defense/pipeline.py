@@ -13,10 +13,11 @@ from typing import Any
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.analysis.responses import ResponseRule, classify_units
 from seqtrojan.analysis.traces import record_traces
-from seqtrojan.analysis.unintentional import GoalUnits
+from seqtrojan.analysis.unintentional import GoalUnits, select_goal_units
 from seqtrojan.defense.mitigation import MitigationConfig, run_mitigation
 from seqtrojan.defense.monitor import MonitorConfig, StateMonitor, measure_monitor
 from seqtrojan.env.config import GridSpec
+from seqtrojan.errors import SeqTrojanError
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,8 @@ class DefenseConfig:
     """(size, holes) to defend on; None: the model's training grid"""
     oracle_episodes: int = 300
     """trojan-env episodes used only by the oracle that locates the step-type units (needs the trigger)"""
+    goal_units: int = 8
+    """units the oracle reset holds (see seqtrojan.analysis.unintentional.select_goal_units)"""
 
 
 def run_defense(model: Path, out: Path, cfg: DefenseConfig, device: str = "cpu",
@@ -54,15 +57,12 @@ def _oracle_goal_units(agent, acfg, grid: GridSpec, cfg: DefenseConfig) -> GoalU
     normal = record_traces(agent, acfg.env, [grid], trojan=False, **kw)
     trojan = record_traces(agent, acfg.env, [grid], trojan=True, **kw)
     rule = ResponseRule(min_episodes=max(10, cfg.oracle_episodes // 10), late_start=4, late_end=12)
-    best = None
+    classes = {}
     for layer in range(len(agent.lstm_sizes)):
         for which in ("c", "h"):
             try:
-                units = classify_units(normal, trojan, layer, which, trigger, rule).units("step")
-            except Exception:  # too few long episodes on a small grid: no oracle
-                continue
-            if best is None or len(units) > len(best[2]):
-                best = (layer, which, units)
-    if best is None or len(best[2]) == 0:
-        return None
-    return GoalUnits.from_traces(normal, trojan, best[0], best[1], best[2], trigger)
+                classes[(layer, which)] = classify_units(normal, trojan, layer, which, trigger, rule)
+            except SeqTrojanError:  # too few long episodes on a small grid: no oracle
+                return None
+    layer, which, units, _ = select_goal_units(classes, cfg.goal_units)
+    return GoalUnits.from_traces(normal, trojan, layer, which, units, trigger)

@@ -63,3 +63,25 @@ def test_too_few_running_episodes_is_a_clear_error():
         classify_signals(z, counts, T0, ResponseRule(min_episodes=30))
     with pytest.raises(ConfigError, match="response_window"):
         ResponseRule(response_window=8, late_start=6)
+
+
+def test_goal_units_prefer_the_most_persistent_cell_units():
+    from seqtrojan.analysis.responses import Classification
+    from seqtrojan.analysis.unintentional import select_goal_units
+
+    def cl(types, late):
+        return Classification(np.array(types), np.ones(len(types)), np.array(late, float))
+
+    classes = {
+        (0, "c"): cl(["step", "step", "none", "step"], [2.0, 5.0, 0.0, 1.0]),
+        (1, "c"): cl(["step", "impulse"], [9.0, 0.1]),
+        (0, "h"): cl(["step"] * 4, [50.0] * 4),  # h units come second, however persistent
+    }
+    layer, which, units, how = select_goal_units(classes, count=2)
+    assert (layer, which, units.tolist()) == (1, "c", [0])  # 9.0 beats 5.0 + 2.0
+    assert "most persistent step-type c units of layer 1" in how
+    classes[(1, "c")] = cl(["none", "impulse"], [0.0, 0.1])
+    assert select_goal_units(classes, count=2)[:3][2].tolist() == [1, 0]
+    no_steps = {(0, "c"): cl(["none", "impulse", "none"], [0.2, 0.9, 0.5])}
+    layer, which, units, how = select_goal_units(no_steps, count=2)
+    assert units.tolist() == [1, 2] and how.startswith("no step-type units")
