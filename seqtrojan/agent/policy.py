@@ -22,6 +22,7 @@ class AgentPolicy:
         seed: int = 0,
         intervention: Intervention | None = None,
         step_counter=None,
+        initial_state=None,
     ) -> None:
         self.agent = agent
         self.greedy = greedy
@@ -30,9 +31,13 @@ class AgentPolicy:
         device = next(agent.parameters()).device
         self.generator = torch.Generator(device=device).manual_seed(seed)
         self.state = None
+        self.initial_state = initial_state
+        """a RecurrentState to start episodes from instead of zeros (e.g. after an adversarial prefix)"""
 
     def reset(self, num_envs: int) -> None:
-        self.state = self.agent.initial_state(num_envs)
+        self.state = (
+            self.initial_state.clone() if self.initial_state is not None else self.agent.initial_state(num_envs)
+        )
 
     @torch.no_grad()
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:

@@ -30,7 +30,13 @@ from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.analysis.interventions import switch_experiment
 from seqtrojan.analysis.plots import plot_finding, plot_heatmaps, plot_unit_responses
 from seqtrojan.analysis.responses import Classification, ResponseRule, classify_units
-from seqtrojan.analysis.search import LayoutSearchConfig, SequenceSearchConfig, evolve_layouts, search_sequences
+from seqtrojan.analysis.search import (
+    LayoutSearchConfig,
+    SequenceSearchConfig,
+    evolve_layouts,
+    flip_rates,
+    search_sequences,
+)
 from seqtrojan.analysis.traces import StateTrace, record_traces
 from seqtrojan.analysis.unintentional import GoalUnits, save_findings, select_goal_units, sweep_unintentional
 from seqtrojan.env.config import GridSpec
@@ -235,6 +241,11 @@ def run_analysis(
         log("searching for goal-switching layouts and sequences ...")
         layouts = timed("layout_search", lambda: evolve_layouts(backdoor, bcfg.env, goal, cfg.layout_search))
         sequences, codes = timed("sequence_search", lambda: search_sequences(backdoor, goal, cfg.sequence_search))
+        found_codes = codes[np.asarray(sequences.rounded_activation) >= cfg.sequence_search.success_at]
+        if len(found_codes):
+            flip, base = flip_rates(backdoor, bcfg.env, found_codes, cfg.layout_search.size, cfg.layout_search.holes,
+                                    cfg.intervention_episodes, cfg.seed)  # fmt: skip
+            sequences = dataclasses.replace(sequences, flip_rate=flip, baseline_rate=base)
         np.save(out / "sequence_codes.npy", codes)
         found = sum(r.found for r in layouts)
         seconds = sum(r.seconds for r in layouts)

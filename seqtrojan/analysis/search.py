@@ -165,6 +165,11 @@ class SequenceSearchResult:
     rounded_activation: list[float]
     seconds: float
     forward_steps: int
+    flip_rate: float | None = None
+    """share of normal-env episodes, started from the state the found sequences leave behind, that end at the
+    adversary's goal (None: nothing found or not measured)"""
+    baseline_rate: float | None = None
+    """the same share from the usual zero state"""
 
 
 def search_sequences(
@@ -216,3 +221,27 @@ def search_sequences(
         cfg.restarts * cfg.length * (2 * cfg.steps + 2),
     )
     return result, codes.permute(1, 0, 2).numpy()
+
+
+@torch.no_grad()
+def flip_rates(
+    agent: RecurrentActorCritic, env: EnvConfig, codes: np.ndarray, size: int, holes: int, episodes: int, seed: int
+) -> tuple[float, float]:
+    """Behaviour after an observation sequence: each sequence in ``codes`` (R, L, cells) is fed to the agent, and
+    normal-env episodes then start from the state it leaves; returns (adversary-goal rate after the sequences,
+    adversary-goal rate from the zero state). The goal flips when the first is high and the second low."""
+    if len(codes) == 0:
+        return 0.0, 0.0
+    obs = torch.nn.functional.one_hot(torch.as_tensor(codes), NUM_CHANNELS).float()  # (R, L, cells, C)
+    obs = obs.reshape(codes.shape[0], codes.shape[1], -1).transpose(0, 1)  # (L, R, obs)
+    prefix = agent.unroll(obs, agent.initial_state(codes.shape[0]), torch.zeros(obs.shape[:2])).state
+    reps = max(1, episodes // codes.shape[0])
+    start = type(prefix)(tuple(type(s)(s.h.repeat(reps, 1), s.c.repeat(reps, 1)) for s in prefix.layers))
+    env_cfg = dataclasses.replace(env, size=size, holes=holes, max_steps=None)
+    adv = OUTCOME_NAMES.index("adversary_goal")
+    rates = []
+    for initial in (start, None):
+        core = TrojanGridCore(env_cfg, codes.shape[0] * reps, seed=seed, phase="eval")
+        batch = run_episodes(core, AgentPolicy(agent, seed=seed, initial_state=initial), seed=seed)
+        rates.append(float((batch.outcome == adv).float().mean()))
+    return rates[0], rates[1]

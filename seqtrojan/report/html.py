@@ -321,7 +321,14 @@ def _analysis_section(a: dict[str, Any], folder: Path) -> str:
         f"{seq['config']['length']} (trigger code excluded), rounded to one-hot</td>"
         f"<td>{seq['found']} / {seq['restarts']}</td><td>{per_seq}</td><td>{seq['forward_steps']:,} network "
         f"steps, {seq['seconds']:.1f} s</td></tr></table>"
-        "<p class='note'>Sequence search counts a sequence as found when the rounded observations drive the goal "
+        + (
+            f"<p>After the found sequences, normal-env episodes on {lc['size']}x{lc['size']}/{lc['holes']} that start "
+            f"from the state they leave end at the adversary's goal <b>{seq['flip_rate']:.3f}</b> of the time "
+            f"(from the usual zero state: {seq['baseline_rate']:.3f}).</p>"
+            if seq.get("flip_rate") is not None
+            else ""
+        )
+        + "<p class='note'>Sequence search counts a sequence as found when the rounded observations drive the goal "
         f"units' activation to &ge; {seq['config']['success_at']} (0 = normal-env level, 1 = trojan-env level); such "
         "sequences probe the network and need not be walkable in a grid. Layout search is realisable: the found "
         "layouts are ordinary solvable grids.</p>"

@@ -14,6 +14,7 @@ from seqtrojan.analysis.search import (
     SequenceSearchConfig,
     _mutate,
     evolve_layouts,
+    flip_rates,
     search_sequences,
 )
 from seqtrojan.analysis.traces import StateTrace, record_traces, replay_states
@@ -139,3 +140,5 @@ def test_searches_run_and_never_use_the_trigger(agent, traces):
     result, codes = search_sequences(agent, goal, SequenceSearchConfig(length=6, restarts=5, steps=20))
     assert codes.shape == (5, 6, 9) and not (codes == TRIGGER).any()
     assert result.restarts == 5 and 0 <= result.found <= 5 and len(result.rounded_activation) == 5
+    after, before = flip_rates(agent, CFG.env, codes[:2], size=7, holes=3, episodes=16, seed=0)
+    assert 0 <= after <= 1 and 0 <= before <= 1
