@@ -158,6 +158,9 @@ def measure_monitor(
             batch = run_episodes(core, policy, seed=seed)
             outcome = batch.outcome.numpy()
             first = policy.first_alarm.numpy()
+            # run_episodes keeps stepping finished envs until every episode has ended; alarms raised after an
+            # episode's end are not part of it.
+            first = np.where(first < batch.length.numpy(), first, -1)
             key = f"{env_name}_{action}"
             if trojan:
                 trigger = core.on_step.cpu().numpy()

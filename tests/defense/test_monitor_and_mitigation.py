@@ -77,3 +77,12 @@ def test_mitigation_measures_before_and_after(tmp_path, agent):
     )
     for key in ("before", "pruned", "fine_pruned", "fine_tuned"):
         assert set(result[key]) == {"clean_success", "attack_success"}
+
+
+def test_alarms_after_an_episode_ended_do_not_count(agent, monitor):
+    strict = StateMonitor([m.numpy() for m in monitor.mean], [s.numpy() for s in monitor.std], threshold=1e9)
+    out = measure_monitor(agent, CFG.env, GRID, strict, MonitorConfig(calibration_episodes=100, eval_episodes=32))
+    assert out["normal_alarm"]["false_alarm"]["rate"] == 0.0  # nothing ever crosses an infinite threshold
+    calibrated = measure_monitor(agent, CFG.env, GRID, monitor, MonitorConfig(calibration_episodes=100,
+                                                                             eval_episodes=200))  # fmt: skip
+    assert calibrated["normal_alarm"]["false_alarm"]["rate"] < 0.15  # calibrated for 1%; small-sample slack
