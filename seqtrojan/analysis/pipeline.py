@@ -225,11 +225,13 @@ def run_analysis(
         )
         save_findings(findings, out / "findings.json")
         plotted = _plot_findings(findings, backdoor, bcfg, goal, traces, cfg, out)
+        flips = _goal_flips(findings, backdoor, bcfg, goal)
         (out / "unintentional.json").write_text(
             json.dumps(
                 {
                     "summaries": [dataclasses.asdict(s) for s in summaries],
                     "findings": len(findings),
+                    "goal_units_flipped": flips,
                     "plotted": plotted,
                 },
                 indent=2,
@@ -305,6 +307,25 @@ def _goal_units(classes, agent, traces, cfg: AnalysisConfig) -> tuple[GoalUnits,
         traces[("backdoor", "normal")], traces[("backdoor", "trojan")], layer, which, units, cfg.trigger_step
     )
     return goal, source
+
+
+def _goal_flips(findings, agent, acfg, goal: GoalUnits) -> dict[str, dict[str, int]]:
+    """How many findings of each kind show the goal units actually switching (activation crossing 0.5 upward for an
+    activation, downward after the trigger for a deactivation), as opposed to a navigation error that happens to
+    end at the other goal."""
+    out: dict[str, dict[str, int]] = {}
+    for finding in findings:
+        replay = finding.replay(agent, acfg.env)
+        level = goal.activation((replay["h"] if goal.which == "h" else replay["c"])[goal.layer])
+        if finding.kind == "activation":
+            flipped = bool((level >= 0.5).any())
+        else:
+            after = level[finding.trigger_step :] if finding.trigger_step is not None else level
+            flipped = bool(len(after)) and bool((after < 0.5).any()) and bool((level >= 0.5).any())
+        counts = out.setdefault(finding.kind, {"findings": 0, "flipped": 0})
+        counts["findings"] += 1
+        counts["flipped"] += int(flipped)
+    return out
 
 
 def _plot_findings(findings, agent, acfg, goal: GoalUnits, traces, cfg: AnalysisConfig, out: Path) -> list[str]:

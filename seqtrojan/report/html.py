@@ -230,6 +230,9 @@ def _ci(pair: Sequence[float]) -> str:
     return f"<span class='note'>[{pair[0]:.3f}, {pair[1]:.3f}]</span>"
 
 
+_REST = "; the rest are navigation errors that happen to end at the other goal"
+
+
 def _analysis_section(a: dict[str, Any], folder: Path) -> str:
     cfg = a["config"]
     parts = [
@@ -298,9 +301,13 @@ def _analysis_section(a: dict[str, Any], folder: Path) -> str:
             f"<tr><td class='l'>{row['grid']}</td><td>{row['activation_rate']:.3f} {_ci(row['activation_ci'])}</td>"
             f"<td>{row['deactivation_rate']:.3f} {_ci(row['deactivation_ci'])}</td><td>{row['episodes']}</td></tr>"
         )
+    flips = "; ".join(
+        f"{v['flipped']} of {v['findings']} {kind}s show the goal units switching"
+        for kind, v in un.get("goal_units_flipped", {}).items()
+    )
     parts.append(
         f"</table><p class='note'>{un['findings']} findings saved (findings.json: layout, trigger step, "
-        "actions; each replays exactly).</p>"
+        f"actions; each replays exactly). {flips}{_REST if flips else ''}.</p>"
     )
     parts += [_img(folder / "figures" / name) for name in un["plotted"]]
 

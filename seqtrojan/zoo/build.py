@@ -39,6 +39,8 @@ from seqtrojan.env.config import EnvConfig, GridSpec, TriggerConfig
 from seqtrojan.errors import ConfigError
 
 TRIGGER_VALUES = ("trigger", "hole", "empty", "wall")
+DEFAULT_TRIGGER_VALUES = ("trigger", "hole", "wall")
+"""'empty' is left out by default: a patch of empty cells over cells that are usually empty is invisible"""
 
 
 @dataclass(frozen=True)
@@ -51,7 +53,7 @@ class ZooConfig:
     """base seed; model i uses seed + i and draws its variation from it"""
     lstm_sizes: tuple[tuple[int, ...], ...] = ((64, 32), (32, 32), (64,), (48, 24))
     """architectures to draw from"""
-    trigger_values: tuple[str, ...] = TRIGGER_VALUES
+    trigger_values: tuple[str, ...] = DEFAULT_TRIGGER_VALUES
     """cell codes a trigger patch can use ('trigger' is the dedicated channel; the others look ordinary)"""
     trigger_cells: tuple[int, int] = (3, 9)
     """inclusive range of the number of view cells a trigger patch covers"""
