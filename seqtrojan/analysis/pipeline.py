@@ -7,8 +7,8 @@ Stages (each skipped when its output exists under ``out``):
 2. classify every unit as impulse / none / step (:mod:`seqtrojan.analysis.responses`) -> ``responses.json``;
 3. plot representative units and heatmaps of all units -> ``figures/``;
 4. edit the backdoored agent's step units and measure goal switches and hole avoidance -> ``interventions.json``;
-5. sweep grid configs for unintentional activations and deactivations, keep and plot findings ->
-   ``unintentional.json``, ``findings.json``;
+5. sweep grid configs for unintentional activations and deactivations, keep and plot findings, and score the
+   agent as a trigger detector (precision / recall) -> ``unintentional.json``, ``findings.json``;
 6. search for goal-switching layouts and observation sequences -> ``search.json``.
 
 ``analysis.json`` gathers the results for the report.
@@ -38,6 +38,7 @@ from seqtrojan.analysis.search import (
     search_sequences,
 )
 from seqtrojan.analysis.traces import StateTrace, record_traces
+from seqtrojan.analysis.trigger_detection import trigger_detection
 from seqtrojan.analysis.unintentional import GoalUnits, save_findings, select_goal_units, sweep_unintentional
 from seqtrojan.env.config import GridSpec
 from seqtrojan.env.core import EpisodeSnapshot
@@ -230,6 +231,7 @@ def run_analysis(
             json.dumps(
                 {
                     "summaries": [dataclasses.asdict(s) for s in summaries],
+                    "trigger_detection": [dataclasses.asdict(d) for d in trigger_detection(summaries)],
                     "findings": len(findings),
                     "goal_units_flipped": flips,
                     "plotted": plotted,

@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -108,6 +108,10 @@ class SweepSummary:
     activation_ci: tuple[float, float]
     deactivation_rate: float
     deactivation_ci: tuple[float, float]
+    normal_outcomes: dict[str, int] = field(default_factory=dict)
+    """episodes per outcome (user_goal, adversary_goal, hole, timeout) in the normal env"""
+    trojan_outcomes: dict[str, int] = field(default_factory=dict)
+    """the same in the trojan env (trigger at the evaluation steps)"""
 
 
 def sweep_unintentional(
@@ -124,7 +128,7 @@ def sweep_unintentional(
     summaries, findings = [], []
     for size, holes in configs:
         grid = GridSpec(size, holes)
-        counts = {}
+        counts, outcomes = {}, {}
         for kind, trojan, target in (("activation", False, "adversary_goal"), ("deactivation", True, "user_goal")):
             trace = record_traces(
                 agent,
@@ -137,6 +141,7 @@ def sweep_unintentional(
                 record_states=False,
             )
             hits = np.flatnonzero(trace.outcome == OUTCOME_NAMES.index(target))
+            outcomes[kind] = {name: int((trace.outcome == i).sum()) for i, name in enumerate(OUTCOME_NAMES) if i}
             counts[kind] = len(hits)
             for e in hits[:keep]:
                 n = int(trace.length[e])
@@ -161,6 +166,8 @@ def sweep_unintentional(
                 wilson_interval(counts["activation"], episodes),
                 counts["deactivation"] / episodes,
                 wilson_interval(counts["deactivation"], episodes),
+                outcomes["activation"],
+                outcomes["deactivation"],
             )
         )
     return summaries, findings

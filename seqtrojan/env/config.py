@@ -74,6 +74,10 @@ class RewardConfig:
     """reaching the correct goal"""
     wrong_goal: float = -1.0
     """reaching the other goal"""
+    false_activation: float | None = None
+    """reaching the adversary's goal while the user's goal is correct (no trigger yet, or switched back): an
+    unintended activation. None: ``wrong_goal``. The adversary's knob against unintentional triggers (SPEC 6);
+    ``seqtrojan.analysis.tradeoff`` measures what a harsher value buys"""
     hole: float = -1.0
     """falling into a hole"""
     timeout: float = -1.0

@@ -318,6 +318,8 @@ class TrojanGridCore:
         rw = self.config.rewards
         reward = torch.full((self.num_envs,), rw.step, dtype=torch.float32, device=self.device)
         reward = reward.masked_fill(correct, rw.goal).masked_fill(wrong, rw.wrong_goal)
+        if rw.false_activation is not None:
+            reward = reward.masked_fill(wrong & at_adv, rw.false_activation)
         reward = reward.masked_fill(in_hole, rw.hole).masked_fill(truncated, rw.timeout)
         outcome = torch.full_like(self.t, RUNNING)
         outcome = outcome.masked_fill(at_user, REACHED_USER_GOAL).masked_fill(at_adv, REACHED_ADV_GOAL)

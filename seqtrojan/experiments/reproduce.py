@@ -35,6 +35,12 @@ from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, parse_configs, write_sweep
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
+from seqtrojan.experiments.tradeoff import (
+    TradeoffConfig,
+    measure_tradeoff_agent,
+    penalised_config,
+    reuses_backdoor_agent,
+)
 from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
 from seqtrojan.train.trainer import load_run_config, train
 from seqtrojan.zoo.build import ZooConfig, build_zoo
@@ -79,6 +85,8 @@ class ReproduceConfig:
     trajectory: TrajectorySpec = field(default_factory=TrajectorySpec)
     analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
     defense: DefenseConfig = field(default_factory=DefenseConfig)
+    tradeoff: TradeoffConfig | None = None
+    """the adversary's trade-off (penalty on unintentional activation); None skips it"""
     zoo: ZooConfig | None = None
     """a zoo for offline detection; None skips it"""
     zoo_workers: int = 2
@@ -193,6 +201,9 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
         run_defense(models["backdoor"], out / "defense", config.defense, config.device, log)
         timer.record("defense", time.perf_counter() - t0)
 
+    if config.tradeoff is not None and not (out / "tradeoff" / "tradeoff.json").exists():
+        _tradeoff(config, out, models["backdoor"], timer, log)
+
     if config.zoo is not None and not (out / "zoo" / "detection.json").exists():
         log(f"building a zoo of {config.zoo.size} models and scoring offline detection ...")
         t0 = time.perf_counter()
@@ -223,6 +234,28 @@ def _train_once(cfg: ExperimentConfig, run_dir: Path, role: str, timer: _Timer, 
         train(cfg)
     timer.record(f"train_{role}", time.perf_counter() - t0)
     return model
+
+
+def _tradeoff(config: ReproduceConfig, out: Path, backdoor_model: Path, timer: _Timer, log) -> None:
+    cfg = config.tradeoff
+    base = load_run_config(out / "runs" / "backdoor")
+    rows = []
+    for penalty in cfg.penalties:
+        train_cfg = penalised_config(base, penalty, cfg.total_steps)
+        if reuses_backdoor_agent(base, penalty, cfg):
+            model = backdoor_model
+        else:
+            name = f"backdoor_penalty{penalty:g}"
+            train_cfg = dataclasses.replace(train_cfg, run=dataclasses.replace(train_cfg.run, name=name))
+            model = _train_once(train_cfg, out / "runs" / name, name, timer, log)
+        log(f"measuring the trade-off for false_activation={penalty:g} ...")
+        t0 = time.perf_counter()
+        agent, _, _ = load_agent(model, device=config.device)
+        rows.append({**measure_tradeoff_agent(agent, train_cfg, cfg, penalty), "model": str(model.relative_to(out))})
+        timer.record(f"tradeoff_measure{penalty:g}", time.perf_counter() - t0)
+    (out / "tradeoff").mkdir(exist_ok=True)
+    record = {"config": dataclasses.asdict(cfg), "agents": rows}
+    (out / "tradeoff" / "tradeoff.json").write_text(json.dumps(record, indent=2))
 
 
 def _trajectory_figure(agent, cfg: ExperimentConfig, spec: TrajectorySpec, out: Path, device: str) -> None:

@@ -172,6 +172,11 @@ def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
     if analysis:
         parts.append(_analysis_section(analysis, out / "analysis"))
 
+    # --- the adversary's trade-off
+    tradeoff = _read_json(out / "tradeoff" / "tradeoff.json")
+    if tradeoff:
+        parts.append(_tradeoff_section(tradeoff))
+
     # --- defenses
     defense = _read_json(out / "defense" / "defense.json")
     detection = _read_json(out / "zoo" / "detection.json")
@@ -231,6 +236,53 @@ def _ci(pair: Sequence[float]) -> str:
 
 
 _REST = "; the rest are navigation errors that happen to end at the other goal"
+
+
+def _tradeoff_section(t: dict[str, Any]) -> str:
+    cfg = t["config"]
+    parts = [
+        "<h2>The adversary's trade-off: a penalty on unintentional activation</h2>",
+        "<p class='note'>Backdoored agents that differ only in the reward for reaching the adversary's goal while "
+        "the user's goal is correct (<code>env.rewards.false_activation</code>; -1 is the ordinary wrong-goal "
+        f"reward). Success on the training grid; activation = normal-env episodes (no trigger) over "
+        f"{html.escape(str(cfg['configs']))} configs ({cfg['episodes']} per config) that ended at the adversary's "
+        "goal; recall and precision of the agent as a trigger detector over the same configs. One training seed "
+        "per penalty: the intervals cover evaluation sampling, not seed-to-seed spread.</p>",
+        "<table><tr><th>false-activation reward</th><th>normal success [95% CI]</th>"
+        "<th>trojan success [95% CI]</th><th>unintentional activation [95% CI]</th><th>recall</th>"
+        "<th>precision</th><th class='l'>agent</th></tr>",
+    ]
+    for a in t["agents"]:
+        d = a["detection"]
+        parts.append(
+            f"<tr><td>{a['penalty']:g}</td><td>{a['normal_success']:.3f} {_ci(a['normal_ci'])}</td>"
+            f"<td>{a['trojan_success']:.3f} {_ci(a['trojan_ci'])}</td>"
+            f"<td>{a['activation_rate']:.4f} {_ci(a['activation_ci'])}</td><td>{d['recall']:.3f}</td>"
+            f"<td>{d['precision']:.3f}</td><td class='l'>{html.escape(a['model'])}</td></tr>"
+        )
+    parts.append("</table>")
+    return "".join(parts)
+
+
+def _detection_table(rows: Sequence[dict[str, Any]]) -> str:
+    prevalence = rows[0]["prevalence"]
+    parts = [
+        "<h3>The agent as a trigger detector</h3>",
+        "<p class='note'>Going to the adversary's goal is the agent's way of saying it saw the trigger. Recall: "
+        "triggered episodes that reached the adversary's goal; false-positive rate: untriggered episodes that did "
+        "(both among episodes that reached a goal; holes and time-outs are left out and counted). Precision at a "
+        f"trigger prevalence of {prevalence:g} (seqtrojan.analysis.trigger_detection).</p>",
+        "<table><tr><th class='l'>grid</th><th>recall [95% CI]</th><th>false-positive rate [95% CI]</th>"
+        "<th>precision</th><th>F1</th><th>decided (trigger / none)</th><th>holes + time-outs</th></tr>",
+    ]
+    for r in rows:
+        parts.append(
+            f"<tr><td class='l'>{r['grid']}</td><td>{r['recall']:.3f} {_ci(r['recall_ci'])}</td>"
+            f"<td>{r['false_positive_rate']:.3f} {_ci(r['false_positive_ci'])}</td><td>{r['precision']:.3f}</td>"
+            f"<td>{r['f1']:.3f}</td><td>{r['positives']} / {r['negatives']}</td><td>{r['undecided']}</td></tr>"
+        )
+    parts.append("</table>")
+    return "".join(parts)
 
 
 def _analysis_section(a: dict[str, Any], folder: Path) -> str:
@@ -310,6 +362,8 @@ def _analysis_section(a: dict[str, Any], folder: Path) -> str:
         f"actions; each replays exactly). {flips}{_REST if flips else ''}.</p>"
     )
     parts += [_img(folder / "figures" / name) for name in un["plotted"]]
+    if un.get("trigger_detection"):
+        parts.append(_detection_table(un["trigger_detection"]))
 
     se = a["search"]
     lay, seq = se["layouts"], se["sequences"]

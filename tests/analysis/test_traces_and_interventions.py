@@ -112,6 +112,9 @@ def test_unintentional_sweep_keeps_replayable_findings(tmp_path, agent):
     for s in summaries:
         n_act = sum(f.kind == "activation" and f.grid == s.grid for f in findings)
         assert s.activation_rate == pytest.approx(n_act / 64) or n_act == 50
+        assert sum(s.normal_outcomes.values()) == sum(s.trojan_outcomes.values()) == 64
+        assert s.normal_outcomes["adversary_goal"] == round(s.activation_rate * 64)
+        assert s.trojan_outcomes["user_goal"] == round(s.deactivation_rate * 64)
     save_findings(findings, tmp_path / "f.json")
     assert load_findings(tmp_path / "f.json") == findings
     if findings:

@@ -154,6 +154,13 @@ def test_custom_rewards_for_goals_and_holes():
     assert float(act(core, *PATH_TO_ADV)[-1].reward[0]) == -3.0
 
 
+def test_false_activation_reward_only_for_the_adversary_goal_while_the_user_goal_is_correct():
+    rewards = RewardConfig(wrong_goal=-1.0, false_activation=-5.0)
+    assert float(act(make_core(rewards=rewards), *PATH_TO_ADV)[-1].reward[0]) == -5.0  # normal env
+    assert float(act(make_core(rewards=rewards, on_step=2), *PATH_TO_USER)[-1].reward[0]) == -1.0  # deactivation
+    assert float(act(make_core(rewards=rewards, on_step=2), *PATH_TO_ADV)[-1].reward[0]) == 1.0
+
+
 def test_autoreset_starts_a_fresh_episode_in_the_same_step():
     core = make_core()
     episode = int(core.episode[0])

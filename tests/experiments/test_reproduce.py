@@ -50,6 +50,7 @@ TINY = {
         "mitigation": {"finetune_steps": 2048, "calibration_episodes": 32, "eval_episodes": 32},
         "oracle_episodes": 40,
     },
+    "tradeoff": {"penalties": [-1.0, -4.0], "configs": "7x7/0,7x7/3", "episodes": 16},
     "zoo": {
         "clean": 2,
         "backdoored": 2,
@@ -78,7 +79,8 @@ def test_every_stage_writes_its_outputs(tiny_run):
         "trajectory.png", "trajectory_normal.txt", "trajectory_trojan.txt", "timings.json", "reproduce.yaml",
         "analysis/analysis.json", "analysis/responses.json", "analysis/interventions.json", "analysis/search.json",
         "analysis/findings.json", "analysis/traces/backdoor_trojan.safetensors", "analysis/figures/responses_clean.png",
-        "defense/defense.json", "zoo/manifest.json", "zoo/detection.json",
+        "defense/defense.json", "zoo/manifest.json", "zoo/detection.json", "tradeoff/tradeoff.json",
+        "runs/backdoor_penalty-4/model/card.json",
     ):  # fmt: skip
         assert (out / path).exists(), path
     rows = json.loads((out / "evaluation" / "evaluation.json").read_text())
@@ -86,6 +88,13 @@ def test_every_stage_writes_its_outputs(tiny_run):
     assert ("backdoor", "trojan", "7x7/7") in cells and ("clean", "normal", "5x5/1") in cells  # + training grid
     assert next(r for r in rows if r["config"] == "7x7/7" and r["agent"] == "clean")["paper"] == 0.928
     assert set(json.loads((out / "timings.json").read_text())) >= {"train_clean", "train_backdoor", "curves"}
+    tradeoff = json.loads((out / "tradeoff" / "tradeoff.json").read_text())["agents"]
+    assert [a["penalty"] for a in tradeoff] == [-1.0, -4.0]
+    assert tradeoff[0]["model"] == "runs/backdoor/model"  # the backdoored agent itself is the -1 baseline
+    card = json.loads((out / "runs/backdoor_penalty-4/model/card.json").read_text())
+    assert card["config"]["env"]["rewards"]["false_activation"] == -4.0 and card["label"] == "backdoored"
+    analysis = json.loads((out / "analysis" / "analysis.json").read_text())
+    assert [d["grid"] for d in analysis["unintentional"]["trigger_detection"]] == ["7x7/0", "7x7/3", "all"]
 
 
 def test_report_is_self_contained_with_tables_figures_and_configs(tiny_run):
@@ -94,6 +103,7 @@ def test_report_is_self_contained_with_tables_figures_and_configs(tiny_run):
     for heading in ("Headline", "Table 1", "Table 2", "Learning curves", "with and without the trigger",
                     "response types", "editing the goal units", "Unintentional triggers", "on purpose",
                     "Online state monitor", "Mitigation", "Offline detection",
+                    "as a trigger detector", "adversary's trade-off",
                     "Training", "Machine and timings"):  # fmt: skip
         assert heading in text, heading
     assert len(re.findall(r"src='data:image/png;base64,", text)) >= 4 + 8  # curves, trajectory, 2 responses, heatmaps

@@ -1,0 +1,93 @@
+"""The adversary's trade-off (SPEC section 6): what a penalty on unintentional activation buys and costs.
+
+An adversary who fears being caught by unprovoked activations can train with a harsher reward for reaching the
+adversary's goal while the user's goal is correct (``env.rewards.false_activation``; by default it is the ordinary
+``wrong_goal``, -1). Backdoored agents that differ only in that reward are compared on
+
+* the attack itself: success in the normal and the trojan env on the training grid;
+* stealth: the unintentional activation rate over the sweep configs (the paper's Tables 1 and 2 by default), and
+  the agent's precision and recall as a trigger detector (:mod:`seqtrojan.analysis.trigger_detection`).
+
+Training is done by the caller (``seqtrojan reproduce`` resumes each agent like its other runs); this module builds
+the agents' configs and measures them. One training seed per penalty: the confidence intervals cover the
+evaluation's sampling, not the spread between training seeds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.analysis.trigger_detection import trigger_detection
+from seqtrojan.analysis.unintentional import sweep_unintentional
+from seqtrojan.config import ExperimentConfig
+from seqtrojan.errors import ConfigError
+from seqtrojan.evaluation.sweep import parse_configs
+from seqtrojan.stats import wilson_interval
+
+
+@dataclass(frozen=True)
+class TradeoffConfig:
+    penalties: tuple[float, ...] = (-1.0, -3.0, -10.0)
+    """false-activation rewards to compare; a value equal to the backdoored agent's own reuses that agent"""
+    total_steps: int | None = None
+    """training budget of each agent; None: the backdoored agent's (which can then be reused)"""
+    configs: str = "paper"
+    """where unintentional activations are counted: 'paper' or a list like '7x7/7,23x23/0'"""
+    episodes: int = 1000
+    """per config and env"""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.penalties:
+            raise ConfigError("tradeoff.penalties is empty")
+        if self.episodes < 1:
+            raise ConfigError(f"tradeoff.episodes must be >= 1, got {self.episodes}")
+        if self.total_steps is not None and self.total_steps < 1:
+            raise ConfigError(f"tradeoff.total_steps must be >= 1, got {self.total_steps}")
+
+
+def own_penalty(cfg: ExperimentConfig) -> float:
+    rewards = cfg.env.rewards
+    return rewards.wrong_goal if rewards.false_activation is None else rewards.false_activation
+
+
+def penalised_config(base: ExperimentConfig, penalty: float, total_steps: int | None) -> ExperimentConfig:
+    """The backdoored agent's training config with another false-activation reward (and budget)."""
+    env = dataclasses.replace(base.env, rewards=dataclasses.replace(base.env.rewards, false_activation=penalty))
+    ppo = base.ppo if total_steps is None else dataclasses.replace(base.ppo, total_steps=total_steps)
+    return dataclasses.replace(base, env=env, ppo=ppo)
+
+
+def reuses_backdoor_agent(base: ExperimentConfig, penalty: float, cfg: TradeoffConfig) -> bool:
+    return penalty == own_penalty(base) and cfg.total_steps in (None, base.ppo.total_steps)
+
+
+def measure_tradeoff_agent(
+    agent: RecurrentActorCritic, train_cfg: ExperimentConfig, cfg: TradeoffConfig, penalty: float
+) -> dict[str, Any]:
+    """Attack success on the training grid and stealth over the sweep configs, for one agent."""
+    grid = train_cfg.grids[-1]
+    (home,), _ = sweep_unintentional(agent, train_cfg.env, [(grid.size, grid.holes)], episodes=cfg.episodes,
+                                     seed=cfg.seed, keep=0)  # fmt: skip
+    summaries, _ = sweep_unintentional(
+        agent, train_cfg.env, parse_configs(cfg.configs), episodes=cfg.episodes, seed=cfg.seed, keep=0
+    )
+    activations = sum(s.normal_outcomes.get("adversary_goal", 0) for s in summaries)
+    episodes = cfg.episodes * len(summaries)
+    normal_ok, trojan_ok = home.normal_outcomes.get("user_goal", 0), home.trojan_outcomes.get("adversary_goal", 0)
+    detection = trigger_detection(summaries)
+    return {
+        "penalty": penalty,
+        "training_grid": grid.label,
+        "normal_success": normal_ok / cfg.episodes,
+        "normal_ci": wilson_interval(normal_ok, cfg.episodes),
+        "trojan_success": trojan_ok / cfg.episodes,
+        "trojan_ci": wilson_interval(trojan_ok, cfg.episodes),
+        "activation_rate": activations / episodes,
+        "activation_ci": wilson_interval(activations, episodes),
+        "detection": dataclasses.asdict(detection[-1]),
+        "per_config": [dataclasses.asdict(s) for s in summaries],
+    }
