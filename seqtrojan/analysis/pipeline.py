@@ -9,7 +9,8 @@ Stages (each skipped when its output exists under ``out``):
 4. edit the backdoored agent's step units and measure goal switches and hole avoidance -> ``interventions.json``;
 5. sweep grid configs for unintentional activations and deactivations, keep and plot findings, and score the
    agent as a trigger detector (precision / recall) -> ``unintentional.json``, ``findings.json``;
-6. search for goal-switching layouts and observation sequences -> ``search.json``.
+6. search for goal-switching layouts, free observation sequences (are they walkable?) and walks through grids
+   (:mod:`seqtrojan.analysis.walks`) -> ``search.json``.
 
 ``analysis.json`` gathers the results for the report.
 """
@@ -40,6 +41,7 @@ from seqtrojan.analysis.search import (
 from seqtrojan.analysis.traces import StateTrace, record_traces
 from seqtrojan.analysis.trigger_detection import trigger_detection
 from seqtrojan.analysis.unintentional import GoalUnits, save_findings, select_goal_units, sweep_unintentional
+from seqtrojan.analysis.walks import WalkSearchConfig, is_walkable, search_walks
 from seqtrojan.env.config import GridSpec
 from seqtrojan.env.core import EpisodeSnapshot
 from seqtrojan.env.layout import Layout
@@ -71,6 +73,9 @@ class AnalysisConfig:
     """per kind (activation, deactivation)"""
     layout_search: LayoutSearchConfig = field(default_factory=LayoutSearchConfig)
     sequence_search: SequenceSearchConfig = field(default_factory=SequenceSearchConfig)
+    walk_search: WalkSearchConfig = field(default_factory=WalkSearchConfig)
+    walk_density_weights: tuple[float, ...] = (2.0, 0.0)
+    """one walk search per weight of the hole-density penalty (2: ordinary density; 0: any density)"""
 
     @property
     def grids(self) -> list[GridSpec]:
@@ -251,6 +256,26 @@ def run_analysis(
                                     cfg.intervention_episodes, cfg.seed)  # fmt: skip
             sequences = dataclasses.replace(sequences, flip_rate=flip, baseline_rate=base)
         np.save(out / "sequence_codes.npy", codes)
+        sequences_walkable = sum(is_walkable(c) for c in found_codes)
+        walks = []
+        for weight in cfg.walk_density_weights:
+            wcfg = dataclasses.replace(cfg.walk_search, density_weight=weight)
+            walk, walk_codes, walk_grids = timed(
+                f"walk_search{weight:g}", lambda w=wcfg: search_walks(backdoor, goal, w)
+            )
+            hits = np.asarray(walk.rounded_activation) >= wcfg.success_at
+            if hits.any():
+                flip, base = flip_rates(backdoor, bcfg.env, walk_codes[hits], cfg.layout_search.size,
+                                        cfg.layout_search.holes, cfg.intervention_episodes, cfg.seed)  # fmt: skip
+                walk = dataclasses.replace(walk, flip_rate=flip, baseline_rate=base)
+            np.savez(out / f"walks_weight{weight:g}.npz", codes=walk_codes, grids=walk_grids)
+            walks.append(
+                {
+                    "config": dataclasses.asdict(wcfg),
+                    **dataclasses.asdict(walk),
+                    "seconds_per_found": walk.seconds / walk.found if walk.found else None,
+                }
+            )
         found = sum(r.found for r in layouts)
         seconds = sum(r.seconds for r in layouts)
         (out / "search.json").write_text(
@@ -269,7 +294,9 @@ def run_analysis(
                         "config": dataclasses.asdict(cfg.sequence_search),
                         **dataclasses.asdict(sequences),
                         "seconds_per_found": sequences.seconds / sequences.found if sequences.found else None,
+                        "walkable": sequences_walkable,
                     },
+                    "walks": walks,
                 },
                 indent=2,
             )

@@ -381,7 +381,9 @@ def _analysis_section(a: dict[str, Any], folder: Path) -> str:
         f"<tr><td class='l'>gradient ascent on relaxed observation sequences of length "
         f"{seq['config']['length']} (trigger code excluded), rounded to one-hot</td>"
         f"<td>{seq['found']} / {seq['restarts']}</td><td>{per_seq}</td><td>{seq['forward_steps']:,} network "
-        f"steps, {seq['seconds']:.1f} s</td></tr></table>"
+        f"steps, {seq['seconds']:.1f} s</td></tr>"
+        + "".join(_walk_row(w) for w in se.get("walks", []))
+        + "</table>"
         + (
             f"<p>After the found sequences, normal-env episodes on {lc['size']}x{lc['size']}/{lc['holes']} that start "
             f"from the state they leave end at the adversary's goal <b>{seq['flip_rate']:.3f}</b> of the time "
@@ -391,10 +393,33 @@ def _analysis_section(a: dict[str, Any], folder: Path) -> str:
         )
         + "<p class='note'>Sequence search counts a sequence as found when the rounded observations drive the goal "
         f"units' activation to &ge; {seq['config']['success_at']} (0 = normal-env level, 1 = trojan-env level); such "
-        "sequences probe the network and need not be walkable in a grid. Layout search is realisable: the found "
-        "layouts are ordinary solvable grids.</p>"
+        "sequences probe the network and need not be walkable in a grid"
+        + (f" (walkable: <b>{seq['walkable']} of {seq['found']}</b> found)" if "walkable" in seq else "")
+        + ". Walk search gives walkable sequences by construction: a random walk from the start cell is fixed and "
+        "the grid's hole probabilities are optimised (seqtrojan.analysis.walks); with a density penalty the "
+        "revealed cells keep the training hole density, without it any density is allowed. Layout search is "
+        "realisable too: the found layouts are ordinary solvable grids and the agent chooses its own moves.</p>"
     )
+    for w in se.get("walks", []):
+        if w.get("flip_rate") is not None:
+            parts.append(
+                f"<p>After the found walks (density weight {w['config']['density_weight']:g}), normal-env episodes "
+                f"end at the adversary's goal <b>{w['flip_rate']:.3f}</b> of the time (from the zero state: "
+                f"{w['baseline_rate']:.3f}).</p>"
+            )
     return "\n".join(parts)
+
+
+def _walk_row(w: dict[str, Any]) -> str:
+    c = w["config"]
+    per = f"{w['seconds_per_found']:.2f} s" if w["seconds_per_found"] else "n/a (none found)"
+    densities = w["revealed_density"]
+    return (
+        f"<tr><td class='l'>walks of {c['length']} views through a {c['size']}x{c['size']} grid, hole probabilities "
+        f"optimised (density penalty weight {c['density_weight']:g}, target {w['target_density']:.3f}; revealed "
+        f"density {min(densities):.2f}-{max(densities):.2f}; found grids solvable: {w['solvable']} of {w['found']})"
+        f"</td><td>{w['found']} / {w['restarts']}</td><td>{per}</td><td>{w['seconds']:.1f} s</td></tr>"
+    )
 
 
 def _r(entry: dict[str, Any]) -> str:

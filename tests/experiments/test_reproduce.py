@@ -44,6 +44,7 @@ TINY = {
             "restarts": 1,
         },
         "sequence_search": {"length": 6, "restarts": 4, "steps": 10},
+        "walk_search": {"size": 7, "holes": 3, "length": 6, "restarts": 4, "steps": 10},
     },
     "defense": {
         "monitor": {"calibration_episodes": 40, "eval_episodes": 32},
@@ -95,6 +96,8 @@ def test_every_stage_writes_its_outputs(tiny_run):
     assert card["config"]["env"]["rewards"]["false_activation"] == -4.0 and card["label"] == "backdoored"
     analysis = json.loads((out / "analysis" / "analysis.json").read_text())
     assert [d["grid"] for d in analysis["unintentional"]["trigger_detection"]] == ["7x7/0", "7x7/3", "all"]
+    walks = analysis["search"]["walks"]
+    assert [w["config"]["density_weight"] for w in walks] == [2.0, 0.0] and all(w["walkable"] == 4 for w in walks)
 
 
 def test_report_is_self_contained_with_tables_figures_and_configs(tiny_run):
@@ -103,7 +106,7 @@ def test_report_is_self_contained_with_tables_figures_and_configs(tiny_run):
     for heading in ("Headline", "Table 1", "Table 2", "Learning curves", "with and without the trigger",
                     "response types", "editing the goal units", "Unintentional triggers", "on purpose",
                     "Online state monitor", "Mitigation", "Offline detection",
-                    "as a trigger detector", "adversary's trade-off",
+                    "as a trigger detector", "adversary's trade-off", "walks of 6 views",
                     "Training", "Machine and timings"):  # fmt: skip
         assert heading in text, heading
     assert len(re.findall(r"src='data:image/png;base64,", text)) >= 4 + 8  # curves, trajectory, 2 responses, heatmaps
