@@ -2,9 +2,10 @@
 
 seqtrojan demo --out outputs/demo
 seqtrojan <command> --help
-"""
 
-from __future__ import annotations
+No ``from __future__ import annotations`` here: tyro reads the annotations of the argument dataclasses that some
+commands define after a local (lazy) import, and string annotations could not be resolved from there.
+"""
 
 import dataclasses
 import json
@@ -33,6 +34,21 @@ def _pop_option(argv: list[str], name: str) -> tuple[str | None, list[str]]:
             rest.append(arg)
         i += 1
     return value, rest
+
+
+def _cli_with_config_file(args_cls: type, config_cls: type, argv: list[str], prog: str):
+    """Parse ``args_cls`` (whose ``config`` field is a ``config_cls``) with tyro; ``--config-file FILE.yaml`` sets
+    that config's starting values (the layout of the matching section of configs/reproduce_*.yaml), and
+    ``--config.*`` flags override them."""
+    path, argv = _pop_option(argv, "--config-file")
+    if path is None:
+        return tyro.cli(args_cls, args=argv, prog=prog)
+    from seqtrojan.config import from_dict, load_yaml
+
+    config = from_dict(config_cls, load_yaml(Path(path)), "")
+    required = {f.name: tyro.MISSING for f in dataclasses.fields(args_cls) if f.name != "config"
+                and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING}  # fmt: skip
+    return tyro.cli(args_cls, args=argv, prog=prog, default=args_cls(config=config, **required))
 
 
 def parse_experiment(argv: list[str], prog: str, description: str):
@@ -156,7 +172,7 @@ def _analyze(argv: list[str]) -> None:
         config: AnalysisConfig = dataclasses.field(default_factory=AnalysisConfig)
         device: str = "cpu"
 
-    args = tyro.cli(AnalyzeArgs, args=argv, prog="seqtrojan analyze")
+    args = _cli_with_config_file(AnalyzeArgs, AnalysisConfig, argv, "seqtrojan analyze")
     summary = run_analysis(args.clean, args.backdoor, args.out, args.config, device=args.device)
     totals = summary["responses"]["step_units_total"]
     print(
@@ -189,7 +205,7 @@ def _defend(argv: list[str]) -> None:
         config: DefenseConfig = dataclasses.field(default_factory=DefenseConfig)
         device: str = "cpu"
 
-    args = tyro.cli(DefendArgs, args=argv, prog="seqtrojan defend")
+    args = _cli_with_config_file(DefendArgs, DefenseConfig, argv, "seqtrojan defend")
     result = run_defense(args.model, args.out, args.config, device=args.device)
     mon = result["monitor"]
     rate = lambda *keys: _dig(mon, *keys, "rate")  # noqa: E731
@@ -234,7 +250,7 @@ def _zoo(argv: list[str]) -> None:
         print("usage: seqtrojan zoo {build,detect} [options]   (seqtrojan zoo build --help)", file=sys.stderr)
         raise SystemExit(2)
     if argv[0] == "build":
-        args = tyro.cli(ZooBuild, args=argv[1:], prog="seqtrojan zoo build")
+        args = _cli_with_config_file(ZooBuild, ZooConfig, argv[1:], "seqtrojan zoo build")
         print(f"wrote {build_zoo(args.config, args.out, workers=args.workers, backend=args.backend)}")
         return
     args = tyro.cli(ZooDetect, args=argv[1:], prog="seqtrojan zoo detect")

@@ -61,3 +61,57 @@ def test_demo_writes_its_outputs(tmp_path):
     summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
     assert summary["agents"]["oracle/trojan"]["success"] == 1.0
     assert (tmp_path / "demo" / "trajectories.png").stat().st_size > 1000
+
+
+def test_evaluate_analyze_defend_and_zoo_commands_on_tiny_models(tmp_path):
+    """Every downstream command through the entry point, on agents trained for a few thousand steps."""
+    train = ["train", "--config", str(ROOT / "configs" / "smoke.yaml"), "--run.out-dir", str(tmp_path),
+             "--ppo.total-steps", "4096", "--run.no-progress", "--agent.lstm-sizes", "16", "8"]  # fmt: skip
+    assert seqtrojan(*train, "--run.name", "clean").returncode == 0
+    out = seqtrojan(*train, "--run.name", "backdoor", "--backdoor.enabled", "--backdoor.eval-episodes", "16")
+    assert out.returncode == 0, out.stderr
+    clean, backdoor = tmp_path / "clean" / "model", tmp_path / "backdoor" / "model"
+    assert json.loads((backdoor / "card.json").read_text())["label"] == "backdoored"
+
+    out = seqtrojan("evaluate", "--models", str(clean), str(backdoor), "--configs", "7x7/0,9x9/4",
+                    "--episodes", "16", "--out", str(tmp_path / "eval"))  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    rows = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
+    assert {(r["agent"], r["env"]) for r in rows} == {("clean", "normal"), ("backdoor", "normal"), ("backdoor", "trojan")}
+
+    out = seqtrojan(
+        "analyze", "--clean", str(clean), "--backdoor", str(backdoor), "--out", str(tmp_path / "analysis"),
+        "--config.size", "7", "--config.holes", "2", "3", "--config.episodes", "40", "--config.trigger-step", "2",
+        "--config.rule.min-episodes", "5", "--config.rule.late-start", "3", "--config.rule.late-end", "6",
+        "--config.intervention-episodes", "16", "--config.unintentional-configs", "7x7/0",
+        "--config.unintentional-episodes", "16", "--config.layout-search.size", "7", "--config.layout-search.holes",
+        "3", "--config.layout-search.population", "4", "--config.layout-search.rollouts", "2",
+        "--config.layout-search.generations", "1", "--config.layout-search.elite", "2",
+        "--config.layout-search.restarts", "1", "--config.sequence-search.length", "4",
+        "--config.sequence-search.restarts", "2", "--config.sequence-search.steps", "2", "--config.walk-search.size",
+        "7", "--config.walk-search.length", "4", "--config.walk-search.restarts", "2", "--config.walk-search.steps", "2",
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "step-type units: clean" in out.stdout and (tmp_path / "analysis" / "analysis.json").exists()
+
+    defense = tmp_path / "defense.yaml"  # --config-file sets the starting values, --config.* flags override them
+    defense.write_text(
+        "monitor: {calibration_episodes: 40, false_alarm_target: 0.05, eval_episodes: 64}\n"
+        "mitigation: {finetune_steps: 2048, calibration_episodes: 32, eval_episodes: 16}\noracle_episodes: 40\n"
+    )
+    out = seqtrojan("defend", "--model", str(backdoor), "--out", str(tmp_path / "defense"), "--config-file",
+                    str(defense), "--config.monitor.eval-episodes", "16")  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "monitor on" in out.stdout
+    assert json.loads((tmp_path / "defense" / "defense.json").read_text())["monitor"]["episodes"] == 16
+
+    zoo = tmp_path / "zoo"
+    spec = tmp_path / "zoo.yaml"
+    spec.write_text("clean: 3\nbackdoored: 3\ntotal_steps: 2048\nnum_envs: 32\neval_episodes: 16\n"
+                    "lstm_sizes: [[8]]\ncurricula: [[{size: 5, holes: 0}]]\n")  # fmt: skip
+    out = seqtrojan("zoo", "build", "--out", str(zoo), "--config-file", str(spec), "--workers", "1")
+    assert out.returncode == 0, out.stderr
+    (zoo / "models" / "m0000" / "model.safetensors").write_bytes(b"not a model")  # a corrupt model is refused, the rest goes on
+    out = seqtrojan("zoo", "detect", "--zoo", str(zoo), "--folds", "2")
+    assert out.returncode == 0, out.stderr
+    assert "ROC-AUC" in out.stdout and "rejected m0000" in out.stdout

@@ -3,8 +3,8 @@ range seen on clean episodes, and optionally reset them.
 
 Calibration uses only the deployed agent's own clean (normal-env) episodes -- no knowledge of any trigger: per
 unit (every layer's h and c) the mean and standard deviation over all steps; the score of a step is the largest
-|z| over units; the threshold is the ``1 - false_alarm_target`` quantile of the per-episode peak score over a
-held-out half of the calibration episodes. During an episode the monitor scores the state after every step;
+|z| over units; the threshold is the split-conformal ``1 - false_alarm_target`` quantile of the per-episode peak
+score over a held-out half of the calibration episodes (:func:`conformal_threshold`). During an episode the monitor scores the state after every step;
 above the threshold it raises an alarm and, with ``action="reset"``, zeroes that env's state before the next step
 (as at an episode start).
 
@@ -49,6 +49,28 @@ class MonitorConfig:
             raise ConfigError(f"false_alarm_target must be in (0, 1), got {self.false_alarm_target}")
         if self.calibration_episodes < 20:
             raise ConfigError(f"calibration_episodes must be >= 20, got {self.calibration_episodes}")
+        held_out = self.calibration_episodes - self.calibration_episodes // 2
+        if held_out + 1 < 1.0 / self.false_alarm_target - 1e-9:
+            raise ConfigError(
+                f"calibration_episodes={self.calibration_episodes} holds out {held_out} episodes for the threshold, "
+                f"too few for false_alarm_target={self.false_alarm_target:g} (needs at least "
+                f"{int(np.ceil(1 / self.false_alarm_target)) - 1})"
+            )
+
+
+def conformal_threshold(peaks: np.ndarray, false_alarm_target: float) -> float:
+    """The split-conformal threshold: the ceil((n + 1)(1 - target))-th smallest of n held-out clean peaks. When
+    deployment episodes are exchangeable with the calibration ones, an episode's false-alarm probability, averaged
+    over calibrations, is at most ``target`` (a plain empirical quantile undershoots it for small n). With too few
+    peaks for the target (n + 1 < 1 / target) no finite threshold guarantees it: a clear error."""
+    n = len(peaks)
+    k = int(np.ceil((n + 1) * (1.0 - false_alarm_target)))
+    if k > n:
+        raise ConfigError(
+            f"{n} held-out calibration episodes cannot give a {false_alarm_target:g} false-alarm rate; "
+            f"use calibration_episodes >= {2 * int(np.ceil(1 / false_alarm_target - 1))}"
+        )
+    return float(np.sort(peaks)[k - 1])
 
 
 class StateMonitor:
@@ -87,7 +109,7 @@ class StateMonitor:
             steps = trace.mask[e]
             layers = [np.concatenate([trace.h[i][e], trace.c[i][e]], -1)[steps] for i in range(len(trace.h))]
             peaks.append(max(float(np.abs((x - m) / s).max()) for x, m, s in zip(layers, mean, std)))
-        monitor.threshold = float(np.quantile(peaks, 1.0 - cfg.false_alarm_target))
+        monitor.threshold = conformal_threshold(np.asarray(peaks), cfg.false_alarm_target)
         return monitor
 
     def score(self, state: RecurrentState) -> torch.Tensor:

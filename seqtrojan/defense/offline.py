@@ -115,8 +115,12 @@ def cross_validated_scores(models: list[ZooModel], group: str | None = None, fol
 
     x, names = _matrix(models, group)
     y = np.array([m.label for m in models])
-    if len(set(y)) < 2:
-        raise SeqTrojanError("offline detection needs both clean and backdoored models in the zoo")
+    counts = np.bincount(y, minlength=2)
+    if counts.min() < 2:
+        raise SeqTrojanError(
+            "offline detection needs at least 2 clean and 2 backdoored models (after any rejected ones), "
+            f"the zoo has {counts[0]} clean and {counts[1]} backdoored"
+        )
     folds = max(2, min(folds, int(np.bincount(y).min())))
     x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
     probs = np.zeros(len(y))

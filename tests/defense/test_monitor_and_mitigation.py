@@ -11,7 +11,13 @@ from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
 from seqtrojan.config import AgentConfig, ExperimentConfig
 from seqtrojan.defense.mitigation import MitigationConfig, least_active_units, prune_units, run_mitigation
-from seqtrojan.defense.monitor import MonitorConfig, MonitoredPolicy, StateMonitor, measure_monitor
+from seqtrojan.defense.monitor import (
+    MonitorConfig,
+    MonitoredPolicy,
+    StateMonitor,
+    conformal_threshold,
+    measure_monitor,
+)
 from seqtrojan.env import EnvConfig, GridSpec, TrojanGridCore
 from seqtrojan.errors import ConfigError
 
@@ -27,7 +33,7 @@ def agent():
 
 @pytest.fixture(scope="module")
 def monitor(agent):
-    return StateMonitor.calibrate(agent, CFG.env, GRID, MonitorConfig(calibration_episodes=100))
+    return StateMonitor.calibrate(agent, CFG.env, GRID, MonitorConfig(calibration_episodes=100, false_alarm_target=0.05))
 
 
 def test_calibration_sets_a_threshold_from_clean_episodes(monitor):
@@ -51,7 +57,7 @@ def test_far_states_score_above_the_threshold_and_are_reset(agent, monitor):
 
 
 def test_measurement_reports_every_rate(agent, monitor):
-    out = measure_monitor(agent, CFG.env, GRID, monitor, MonitorConfig(calibration_episodes=100, eval_episodes=64))
+    out = measure_monitor(agent, CFG.env, GRID, monitor, MonitorConfig(calibration_episodes=100, false_alarm_target=0.05, eval_episodes=64))
     for key in ("normal_alarm", "normal_reset", "trojan_alarm", "trojan_reset", "normal_undefended",
                 "trojan_undefended"):  # fmt: skip
         assert key in out
@@ -59,6 +65,8 @@ def test_measurement_reports_every_rate(agent, monitor):
     assert 0 <= detected["rate"] <= 1 and detected["ci95"][0] <= detected["rate"] <= detected["ci95"][1]
     with pytest.raises(ConfigError, match="false_alarm_target"):
         MonitorConfig(false_alarm_target=1.5)
+    with pytest.raises(ConfigError, match="too few for false_alarm_target=0.01"):
+        MonitorConfig(calibration_episodes=100, false_alarm_target=0.01)
 
 
 def test_pruned_units_stay_silent(agent):
@@ -81,8 +89,19 @@ def test_mitigation_measures_before_and_after(tmp_path, agent):
 
 def test_alarms_after_an_episode_ended_do_not_count(agent, monitor):
     strict = StateMonitor([m.numpy() for m in monitor.mean], [s.numpy() for s in monitor.std], threshold=1e9)
-    out = measure_monitor(agent, CFG.env, GRID, strict, MonitorConfig(calibration_episodes=100, eval_episodes=32))
+    out = measure_monitor(agent, CFG.env, GRID, strict, MonitorConfig(calibration_episodes=100, false_alarm_target=0.05, eval_episodes=32))
     assert out["normal_alarm"]["false_alarm"]["rate"] == 0.0  # nothing ever crosses an infinite threshold
-    calibrated = measure_monitor(agent, CFG.env, GRID, monitor, MonitorConfig(calibration_episodes=100,
+    calibrated = measure_monitor(agent, CFG.env, GRID, monitor, MonitorConfig(calibration_episodes=100, false_alarm_target=0.05,
                                                                              eval_episodes=200))  # fmt: skip
-    assert calibrated["normal_alarm"]["false_alarm"]["rate"] < 0.15  # calibrated for 1%; small-sample slack
+    assert calibrated["normal_alarm"]["false_alarm"]["rate"] < 0.15  # calibrated for 5%; small-sample slack
+
+
+def test_conformal_threshold_is_the_finite_sample_quantile():
+    peaks = np.arange(1.0, 100.0)  # 99 held-out peaks 1..99
+    assert conformal_threshold(peaks, 0.01) == 99.0  # ceil(100 * 0.99) = 99th smallest
+    assert conformal_threshold(peaks, 0.1) == 90.0  # ceil(100 * 0.9) = 90th
+    with pytest.raises(ConfigError, match="98 held-out"):
+        conformal_threshold(peaks[:-1], 0.01)
+    rng = np.random.default_rng(0)  # the guarantee: over calibrations, P(fresh peak > threshold) <= target
+    rates = [(rng.normal(size=1000) > conformal_threshold(rng.normal(size=199), 0.05)).mean() for _ in range(300)]
+    assert np.mean(rates) <= 0.05 + 0.005

@@ -47,7 +47,7 @@ TINY = {
         "walk_search": {"size": 7, "holes": 3, "length": 6, "restarts": 4, "steps": 10},
     },
     "defense": {
-        "monitor": {"calibration_episodes": 40, "eval_episodes": 32},
+        "monitor": {"calibration_episodes": 40, "eval_episodes": 32, "false_alarm_target": 0.05},
         "mitigation": {"finetune_steps": 2048, "calibration_episodes": 32, "eval_episodes": 32},
         "oracle_episodes": 40,
     },
