@@ -77,7 +77,8 @@ def test_evaluate_analyze_defend_and_zoo_commands_on_tiny_models(tmp_path):
                     "--episodes", "16", "--out", str(tmp_path / "eval"))  # fmt: skip
     assert out.returncode == 0, out.stderr
     rows = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
-    assert {(r["agent"], r["env"]) for r in rows} == {("clean", "normal"), ("backdoor", "normal"), ("backdoor", "trojan")}
+    cells = {(r["agent"], r["env"]) for r in rows}
+    assert cells == {("clean", "normal"), ("backdoor", "normal"), ("backdoor", "trojan")}
 
     out = seqtrojan(
         "analyze", "--clean", str(clean), "--backdoor", str(backdoor), "--out", str(tmp_path / "analysis"),
@@ -88,8 +89,9 @@ def test_evaluate_analyze_defend_and_zoo_commands_on_tiny_models(tmp_path):
         "3", "--config.layout-search.population", "4", "--config.layout-search.rollouts", "2",
         "--config.layout-search.generations", "1", "--config.layout-search.elite", "2",
         "--config.layout-search.restarts", "1", "--config.sequence-search.length", "4",
-        "--config.sequence-search.restarts", "2", "--config.sequence-search.steps", "2", "--config.walk-search.size",
-        "7", "--config.walk-search.length", "4", "--config.walk-search.restarts", "2", "--config.walk-search.steps", "2",
+        "--config.sequence-search.restarts", "2", "--config.sequence-search.steps", "2",
+        "--config.walk-search.size", "7", "--config.walk-search.length", "4", "--config.walk-search.restarts", "2",
+        "--config.walk-search.steps", "2",
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert "step-type units: clean" in out.stdout and (tmp_path / "analysis" / "analysis.json").exists()
@@ -111,7 +113,8 @@ def test_evaluate_analyze_defend_and_zoo_commands_on_tiny_models(tmp_path):
                     "lstm_sizes: [[8]]\ncurricula: [[{size: 5, holes: 0}]]\n")  # fmt: skip
     out = seqtrojan("zoo", "build", "--out", str(zoo), "--config-file", str(spec), "--workers", "1")
     assert out.returncode == 0, out.stderr
-    (zoo / "models" / "m0000" / "model.safetensors").write_bytes(b"not a model")  # a corrupt model is refused, the rest goes on
+    # a corrupt model is refused, the rest goes on
+    (zoo / "models" / "m0000" / "model.safetensors").write_bytes(b"not a model")
     out = seqtrojan("zoo", "detect", "--zoo", str(zoo), "--folds", "2")
     assert out.returncode == 0, out.stderr
     assert "ROC-AUC" in out.stdout and "rejected m0000" in out.stdout

@@ -4,9 +4,9 @@ range seen on clean episodes, and optionally reset them.
 Calibration uses only the deployed agent's own clean (normal-env) episodes -- no knowledge of any trigger: per
 unit (every layer's h and c) the mean and standard deviation over all steps; the score of a step is the largest
 |z| over units; the threshold is the split-conformal ``1 - false_alarm_target`` quantile of the per-episode peak
-score over a held-out half of the calibration episodes (:func:`conformal_threshold`). During an episode the monitor scores the state after every step;
-above the threshold it raises an alarm and, with ``action="reset"``, zeroes that env's state before the next step
-(as at an episode start).
+score over a held-out half of the calibration episodes (:func:`conformal_threshold`). During an episode the
+monitor scores the state after every step; above the threshold it raises an alarm and, with ``action="reset"``,
+zeroes that env's state before the next step (as at an episode start).
 
 :func:`measure_monitor` reports, over fresh episodes and with 95% intervals: the false-alarm rate (normal env),
 the detection rate (trojan env, an alarm at or after the trigger), alarms before the trigger, the steps from

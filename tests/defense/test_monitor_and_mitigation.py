@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -24,6 +26,8 @@ from seqtrojan.errors import ConfigError
 CFG = ExperimentConfig(env=EnvConfig(size=7, holes=3), agent=AgentConfig(lstm_sizes=(16, 8)))
 GRID = GridSpec(7, 3)
 
+SMALL = MonitorConfig(calibration_episodes=100, false_alarm_target=0.05)  # 50 held out: enough for 5%
+
 
 @pytest.fixture(scope="module")
 def agent():
@@ -33,7 +37,7 @@ def agent():
 
 @pytest.fixture(scope="module")
 def monitor(agent):
-    return StateMonitor.calibrate(agent, CFG.env, GRID, MonitorConfig(calibration_episodes=100, false_alarm_target=0.05))
+    return StateMonitor.calibrate(agent, CFG.env, GRID, SMALL)
 
 
 def test_calibration_sets_a_threshold_from_clean_episodes(monitor):
@@ -57,7 +61,7 @@ def test_far_states_score_above_the_threshold_and_are_reset(agent, monitor):
 
 
 def test_measurement_reports_every_rate(agent, monitor):
-    out = measure_monitor(agent, CFG.env, GRID, monitor, MonitorConfig(calibration_episodes=100, false_alarm_target=0.05, eval_episodes=64))
+    out = measure_monitor(agent, CFG.env, GRID, monitor, dataclasses.replace(SMALL, eval_episodes=64))
     for key in ("normal_alarm", "normal_reset", "trojan_alarm", "trojan_reset", "normal_undefended",
                 "trojan_undefended"):  # fmt: skip
         assert key in out
@@ -65,7 +69,7 @@ def test_measurement_reports_every_rate(agent, monitor):
     assert 0 <= detected["rate"] <= 1 and detected["ci95"][0] <= detected["rate"] <= detected["ci95"][1]
     with pytest.raises(ConfigError, match="false_alarm_target"):
         MonitorConfig(false_alarm_target=1.5)
-    with pytest.raises(ConfigError, match="too few for false_alarm_target=0.01"):
+    with pytest.raises(ConfigError, match=r"too few for false_alarm_target=0\.01"):
         MonitorConfig(calibration_episodes=100, false_alarm_target=0.01)
 
 
@@ -89,10 +93,9 @@ def test_mitigation_measures_before_and_after(tmp_path, agent):
 
 def test_alarms_after_an_episode_ended_do_not_count(agent, monitor):
     strict = StateMonitor([m.numpy() for m in monitor.mean], [s.numpy() for s in monitor.std], threshold=1e9)
-    out = measure_monitor(agent, CFG.env, GRID, strict, MonitorConfig(calibration_episodes=100, false_alarm_target=0.05, eval_episodes=32))
+    out = measure_monitor(agent, CFG.env, GRID, strict, dataclasses.replace(SMALL, eval_episodes=32))
     assert out["normal_alarm"]["false_alarm"]["rate"] == 0.0  # nothing ever crosses an infinite threshold
-    calibrated = measure_monitor(agent, CFG.env, GRID, monitor, MonitorConfig(calibration_episodes=100, false_alarm_target=0.05,
-                                                                             eval_episodes=200))  # fmt: skip
+    calibrated = measure_monitor(agent, CFG.env, GRID, monitor, dataclasses.replace(SMALL, eval_episodes=200))
     assert calibrated["normal_alarm"]["false_alarm"]["rate"] < 0.15  # calibrated for 5%; small-sample slack
 
 

@@ -77,5 +77,5 @@ def test_pickled_model_in_a_zoo_is_rejected_and_the_rest_is_scored(tmp_path):
 def test_a_zoo_needs_both_labels(tmp_path):
     zoo = fake_zoo(tmp_path / "zoo", n=4)
     models, _ = load_zoo_features(zoo)
-    with pytest.raises(Exception, match="at least 2 clean and 2 backdoored models.*has 2 clean and 0 backdoored"):
+    with pytest.raises(Exception, match=r"at least 2 clean and 2 backdoored models.*has 2 clean and 0 backdoored"):
         cross_validated_scores([m for m in models if m.label == 0])
