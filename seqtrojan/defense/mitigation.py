@@ -79,9 +79,10 @@ def least_active_units(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid:
 
 
 def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, steps: int, out: Path, seed: int):
-    """PPO on the normal env only (the defender's clean episodes), starting from ``agent``'s weights."""
+    """PPO on the normal env only (the defender's clean episodes), starting from ``agent``'s weights. A finished
+    fine-tune in ``out`` is reused and a stopped one resumed."""
     from seqtrojan.agent.checkpoint import load_agent
-    from seqtrojan.train.trainer import train
+    from seqtrojan.train.trainer import train_or_resume
 
     start = save_agent(out / "start", agent, cfg, label=cfg.label)
     tune_cfg = dataclasses.replace(
@@ -93,8 +94,8 @@ def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec,
         run=dataclasses.replace(cfg.run, out_dir=str(out), name="finetune", seed=seed, init_from=str(start),
                                 progress=False, eval_episodes=0, checkpoint_every=10**12),
     )  # fmt: skip
-    result = train(tune_cfg)
-    tuned, _, _ = load_agent(result.model_dir)
+    model_dir, _ = train_or_resume(tune_cfg)
+    tuned, _, _ = load_agent(model_dir)
     return tuned
 
 

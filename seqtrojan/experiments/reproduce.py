@@ -15,7 +15,6 @@ import copy
 import dataclasses
 import json
 import platform
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,7 +41,7 @@ from seqtrojan.experiments.tradeoff import (
     reuses_backdoor_agent,
 )
 from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
-from seqtrojan.train.trainer import load_run_config, train
+from seqtrojan.train.trainer import load_run_config, train_or_resume
 from seqtrojan.zoo.build import ZooConfig, build_zoo
 
 REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
@@ -220,19 +219,13 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
 
 
 def _train_once(cfg: ExperimentConfig, run_dir: Path, role: str, timer: _Timer, log) -> Path:
-    model = run_dir / "model"
-    if (model / "card.json").exists():
-        return model
+    if not (run_dir / "model" / "card.json").exists():
+        verb = "resuming" if (run_dir / "checkpoints" / "latest.txt").exists() else "training"
+        log(f"{verb} the {role} agent ({cfg.grids[-1].label}, {cfg.ppo.total_steps:,} env steps) ...")
     t0 = time.perf_counter()
-    if (run_dir / "checkpoints" / "latest.txt").exists():
-        log(f"resuming the {role} agent from {run_dir}")
-        train(load_run_config(run_dir), resume=run_dir)
-    else:
-        if run_dir.exists():
-            shutil.rmtree(run_dir)  # started but stopped before its first checkpoint
-        log(f"training the {role} agent ({cfg.grids[-1].label}, {cfg.ppo.total_steps:,} env steps) ...")
-        train(cfg)
-    timer.record(f"train_{role}", time.perf_counter() - t0)
+    model, trained = train_or_resume(cfg)
+    if trained:
+        timer.record(f"train_{role}", time.perf_counter() - t0)
     return model
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+import shutil
 import signal
 import time
 from collections.abc import Callable
@@ -304,6 +305,22 @@ def _new_run_dir(cfg: ExperimentConfig) -> Path:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
     return run_dir
+
+
+def train_or_resume(cfg: ExperimentConfig) -> tuple[Path, bool]:
+    """Make sure the named run ``<out_dir>/<name>`` has finished: reuse its model if it has one, resume it from its
+    last checkpoint if it was stopped, else start it afresh (clearing a folder left before a first checkpoint).
+    Returns (model folder, whether any training ran). What pipelines use so that a stopped job loses nothing."""
+    if cfg.run.name is None:
+        raise ConfigError("train_or_resume needs a run name (run.name)")
+    run_dir = Path(cfg.run.out_dir) / cfg.run.name
+    if (run_dir / "model" / "card.json").exists():
+        return run_dir / "model", False
+    if (run_dir / "checkpoints" / "latest.txt").exists():
+        return train(load_run_config(run_dir), resume=run_dir).model_dir, True
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    return train(cfg).model_dir, True
 
 
 def load_run_config(run_dir: str | Path) -> ExperimentConfig:

@@ -13,7 +13,7 @@ import torch
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.config import BackdoorConfig, PPOConfig
 from seqtrojan.errors import ConfigError
-from seqtrojan.train.trainer import load_run_config, train
+from seqtrojan.train.trainer import load_run_config, train, train_or_resume
 
 
 def test_run_directory_holds_config_logs_checkpoints_and_model(smoke_config):
@@ -56,6 +56,32 @@ def test_stopped_run_resumes_without_losing_finished_updates(smoke_config):
     state = json.loads((run / "checkpoints" / "step_000000006144" / "trainer.json").read_text())
     assert state["update"] == 3 and state["env_steps"] == 6144
     assert any(not torch.equal(a, b) for a, b in zip(saved.parameters(), load_agent(result.model_dir)[0].parameters()))
+
+
+def test_train_or_resume_finishes_a_stopped_run_and_then_reuses_it(smoke_config):
+    cfg = dataclasses.replace(smoke_config, run=dataclasses.replace(smoke_config.run, name="job"))
+    run = Path(cfg.run.out_dir) / "job"
+    calls = []
+
+    def stop_after_two(scalars):
+        calls.append(scalars["env_steps"])
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return False
+
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, callback=stop_after_two)  # stopped: a checkpoint at 4096 steps, no model yet
+    model, trained = train_or_resume(cfg)  # resumes from the checkpoint at 4096 steps
+    assert trained and json.loads((model / "card.json").read_text())["env_steps"] == 16384
+    steps = [json.loads(line)["env_steps"] for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert steps == [2048 * (i + 1) for i in range(8)]
+    mtime = (model / "card.json").stat().st_mtime
+    assert train_or_resume(cfg) == (model, False) and (model / "card.json").stat().st_mtime == mtime
+    fresh = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, name="fresh"))
+    (Path(cfg.run.out_dir) / "fresh").mkdir()
+    (Path(cfg.run.out_dir) / "fresh" / "config.yaml").write_text("stopped before its first checkpoint")
+    model, trained = train_or_resume(fresh)
+    assert trained and load_run_config(model.parent) == fresh
 
 
 def test_resume_restores_weights_and_optimizer_exactly(smoke_config):
