@@ -36,8 +36,10 @@ from seqtrojan.stats import wilson_interval
 
 @dataclass(frozen=True)
 class MonitorConfig:
-    calibration_episodes: int = 500
-    """clean episodes of the deployed agent used to calibrate (half for statistics, half for the threshold)"""
+    calibration_episodes: int = 1000
+    """clean episodes of the deployed agent used to calibrate (half for statistics, half for the threshold). Few
+    episodes make the per-unit statistics noisy and the threshold conservative: on the smoke agents 200 gave a
+    detection rate of 0.02, 1000 gave 0.99 (both under 1% false alarms). Episodes are batched, so this is cheap"""
     false_alarm_target: float = 0.01
     """per-episode false-alarm rate the threshold is set for"""
     eval_episodes: int = 1000
