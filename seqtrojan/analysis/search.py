@@ -14,8 +14,10 @@ Two searches, both reporting their success rate and their cost per trigger found
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -172,6 +174,30 @@ class SequenceSearchResult:
     """the same share from the usual zero state"""
 
 
+def final_goal_activation(agent: RecurrentActorCritic, goal: GoalUnits, obs: torch.Tensor) -> torch.Tensor:
+    """(L, R, obs) observation sequences fed from the zero state -> (R,) goal-unit activation after the last one
+    (0 normal-env level, 1 trojan-env level); differentiable in ``obs``."""
+    restarts = obs.shape[1]
+    out = agent.unroll(obs, agent.initial_state(restarts), torch.zeros(obs.shape[:2]), return_states=True)
+    layer = out.states[goal.layer]
+    x = (layer.h if goal.which == "h" else layer.c)[-1][:, torch.tensor(goal.units)]
+    normal, trojan = torch.tensor(goal.normal_mean), torch.tensor(goal.trojan_mean)
+    direction = trojan - normal
+    return ((x - normal) * direction).sum(-1) / (direction * direction).sum()
+
+
+@contextlib.contextmanager
+def frozen(agent: RecurrentActorCritic) -> Iterator[None]:
+    """The agent's parameters need no gradient while inputs are optimised against it."""
+    for p in agent.parameters():
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in agent.parameters():
+            p.requires_grad_(True)
+
+
 def search_sequences(
     agent: RecurrentActorCritic, goal: GoalUnits, cfg: SequenceSearchConfig, view_cells: int = 9
 ) -> tuple[SequenceSearchResult, np.ndarray]:
@@ -182,35 +208,21 @@ def search_sequences(
     forbid = torch.zeros(NUM_CHANNELS)
     forbid[TRIGGER] = -1e9
     optimizer = torch.optim.Adam([logits], lr=cfg.lr)
-    starts = torch.zeros(cfg.length, cfg.restarts)
-    units = torch.tensor(goal.units)
-    normal, trojan = torch.tensor(goal.normal_mean), torch.tensor(goal.trojan_mean)
-    direction = trojan - normal
 
-    def activation(obs: torch.Tensor) -> torch.Tensor:
-        out = agent.unroll(obs, agent.initial_state(cfg.restarts), starts, return_states=True)
-        layer = out.states[goal.layer]
-        x = (layer.h if goal.which == "h" else layer.c)[-1][:, units]
-        return ((x - normal) * direction).sum(-1) / (direction * direction).sum()
+    def relaxed_obs() -> torch.Tensor:
+        return torch.softmax(logits + forbid, -1).reshape(cfg.length, cfg.restarts, -1)
 
-    for p in agent.parameters():
-        p.requires_grad_(False)
-    try:
+    with frozen(agent):
         for _ in range(cfg.steps):
-            obs = torch.softmax(logits + forbid, -1).reshape(cfg.length, cfg.restarts, -1)
-            loss = -activation(obs).mean()
+            loss = -final_goal_activation(agent, goal, relaxed_obs()).mean()
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
         with torch.no_grad():
-            relaxed = activation(torch.softmax(logits + forbid, -1).reshape(cfg.length, cfg.restarts, -1))
+            relaxed = final_goal_activation(agent, goal, relaxed_obs())
             codes = (logits + forbid).argmax(-1)  # (L, R, cells)
-            rounded = activation(
-                torch.nn.functional.one_hot(codes, NUM_CHANNELS).float().reshape(cfg.length, cfg.restarts, -1)
-            )
-    finally:
-        for p in agent.parameters():
-            p.requires_grad_(True)
+            onehot = torch.nn.functional.one_hot(codes, NUM_CHANNELS).float()
+            rounded = final_goal_activation(agent, goal, onehot.reshape(cfg.length, cfg.restarts, -1))
     found = int((rounded >= cfg.success_at).sum())
     result = SequenceSearchResult(
         cfg.restarts,

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.analysis.search import final_goal_activation, frozen
 from seqtrojan.analysis.unintentional import GoalUnits
 from seqtrojan.env.codes import ADV_GOAL, EMPTY, HOLE, NUM_CHANNELS, TRIGGER, USER_GOAL, WALL
 from seqtrojan.env.layout import Layout
@@ -201,38 +202,22 @@ def search_walks(
         cells = torch.cat([soft, torch.zeros(cfg.restarts, n, n, NUM_CHANNELS - 2)], -1)
         return torch.where(free[..., None], cells, fixed_onehot)
 
-    units = torch.tensor(goal.units)
-    normal, trojan = torch.tensor(goal.normal_mean), torch.tensor(goal.trojan_mean)
-    direction = trojan - normal
-    starts = torch.zeros(cfg.length, cfg.restarts)
-
-    def activation(obs: torch.Tensor) -> torch.Tensor:
-        out = agent.unroll(obs, agent.initial_state(cfg.restarts), starts, return_states=True)
-        layer = out.states[goal.layer]
-        x = (layer.h if goal.which == "h" else layer.c)[-1][:, units]
-        return ((x - normal) * direction).sum(-1) / (direction * direction).sum()
-
     def revealed_density(hole: torch.Tensor) -> torch.Tensor:
         return (hole * scored).sum((1, 2)) / scored.sum((1, 2)).clamp(min=1)
 
     optimizer = torch.optim.Adam([logits], lr=cfg.lr)
-    for p in agent.parameters():
-        p.requires_grad_(False)
-    try:
+    with frozen(agent):
         for _ in range(cfg.steps):
             hole = torch.sigmoid(logits)
             penalty = cfg.density_weight * torch.relu(revealed_density(hole) - density)
-            loss = (penalty - activation(_views(probs_of(hole), walks, view))).mean()
+            loss = (penalty - final_goal_activation(agent, goal, _views(probs_of(hole), walks, view))).mean()
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
         with torch.no_grad():
             hole = (torch.sigmoid(logits) > 0.5).float() * free
-            rounded = activation(_views(probs_of(hole), walks, view))
+            rounded = final_goal_activation(agent, goal, _views(probs_of(hole), walks, view))
             density_after = revealed_density(hole)
-    finally:
-        for p in agent.parameters():
-            p.requires_grad_(True)
     grids = torch.where(free, hole.long() * HOLE, fixed).numpy().astype(np.int8)
     codes = _codes(grids, walks_np, view)
     found_mask = (rounded >= cfg.success_at).numpy()
