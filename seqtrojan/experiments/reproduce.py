@@ -239,7 +239,8 @@ def _tradeoff(config: ReproduceConfig, out: Path, backdoor_model: Path, timer: _
             model = backdoor_model
         else:
             name = f"backdoor_penalty{penalty:g}"
-            train_cfg = dataclasses.replace(train_cfg, run=dataclasses.replace(train_cfg.run, name=name))
+            run = dataclasses.replace(train_cfg.run, out_dir=str(out / "runs"), name=name)  # this --out, not the old
+            train_cfg = dataclasses.replace(train_cfg, run=run)
             model = _train_once(train_cfg, out / "runs" / name, name, timer, log)
         log(f"measuring the trade-off for false_activation={penalty:g} ...")
         t0 = time.perf_counter()
