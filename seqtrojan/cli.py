@@ -264,6 +264,10 @@ def _zoo(argv: list[str]) -> None:
             r["group"], str(r["features"]), f"{r['roc_auc']:.3f}", f"{r['cross_entropy']:.3f}", f"{r['brier']:.3f}"
         )
     Console().print(table)
+    for h in result.get("held_out", []):
+        if "roc_auc" in h:
+            print(f"held out by {h['key']} ({len(h['groups'])} values, each unseen in training): ROC-AUC "
+                  f"{h['roc_auc']:.3f}, cross-entropy {h['cross_entropy']:.3f}, Brier {h['brier']:.3f}")  # fmt: skip
     for r in result["rejected"]:
         print(f"rejected {r['model']}: {r['reason']}")
     print(f"wrote {args.zoo}/detection.json")

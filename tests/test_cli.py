@@ -118,3 +118,5 @@ def test_evaluate_analyze_defend_and_zoo_commands_on_tiny_models(tmp_path):
     out = seqtrojan("zoo", "detect", "--zoo", str(zoo), "--folds", "2")
     assert out.returncode == 0, out.stderr
     assert "ROC-AUC" in out.stdout and "rejected m0000" in out.stdout
+    assert [h["key"] for h in json.loads((zoo / "detection.json").read_text())["held_out"]] == [
+        "lstm_sizes", "trigger_value", "curriculum"]  # fmt: skip

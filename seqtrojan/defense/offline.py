@@ -8,7 +8,9 @@ input weights, the recurrent weights and the biases (mean, std, max |w|, skewnes
 weight blocks (largest singular value over RMS, effective rank), and, for the first layer, the relative norm of
 the input weights reading each of the six cell codes (a defender knows the input encoding). The detector is a
 standardised logistic regression; predictions for every model come from stratified k-fold cross-validation, so
-each model is scored by a detector that never saw it. Feature groups are also scored alone, to tell what works.
+each model is scored by a detector that never saw it. Feature groups are also scored alone, to tell what works,
+and :func:`held_out_group_scores` asks whether the detector carries over to a kind of model (an architecture, a
+trigger code, a curriculum) absent from its training models.
 """
 
 from __future__ import annotations
@@ -105,13 +107,28 @@ def _matrix(models: list[ZooModel], group: str | None) -> tuple[np.ndarray, list
     return np.array([[m.features[n] for n in names] for m in models], dtype=np.float64), names
 
 
-def cross_validated_scores(models: list[ZooModel], group: str | None = None, folds: int = 5, seed: int = 0) -> dict:
-    """Out-of-fold probabilities of 'backdoored' for every model, and ROC-AUC, cross-entropy and Brier score."""
+def _detector():
     from sklearn.linear_model import LogisticRegression
-    from sklearn.metrics import brier_score_loss, log_loss, roc_auc_score
-    from sklearn.model_selection import StratifiedKFold
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
+
+    return make_pipeline(StandardScaler(), LogisticRegression(C=0.1, max_iter=2000))
+
+
+def _scores(y: np.ndarray, probs: np.ndarray) -> dict[str, float]:
+    from sklearn.metrics import brier_score_loss, log_loss, roc_auc_score
+
+    clipped = np.clip(probs, 1e-6, 1 - 1e-6)
+    return {
+        "roc_auc": float(roc_auc_score(y, probs)),
+        "cross_entropy": float(log_loss(y, clipped, labels=[0, 1])),
+        "brier": float(brier_score_loss(y, probs)),
+    }
+
+
+def cross_validated_scores(models: list[ZooModel], group: str | None = None, folds: int = 5, seed: int = 0) -> dict:
+    """Out-of-fold probabilities of 'backdoored' for every model, and ROC-AUC, cross-entropy and Brier score."""
+    from sklearn.model_selection import StratifiedKFold
 
     x, names = _matrix(models, group)
     y = np.array([m.label for m in models])
@@ -121,21 +138,46 @@ def cross_validated_scores(models: list[ZooModel], group: str | None = None, fol
             "offline detection needs at least 2 clean and 2 backdoored models (after any rejected ones), "
             f"the zoo has {counts[0]} clean and {counts[1]} backdoored"
         )
-    folds = max(2, min(folds, int(np.bincount(y).min())))
+    folds = max(2, min(folds, int(counts.min())))
     x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
     probs = np.zeros(len(y))
     for train, test in StratifiedKFold(folds, shuffle=True, random_state=seed).split(x, y):
-        clf = make_pipeline(StandardScaler(), LogisticRegression(C=0.1, max_iter=2000))
-        clf.fit(x[train], y[train])
-        probs[test] = clf.predict_proba(x[test])[:, 1]
-    clipped = np.clip(probs, 1e-6, 1 - 1e-6)
+        probs[test] = _detector().fit(x[train], y[train]).predict_proba(x[test])[:, 1]
     return {
-        "group": group or "all", "features": len(names), "models": len(y), "folds": folds,
-        "roc_auc": float(roc_auc_score(y, probs)), "cross_entropy": float(log_loss(y, clipped)),
-        "brier": float(brier_score_loss(y, probs)),
+        "group": group or "all", "features": len(names), "models": len(y), "folds": folds, **_scores(y, probs),
         "predictions": [{"model": m.model_id, "label": int(t), "p_backdoored": float(p)}
                         for m, t, p in zip(models, y, probs)],
     }  # fmt: skip
+
+
+HELD_OUT_KEYS = ("lstm_sizes", "trigger_value", "curriculum")
+
+
+def held_out_group_scores(models: list[ZooModel], key: str) -> dict[str, Any]:
+    """Does the detector generalise to a kind of model it never saw? For each value of the zoo variation ``key``
+    (an architecture, a trigger's cell code, a curriculum), train on the models without that value and score the
+    models with it; then score all those out-of-group predictions together. Clean models carry a (randomly drawn,
+    unused) trigger value too, so leaving out a trigger value also leaves out a random share of clean models.
+    Values whose held-out or remaining models lack a label are skipped and listed."""
+    x, _ = _matrix(models, None)
+    x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+    y = np.array([m.label for m in models])
+    values = np.array([json.dumps(m.truth.get("variation", {}).get(key)) for m in models])
+    probs = np.full(len(y), np.nan)
+    groups, skipped = [], []
+    for value in sorted(set(values)):
+        test = values == value
+        if len(set(y[~test])) < 2 or test.sum() == 0:
+            skipped.append(json.loads(value))
+            continue
+        probs[test] = _detector().fit(x[~test], y[~test]).predict_proba(x[test])[:, 1]
+        entry = {"value": json.loads(value), "models": int(test.sum()), "backdoored": int(y[test].sum())}
+        if len(set(y[test])) == 2:
+            entry.update(_scores(y[test], probs[test]))
+        groups.append(entry)
+    scored = ~np.isnan(probs)
+    pooled = _scores(y[scored], probs[scored]) if len(set(y[scored])) == 2 else {}
+    return {"key": key, "models": int(scored.sum()), **pooled, "groups": groups, "skipped": skipped}
 
 
 def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> dict[str, Any]:
@@ -152,6 +194,7 @@ def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> dict[str, Any]:
     clean = [(0, p["p_backdoored"]) for m, p in zip(models, full) if m.label == 0]
     from sklearn.metrics import roc_auc_score
 
+    results["held_out"] = [held_out_group_scores(models, key) for key in HELD_OUT_KEYS]
     results["auc_by_trigger_value"] = {
         value: float(roc_auc_score([t for t, _ in pairs + clean], [p for _, p in pairs + clean]))
         for value, pairs in by_value.items() if clean

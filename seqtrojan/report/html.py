@@ -481,6 +481,24 @@ def _defense_section(defense: dict[str, Any] | None, detection: dict[str, Any] |
                 f"<td>{r['roc_auc']:.3f}</td><td>{r['cross_entropy']:.3f}</td><td>{r['brier']:.3f}</td></tr>"
             )
         parts.append("</table>")
+        held = [h for h in detection.get("held_out", []) if "roc_auc" in h]
+        if held:
+            parts.append(
+                "<p class='note'>Held out: for each architecture, trigger code or curriculum of the zoo, a detector "
+                "trained on the models without it scores the models with it (does it carry over to a kind of model "
+                "it never saw?).</p><table><tr><th class='l'>left out, one value at a time</th><th>values</th>"
+                "<th>ROC-AUC (all out-of-group predictions)</th><th>cross-entropy</th><th>Brier</th>"
+                "<th class='l'>ROC-AUC within each value</th></tr>"
+            )
+            for h in held:
+                within = ", ".join(
+                    f"{html.escape(str(g['value']))}: {g['roc_auc']:.2f}" for g in h["groups"] if "roc_auc" in g
+                )
+                parts.append(
+                    f"<tr><td class='l'>{h['key']}</td><td>{len(h['groups'])}</td><td>{h['roc_auc']:.3f}</td>"
+                    f"<td>{h['cross_entropy']:.3f}</td><td>{h['brier']:.3f}</td><td class='l'>{within}</td></tr>"
+                )
+            parts.append("</table>")
         if detection.get("auc_by_trigger_value"):
             items = ", ".join(f"{k}: {v:.3f}" for k, v in detection["auc_by_trigger_value"].items())
             parts.append(f"<p class='note'>ROC-AUC against the clean models, by the trigger's cell code: {items}.</p>")

@@ -11,7 +11,14 @@ import torch
 
 from seqtrojan.agent.checkpoint import build_agent, save_agent
 from seqtrojan.config import AgentConfig, BackdoorConfig, ExperimentConfig
-from seqtrojan.defense.offline import cross_validated_scores, detect_zoo, load_zoo_features, weight_features
+from seqtrojan.defense.offline import (
+    ZooModel,
+    cross_validated_scores,
+    detect_zoo,
+    held_out_group_scores,
+    load_zoo_features,
+    weight_features,
+)
 from seqtrojan.env.codes import TRIGGER
 
 
@@ -72,6 +79,8 @@ def test_pickled_model_in_a_zoo_is_rejected_and_the_rest_is_scored(tmp_path):
     for s in scores.values():
         assert 0 <= s["roc_auc"] <= 1 and s["cross_entropy"] > 0 and 0 <= s["brier"] <= 1
     assert set(result["auc_by_trigger_value"]) == {"trigger"}
+    assert [h["key"] for h in result["held_out"]] == ["lstm_sizes", "trigger_value", "curriculum"]
+    assert all(h["skipped"] == [None] for h in result["held_out"])  # this fake zoo records no variation
 
 
 def test_a_zoo_needs_both_labels(tmp_path):
@@ -79,3 +88,27 @@ def test_a_zoo_needs_both_labels(tmp_path):
     models, _ = load_zoo_features(zoo)
     with pytest.raises(Exception, match=r"at least 2 clean and 2 backdoored models.*has 2 clean and 0 backdoored"):
         cross_validated_scores([m for m in models if m.label == 0])
+
+
+def synthetic_models(flip_in_group_b: bool, n: int = 40, seed: int = 0) -> list:
+    """Half backdoored; feature 'gate_stats/tell' is shifted for backdoored models, in the opposite direction in
+    architecture B when ``flip_in_group_b`` (a tell that does not carry over)."""
+    rng = np.random.default_rng(seed)
+    models = []
+    for i in range(n):
+        label, arch = i % 2, "AB"[(i // 2) % 2]
+        sign = -1.0 if (flip_in_group_b and arch == "B") else 1.0
+        feats = {"gate_stats/tell": sign * 3.0 * label + rng.normal(), "gate_stats/noise": rng.normal()}
+        models.append(ZooModel(f"m{i}", label, feats, {"variation": {"lstm_sizes": arch}}))
+    return models
+
+
+def test_held_out_groups_tell_a_tell_that_carries_over_from_one_that_does_not():
+    carries = held_out_group_scores(synthetic_models(flip_in_group_b=False), "lstm_sizes")
+    assert carries["roc_auc"] > 0.95 and [g["value"] for g in carries["groups"]] == ["A", "B"]
+    assert all(g["models"] == 20 and g["backdoored"] == 10 for g in carries["groups"])
+    local = held_out_group_scores(synthetic_models(flip_in_group_b=True), "lstm_sizes")
+    assert local["roc_auc"] < 0.3  # trained on A, the detector reads B's backdoored models as clean, and back
+    assert cross_validated_scores(synthetic_models(flip_in_group_b=True), folds=5)["roc_auc"] < 0.9
+    single = held_out_group_scores(synthetic_models(flip_in_group_b=False), "curriculum")  # one value: no test
+    assert single["models"] == 0 and single["skipped"] == [None] and "roc_auc" not in single
