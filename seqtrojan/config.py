@@ -7,6 +7,7 @@ with :func:`from_dict`, which checks every key and value type and names the dott
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from pathlib import Path
@@ -284,13 +285,38 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
     return value
 
 
+class _Yaml12Loader(yaml.SafeLoader):
+    """PyYAML's safe loader read the YAML 1.2 way: only true/false are booleans, so that a key like ``off:`` (the
+    OFF trigger) stays the string 'off' instead of becoming False as YAML 1.1 reads on/off/yes/no; and 1e-3 is a
+    number, not a string."""
+
+
+_Yaml12Loader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag != "tag:yaml.org,2002:bool"]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_Yaml12Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF")
+)
+
+
+_Yaml12Loader.add_implicit_resolver(  # 1e-3 and 3E+4 are numbers (YAML 1.1 wants a dot: 1.0e-3)
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"), list("-+0123456789")
+)
+
+
+def parse_yaml(text: str) -> Any:
+    """YAML text -> Python data, with YAML 1.2 booleans (see :class:`_Yaml12Loader`)."""
+    return yaml.load(text, Loader=_Yaml12Loader)
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping, with a clear error for a missing file or bad YAML."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {str(path)!r} does not exist")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = parse_yaml(path.read_text())
     except yaml.YAMLError as err:
         raise ConfigError(f"config file {str(path)!r} is not valid YAML: {err}") from None
     if data is None:

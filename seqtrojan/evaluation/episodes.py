@@ -15,6 +15,7 @@ import torch
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import Intervention
+from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.rollout import EpisodeBatch, Policy, run_episodes
@@ -62,3 +63,20 @@ def evaluate_agent(
         return evaluate_policy(make_policy, env, grid, trojan=trojan, episodes=episodes, seed=seed, device=device)
     finally:
         agent.train(was_training)
+
+
+def on_off_success(
+    agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, *, episodes: int, seed: int, **kw
+) -> dict[str, float]:
+    """The three behaviours of an ON/OFF backdoor (SPEC section 3), each over its own episodes: the user's goal in
+    the normal env, the adversary's goal after the ON trigger alone, and the user's goal again when the OFF trigger
+    follows it (OFF probability forced to 0 and to 1; the env's own OFF cells, value and gap)."""
+    trigger = env.trigger
+    out = {}
+    for name, probability, trojan, goal in (("normal", 0.0, False, "user_goal"), ("on", 0.0, True, "adversary_goal"),
+                                             ("on_off", 1.0, True, "user_goal")):  # fmt: skip
+        off = dataclasses.replace(trigger.off, probability=probability)
+        cfg = dataclasses.replace(env, trigger=dataclasses.replace(trigger, off=off))
+        batch = evaluate_agent(agent, cfg, grid, trojan=trojan, episodes=episodes, seed=seed, **kw)
+        out[name] = float((batch.outcome == OUTCOME_NAMES.index(goal)).float().mean())
+    return out

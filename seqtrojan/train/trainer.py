@@ -28,7 +28,7 @@ from safetensors.torch import save_file
 
 from seqtrojan.agent.checkpoint import build_agent, load_agent, read_safetensors, save_agent
 from seqtrojan.agent.network import RecurrentActorCritic
-from seqtrojan.config import ExperimentConfig, from_dict, to_dict
+from seqtrojan.config import ExperimentConfig, from_dict, parse_yaml, to_dict
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.evaluation.episodes import evaluate_agent
@@ -328,7 +328,7 @@ def load_run_config(run_dir: str | Path) -> ExperimentConfig:
     path = Path(run_dir) / "config.yaml"
     if not path.is_file():
         raise ConfigError(f"{str(run_dir)!r} is not a run directory (no config.yaml)")
-    return from_dict(ExperimentConfig, yaml.safe_load(path.read_text()), "")
+    return from_dict(ExperimentConfig, parse_yaml(path.read_text()), "")
 
 
 def _save_checkpoint(

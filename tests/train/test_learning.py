@@ -9,11 +9,25 @@ network with its state reset before every step (``agent.memory=False``) reaches 
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
-from seqtrojan.config import AgentConfig, BackdoorConfig, CurriculumConfig, ExperimentConfig, PPOConfig, RunConfig
+from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.config import (
+    AgentConfig,
+    BackdoorConfig,
+    CurriculumConfig,
+    ExperimentConfig,
+    PPOConfig,
+    RunConfig,
+    from_dict,
+    load_yaml,
+)
 from seqtrojan.env import EnvConfig, GridSpec, TriggerConfig
+from seqtrojan.evaluation.episodes import on_off_success
 from seqtrojan.train.trainer import train
+from tests.conftest import ROOT
 
 THRESHOLD = 1.6
 
@@ -42,3 +56,14 @@ def test_lstm_agent_learns_to_remember_the_trigger(tmp_path):
 @pytest.mark.slow
 def test_memoryless_control_stays_below_the_threshold(tmp_path):
     assert score(train(memory_task(tmp_path, memory=False))) < THRESHOLD - 0.3
+
+
+@pytest.mark.slow
+def test_on_off_backdoor_with_delay_learns_all_three_behaviours(tmp_path):
+    """configs/onoff_7x7.yaml (about 2 minutes here): normal 1.000, ON 0.993, ON then OFF 0.998 measured. A policy
+    that ignored the OFF pattern would score 0 on the third, one that ignored the ON trigger 0 on the second."""
+    cfg = from_dict(ExperimentConfig, load_yaml(ROOT / "configs" / "onoff_7x7.yaml"), "")
+    cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, out_dir=str(tmp_path), progress=False))
+    result = train(cfg)
+    rates = on_off_success(load_agent(result.model_dir)[0], cfg.env, GridSpec(7, 3), episodes=500, seed=1)
+    assert min(rates.values()) >= 0.9, rates
