@@ -78,6 +78,8 @@ class ZooModel:
     label: int  # 1 backdoored, 0 clean
     features: dict[str, float]
     truth: dict[str, Any]
+    attack_success: float | None = None
+    """a backdoored model's final trojan-env success, from its card (None for clean models)"""
 
 
 def load_zoo_features(zoo: Path) -> tuple[list[ZooModel], list[dict[str, str]]]:
@@ -89,14 +91,15 @@ def load_zoo_features(zoo: Path) -> tuple[list[ZooModel], list[dict[str, str]]]:
         raise SeqTrojanError(f"{str(zoo)!r} is not a zoo (no models/ folder)")
     for path in sorted(p for p in folder.iterdir() if p.is_dir()):
         try:
-            agent, cfg, _ = load_agent(path)
+            agent, cfg, card = load_agent(path)
             truth = json.loads((path / "label.json").read_text())
         except (SeqTrojanError, OSError, json.JSONDecodeError) as err:
             rejected.append({"model": path.name, "reason": str(err)})
             continue
         tensors = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
         label = 1 if truth.get("label") == "backdoored" else 0
-        models.append(ZooModel(path.name, label, weight_features(tensors, cfg.env.obs_dim), truth))
+        attack = card.get("metrics", {}).get("trojan_success") if label else None
+        models.append(ZooModel(path.name, label, weight_features(tensors, cfg.env.obs_dim), truth, attack))
     return models, rejected
 
 
@@ -180,6 +183,28 @@ def held_out_group_scores(models: list[ZooModel], key: str) -> dict[str, Any]:
     return {"key": key, "models": int(scored.sum()), **pooled, "groups": groups, "skipped": skipped}
 
 
+def _functional_at(zoo: Path) -> float:
+    spec = zoo / "zoo.json"
+    return float(json.loads(spec.read_text()).get("functional_at", 0.5)) if spec.exists() else 0.5
+
+
+def _functional_split(models: list[ZooModel], predictions: list[dict], at: float) -> dict[str, Any]:
+    """Backdoored models whose backdoor works (final trojan-env success >= ``at``) and those whose training did
+    not make it work, each scored against all clean models with the same out-of-fold predictions: does the
+    detector find working backdoors, or the backdoor training procedure?"""
+    from sklearn.metrics import roc_auc_score
+
+    clean = [p["p_backdoored"] for m, p in zip(models, predictions) if m.label == 0]
+    out: dict[str, Any] = {"functional_at": at}
+    for name, keep in (("functional", lambda a: a >= at), ("not_functional", lambda a: a < at)):
+        probs = [p["p_backdoored"] for m, p in zip(models, predictions)
+                 if m.label == 1 and m.attack_success is not None and keep(m.attack_success)]  # fmt: skip
+        out[name] = len(probs)
+        if probs and clean:
+            out[f"{name}_roc_auc"] = float(roc_auc_score([1] * len(probs) + [0] * len(clean), probs + clean))
+    return out
+
+
 def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> dict[str, Any]:
     """Score the detector with all features and with each feature group alone; AUC by trigger value too."""
     models, rejected = load_zoo_features(zoo)
@@ -195,6 +220,7 @@ def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> dict[str, Any]:
     from sklearn.metrics import roc_auc_score
 
     results["held_out"] = [held_out_group_scores(models, key) for key in HELD_OUT_KEYS]
+    results["functional_backdoors"] = _functional_split(models, full, _functional_at(zoo))
     results["auc_by_trigger_value"] = {
         value: float(roc_auc_score([t for t, _ in pairs + clean], [p for _, p in pairs + clean]))
         for value, pairs in by_value.items() if clean

@@ -499,6 +499,17 @@ def _defense_section(defense: dict[str, Any] | None, detection: dict[str, Any] |
                     f"<td>{h['cross_entropy']:.3f}</td><td>{h['brier']:.3f}</td><td class='l'>{within}</td></tr>"
                 )
             parts.append("</table>")
+        fb = detection.get("functional_backdoors")
+        if fb and fb["functional"] + fb["not_functional"]:
+            aucs = "; ".join(
+                f"ROC-AUC against the clean models: {fb[k + '_roc_auc']:.3f} for the {k.replace('_', ' ')} ones"
+                for k in ("functional", "not_functional") if k + "_roc_auc" in fb
+            )  # fmt: skip
+            parts.append(
+                f"<p class='note'>{fb['functional']} backdoored models have a working backdoor (final trojan-env "
+                f"success &ge; {fb['functional_at']:g}) and {fb['not_functional']} do not; all count as backdoored "
+                f"above, as their training made them. {aucs}.</p>"
+            )
         if detection.get("auc_by_trigger_value"):
             items = ", ".join(f"{k}: {v:.3f}" for k, v in detection["auc_by_trigger_value"].items())
             parts.append(f"<p class='note'>ROC-AUC against the clean models, by the trigger's cell code: {items}.</p>")

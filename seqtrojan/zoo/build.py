@@ -5,7 +5,8 @@ index, so a job gives the same model wherever it runs (a local process pool by d
 ``backend="ray"``). The zoo folder holds::
 
     models/<id>/model.safetensors, card.json   the agent (as any seqtrojan model)
-    models/<id>/label.json                     ground truth: clean/backdoored and the trigger, for scoring only
+    models/<id>/label.json                     ground truth: clean/backdoored, the trigger, its final attack
+                                               success and whether the backdoor is functional; scoring only
     manifest.json                              every job: id, label, status, variation, time
 
 A stopped build continues where it stopped: finished models (with ``label.json``) are kept, unfinished ones are
@@ -70,6 +71,9 @@ class ZooConfig:
     """backdoor mixing of the backdoored models (exact / running / fixed)"""
     eval_episodes: int = 200
     """final evaluation episodes per env type (recorded in each card)"""
+    functional_at: float = 0.5
+    """a backdoored model's backdoor counts as functional (``label.json``: ``functional_backdoor``) when its final
+    trojan-env success is at least this"""
 
     def __post_init__(self) -> None:
         if self.clean < 0 or self.backdoored < 0 or self.clean + self.backdoored == 0:
@@ -94,6 +98,7 @@ class ZooJob:
     label: str  # clean / backdoored
     config: ExperimentConfig
     variation: dict[str, Any] = field(default_factory=dict)
+    functional_at: float = 0.5
 
 
 def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
@@ -128,7 +133,7 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
             "lstm_sizes": list(sizes), "curriculum": [g.label for g in stages], "trigger_value": value,
             "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
-        jobs.append(ZooJob(f"m{i:04d}", label, config, variation))
+        jobs.append(ZooJob(f"m{i:04d}", label, config, variation, cfg.functional_at))
     return jobs
 
 
@@ -136,29 +141,27 @@ def run_job(job: ZooJob, models_dir: str, threads: int = 1) -> dict[str, Any]:
     """Train one zoo model (pure: its outputs depend only on ``job``); returns its manifest entry."""
     import torch
 
-    from seqtrojan.train.trainer import load_run_config, train
+    from seqtrojan.train.trainer import train_or_resume
 
     torch.set_num_threads(threads)
     start = time.perf_counter()
-    work = Path(job.config.run.out_dir) / job.config.run.name
-    if (work / "checkpoints" / "latest.txt").exists():
-        result = train(load_run_config(work), resume=work)
-    else:
-        if work.exists():
-            shutil.rmtree(work)
-        result = train(job.config)
+    model_dir, _ = train_or_resume(job.config)
+    metrics = json.loads((model_dir / "card.json").read_text()).get("metrics", {})
     target = Path(models_dir) / job.model_id
     if target.exists():
         shutil.rmtree(target)
-    shutil.copytree(result.model_dir, target)
-    truth = {"label": job.label, "variation": job.variation, "trigger": to_dict(job.config.env.trigger)}
-    if job.label == "clean":
-        truth["trigger"] = None
+    shutil.copytree(model_dir, target)
+    truth = {"label": job.label, "variation": job.variation, "trigger": None, "attack_success": None,
+             "functional_backdoor": None}  # fmt: skip
+    if job.label == "backdoored":
+        attack = metrics.get("trojan_success")
+        truth.update(trigger=to_dict(job.config.env.trigger), attack_success=attack,
+                     functional_backdoor=attack is not None and attack >= job.functional_at)  # fmt: skip
     (target / "label.json").write_text(json.dumps(truth, indent=2))
-    shutil.rmtree(work, ignore_errors=True)
+    shutil.rmtree(model_dir.parent, ignore_errors=True)
     return {
         "id": job.model_id, "label": job.label, "status": "done", "seconds": time.perf_counter() - start,
-        "variation": job.variation, "metrics": result.evaluation,
+        "variation": job.variation, "metrics": metrics,
     }  # fmt: skip
 
 

@@ -13,6 +13,7 @@ from seqtrojan.agent.checkpoint import build_agent, save_agent
 from seqtrojan.config import AgentConfig, BackdoorConfig, ExperimentConfig
 from seqtrojan.defense.offline import (
     ZooModel,
+    _functional_split,
     cross_validated_scores,
     detect_zoo,
     held_out_group_scores,
@@ -112,3 +113,13 @@ def test_held_out_groups_tell_a_tell_that_carries_over_from_one_that_does_not():
     assert cross_validated_scores(synthetic_models(flip_in_group_b=True), folds=5)["roc_auc"] < 0.9
     single = held_out_group_scores(synthetic_models(flip_in_group_b=False), "curriculum")  # one value: no test
     assert single["models"] == 0 and single["skipped"] == [None] and "roc_auc" not in single
+
+
+def test_working_and_failed_backdoors_are_scored_apart():
+    models = [ZooModel(f"m{i}", label, {}, {}, attack) for i, (label, attack) in
+              enumerate([(0, None), (0, None), (1, 0.9), (1, 0.2), (1, 0.6)])]  # fmt: skip
+    predictions = [{"p_backdoored": p} for p in (0.1, 0.5, 0.9, 0.3, 0.7)]
+    split = _functional_split(models, predictions, at=0.5)
+    assert (split["functional"], split["not_functional"]) == (2, 1)
+    assert split["functional_roc_auc"] == 1.0  # 0.9 and 0.7 above both clean models
+    assert split["not_functional_roc_auc"] == 0.5  # 0.3: above 0.1, below 0.5

@@ -42,6 +42,11 @@ def test_build_writes_models_labels_manifest_and_resumes(tmp_path):
         truth = json.loads((folder / "label.json").read_text())
         assert truth["label"] == card["label"] == e["label"] == cfg.label
         assert (truth["trigger"] is None) == (e["label"] == "clean")
+        if e["label"] == "backdoored":
+            assert truth["attack_success"] == card["metrics"]["trojan_success"] == e["metrics"]["trojan_success"]
+            assert truth["functional_backdoor"] == (truth["attack_success"] >= TINY.functional_at)
+        else:
+            assert truth["attack_success"] is None and truth["functional_backdoor"] is None
     logs.clear()
     build_zoo(TINY, tmp_path / "zoo", workers=1, log=logs.append)
     assert logs[0].startswith("zoo: 4 of 4 models done; training 0")
