@@ -39,6 +39,7 @@ from seqtrojan.experiments.tradeoff import (
     measure_tradeoff_agent,
     penalised_config,
     reuses_backdoor_agent,
+    summarise_penalties,
 )
 from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
 from seqtrojan.train.trainer import load_run_config, train_or_resume
@@ -234,21 +235,23 @@ def _tradeoff(config: ReproduceConfig, out: Path, backdoor_model: Path, timer: _
     base = load_run_config(out / "runs" / "backdoor")
     rows = []
     for penalty in cfg.penalties:
-        train_cfg = penalised_config(base, penalty, cfg.total_steps)
-        if reuses_backdoor_agent(base, penalty, cfg):
-            model = backdoor_model
-        else:
-            name = f"backdoor_penalty{penalty:g}"
-            run = dataclasses.replace(train_cfg.run, out_dir=str(out / "runs"), name=name)  # this --out, not the old
-            train_cfg = dataclasses.replace(train_cfg, run=run)
-            model = _train_once(train_cfg, out / "runs" / name, name, timer, log)
-        log(f"measuring the trade-off for false_activation={penalty:g} ...")
-        t0 = time.perf_counter()
-        agent, _, _ = load_agent(model, device=config.device)
-        rows.append({**measure_tradeoff_agent(agent, train_cfg, cfg, penalty), "model": str(model.relative_to(out))})
-        timer.record(f"tradeoff_measure{penalty:g}", time.perf_counter() - t0)
+        for offset in range(cfg.seeds):
+            train_cfg = penalised_config(base, penalty, cfg.total_steps, offset)
+            if reuses_backdoor_agent(base, penalty, cfg, offset):
+                model = backdoor_model
+            else:
+                name = f"backdoor_penalty{penalty:g}" + (f"_seed{train_cfg.run.seed}" if offset else "")
+                run = dataclasses.replace(train_cfg.run, out_dir=str(out / "runs"), name=name)  # this --out
+                train_cfg = dataclasses.replace(train_cfg, run=run)
+                model = _train_once(train_cfg, out / "runs" / name, name, timer, log)
+            log(f"measuring the trade-off for false_activation={penalty:g}, seed {train_cfg.run.seed} ...")
+            t0 = time.perf_counter()
+            agent, _, _ = load_agent(model, device=config.device)
+            row = measure_tradeoff_agent(agent, train_cfg, cfg, penalty)
+            rows.append({**row, "seed": train_cfg.run.seed, "model": str(model.relative_to(out))})
+            timer.record(f"tradeoff_measure{penalty:g}_seed{train_cfg.run.seed}", time.perf_counter() - t0)
     (out / "tradeoff").mkdir(exist_ok=True)
-    record = {"config": dataclasses.asdict(cfg), "agents": rows}
+    record = {"config": dataclasses.asdict(cfg), "agents": rows, "penalties": summarise_penalties(rows)}
     (out / "tradeoff" / "tradeoff.json").write_text(json.dumps(record, indent=2))
 
 

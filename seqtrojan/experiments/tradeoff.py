@@ -9,8 +9,8 @@ adversary's goal while the user's goal is correct (``env.rewards.false_activatio
   the agent's precision and recall as a trigger detector (:mod:`seqtrojan.analysis.trigger_detection`).
 
 Training is done by the caller (``seqtrojan reproduce`` resumes each agent like its other runs); this module builds
-the agents' configs and measures them. One training seed per penalty: the confidence intervals cover the
-evaluation's sampling, not the spread between training seeds.
+the agents' configs, measures them, and summarises each penalty over its training seeds (mean and standard
+deviation): the confidence intervals of one agent cover the evaluation's sampling, the seeds the training's spread.
 """
 
 from __future__ import annotations
@@ -18,6 +18,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.analysis.trigger_detection import trigger_detection
@@ -39,8 +41,13 @@ class TradeoffConfig:
     episodes: int = 1000
     """per config and env"""
     seed: int = 0
+    """evaluation seed"""
+    seeds: int = 1
+    """training seeds per penalty (run.seed, run.seed + 1, ...)"""
 
     def __post_init__(self) -> None:
+        if self.seeds < 1:
+            raise ConfigError(f"tradeoff.seeds must be >= 1, got {self.seeds}")
         if not self.penalties:
             raise ConfigError("tradeoff.penalties is empty")
         if self.episodes < 1:
@@ -54,15 +61,36 @@ def own_penalty(cfg: ExperimentConfig) -> float:
     return rewards.wrong_goal if rewards.false_activation is None else rewards.false_activation
 
 
-def penalised_config(base: ExperimentConfig, penalty: float, total_steps: int | None) -> ExperimentConfig:
-    """The backdoored agent's training config with another false-activation reward (and budget)."""
+def penalised_config(
+    base: ExperimentConfig, penalty: float, total_steps: int | None, seed_offset: int = 0
+) -> ExperimentConfig:
+    """The backdoored agent's training config with another false-activation reward (and budget, and seed)."""
     env = dataclasses.replace(base.env, rewards=dataclasses.replace(base.env.rewards, false_activation=penalty))
     ppo = base.ppo if total_steps is None else dataclasses.replace(base.ppo, total_steps=total_steps)
-    return dataclasses.replace(base, env=env, ppo=ppo)
+    run = dataclasses.replace(base.run, seed=base.run.seed + seed_offset)
+    return dataclasses.replace(base, env=env, ppo=ppo, run=run)
 
 
-def reuses_backdoor_agent(base: ExperimentConfig, penalty: float, cfg: TradeoffConfig) -> bool:
-    return penalty == own_penalty(base) and cfg.total_steps in (None, base.ppo.total_steps)
+def reuses_backdoor_agent(base: ExperimentConfig, penalty: float, cfg: TradeoffConfig, seed_offset: int = 0) -> bool:
+    return seed_offset == 0 and penalty == own_penalty(base) and cfg.total_steps in (None, base.ppo.total_steps)
+
+
+SUMMARISED = ("normal_success", "trojan_success", "activation_rate")
+
+
+def summarise_penalties(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per penalty, over its training seeds: mean and standard deviation of success, activation and recall."""
+    out = []
+    for penalty in dict.fromkeys(r["penalty"] for r in rows):
+        mine = [r for r in rows if r["penalty"] == penalty]
+        entry: dict[str, Any] = {"penalty": penalty, "seeds": len(mine)}
+        for key in SUMMARISED:
+            values = np.array([r[key] for r in mine])
+            entry[key] = {"mean": float(values.mean()), "std": float(values.std(ddof=1)) if len(values) > 1 else 0.0}
+        recall = np.array([r["detection"]["recall"] for r in mine])
+        entry["recall"] = {"mean": float(recall.mean()), "std": float(recall.std(ddof=1)) if len(mine) > 1 else 0.0}
+        out.append(entry)
+    return out
 
 
 def measure_tradeoff_agent(

@@ -244,23 +244,42 @@ def _tradeoff_section(t: dict[str, Any]) -> str:
         "<h2>The adversary's trade-off: a penalty on unintentional activation</h2>",
         "<p class='note'>Backdoored agents that differ only in the reward for reaching the adversary's goal while "
         "the user's goal is correct (<code>env.rewards.false_activation</code>; -1 is the ordinary wrong-goal "
-        f"reward). Success on the training grid; activation = normal-env episodes (no trigger) over "
-        f"{html.escape(str(cfg['configs']))} configs ({cfg['episodes']} per config) that ended at the adversary's "
-        "goal; recall and precision of the agent as a trigger detector over the same configs. One training seed "
-        "per penalty: the intervals cover evaluation sampling, not seed-to-seed spread.</p>",
-        "<table><tr><th>false-activation reward</th><th>normal success [95% CI]</th>"
-        "<th>trojan success [95% CI]</th><th>unintentional activation [95% CI]</th><th>recall</th>"
-        "<th>precision</th><th class='l'>agent</th></tr>",
+        f"reward), {cfg.get('seeds', 1)} training seed(s) each. Success on the training grid; activation = "
+        f"normal-env episodes (no trigger) over {html.escape(str(cfg['configs']))} configs ({cfg['episodes']} per "
+        "config) that ended at the adversary's goal; recall of the agent as a trigger detector over the same "
+        "configs.</p>",
     ]
+    if t.get("penalties"):
+
+        def ms(d: dict[str, float], digits: int = 3) -> str:
+            return f"{d['mean']:.{digits}f} &plusmn; {d['std']:.{digits}f}"
+
+        parts.append(
+            "<table><tr><th>false-activation reward</th><th>seeds</th><th>normal success</th><th>trojan success</th>"
+            "<th>unintentional activation</th><th>recall</th></tr>"
+        )
+        for p in t["penalties"]:
+            parts.append(
+                f"<tr><td>{p['penalty']:g}</td><td>{p['seeds']}</td><td>{ms(p['normal_success'])}</td>"
+                f"<td>{ms(p['trojan_success'])}</td><td>{ms(p['activation_rate'], 4)}</td><td>{ms(p['recall'])}</td>"
+                "</tr>"
+            )
+        parts.append("</table><details><summary>every agent, with 95% intervals</summary>")
+    parts.append(
+        "<table><tr><th>false-activation reward</th><th>seed</th><th>normal success [95% CI]</th>"
+        "<th>trojan success [95% CI]</th><th>unintentional activation [95% CI]</th><th>recall</th>"
+        "<th>precision</th><th class='l'>agent</th></tr>"
+    )
     for a in t["agents"]:
         d = a["detection"]
         parts.append(
-            f"<tr><td>{a['penalty']:g}</td><td>{a['normal_success']:.3f} {_ci(a['normal_ci'])}</td>"
+            f"<tr><td>{a['penalty']:g}</td><td>{a.get('seed', '')}</td>"
+            f"<td>{a['normal_success']:.3f} {_ci(a['normal_ci'])}</td>"
             f"<td>{a['trojan_success']:.3f} {_ci(a['trojan_ci'])}</td>"
             f"<td>{a['activation_rate']:.4f} {_ci(a['activation_ci'])}</td><td>{d['recall']:.3f}</td>"
             f"<td>{d['precision']:.3f}</td><td class='l'>{html.escape(a['model'])}</td></tr>"
         )
-    parts.append("</table>")
+    parts.append("</table>" + ("</details>" if t.get("penalties") else ""))
     return "".join(parts)
 
 

@@ -51,7 +51,7 @@ TINY = {
         "mitigation": {"finetune_steps": 2048, "calibration_episodes": 32, "eval_episodes": 32},
         "oracle_episodes": 40,
     },
-    "tradeoff": {"penalties": [-1.0, -4.0], "configs": "7x7/0,7x7/3", "episodes": 16},
+    "tradeoff": {"penalties": [-1.0, -4.0], "configs": "7x7/0,7x7/3", "episodes": 16, "seeds": 2},
     "zoo": {
         "clean": 2,
         "backdoored": 2,
@@ -89,9 +89,18 @@ def test_every_stage_writes_its_outputs(tiny_run):
     assert ("backdoor", "trojan", "7x7/7") in cells and ("clean", "normal", "5x5/1") in cells  # + training grid
     assert next(r for r in rows if r["config"] == "7x7/7" and r["agent"] == "clean")["paper"] == 0.928
     assert set(json.loads((out / "timings.json").read_text())) >= {"train_clean", "train_backdoor", "curves"}
-    tradeoff = json.loads((out / "tradeoff" / "tradeoff.json").read_text())["agents"]
-    assert [a["penalty"] for a in tradeoff] == [-1.0, -4.0]
-    assert tradeoff[0]["model"] == "runs/backdoor/model"  # the backdoored agent itself is the -1 baseline
+    tradeoff = json.loads((out / "tradeoff" / "tradeoff.json").read_text())
+    agents = [(a["penalty"], a["seed"], a["model"]) for a in tradeoff["agents"]]
+    assert agents == [
+        (-1.0, 0, "runs/backdoor/model"),
+        (-1.0, 1, "runs/backdoor_penalty-1_seed1/model"),
+        (-4.0, 0, "runs/backdoor_penalty-4/model"),
+        (-4.0, 1, "runs/backdoor_penalty-4_seed1/model"),
+    ]
+    summary = tradeoff["penalties"]  # the backdoored agent itself is the -1 baseline's first seed
+    assert [(p["penalty"], p["seeds"]) for p in summary] == [(-1.0, 2), (-4.0, 2)]
+    rates = [a["trojan_success"] for a in tradeoff["agents"][:2]]
+    assert summary[0]["trojan_success"]["mean"] == pytest.approx(sum(rates) / 2)
     card = json.loads((out / "runs/backdoor_penalty-4/model/card.json").read_text())
     assert card["config"]["env"]["rewards"]["false_activation"] == -4.0 and card["label"] == "backdoored"
     analysis = json.loads((out / "analysis" / "analysis.json").read_text())
