@@ -251,8 +251,9 @@ def _tradeoff_section(t: dict[str, Any]) -> str:
     ]
     if t.get("penalties"):
 
-        def ms(d: dict[str, float], digits: int = 3) -> str:
-            return f"{d['mean']:.{digits}f} &plusmn; {d['std']:.{digits}f}"
+        def ms(d: dict[str, float], seeds: int, digits: int = 3) -> str:  # no spread to show from a single seed
+            spread = f" &plusmn; {d['std']:.{digits}f}" if seeds > 1 else ""
+            return f"{d['mean']:.{digits}f}{spread}"
 
         parts.append(
             "<table><tr><th>false-activation reward</th><th>seeds</th><th>normal success</th><th>trojan success</th>"
@@ -260,8 +261,9 @@ def _tradeoff_section(t: dict[str, Any]) -> str:
         )
         for p in t["penalties"]:
             parts.append(
-                f"<tr><td>{p['penalty']:g}</td><td>{p['seeds']}</td><td>{ms(p['normal_success'])}</td>"
-                f"<td>{ms(p['trojan_success'])}</td><td>{ms(p['activation_rate'], 4)}</td><td>{ms(p['recall'])}</td>"
+                f"<tr><td>{p['penalty']:g}</td><td>{p['seeds']}</td><td>{ms(p['normal_success'], p['seeds'])}</td>"
+                f"<td>{ms(p['trojan_success'], p['seeds'])}</td><td>{ms(p['activation_rate'], p['seeds'], 4)}</td>"
+                f"<td>{ms(p['recall'], p['seeds'])}</td>"
                 "</tr>"
             )
         parts.append("</table><details><summary>every agent, with 95% intervals</summary>")
@@ -520,10 +522,11 @@ def _defense_section(defense: dict[str, Any] | None, detection: dict[str, Any] |
             parts.append("</table>")
         fb = detection.get("functional_backdoors")
         if fb and fb["functional"] + fb["not_functional"]:
-            aucs = "; ".join(
-                f"ROC-AUC against the clean models: {fb[k + '_roc_auc']:.3f} for the {k.replace('_', ' ')} ones"
-                for k in ("functional", "not_functional") if k + "_roc_auc" in fb
+            aucs = ", ".join(
+                f"{fb[k + '_roc_auc']:.3f} for the {name} ones"
+                for k, name in (("functional", "working"), ("not_functional", "failed")) if k + "_roc_auc" in fb
             )  # fmt: skip
+            aucs = f"ROC-AUC against the clean models: {aucs}" if aucs else ""
             parts.append(
                 f"<p class='note'>{fb['functional']} backdoored models have a working backdoor (final trojan-env "
                 f"success &ge; {fb['functional_at']:g}) and {fb['not_functional']} do not; all count as backdoored "
