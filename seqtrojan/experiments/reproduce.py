@@ -148,7 +148,7 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
             raise ConfigError(f"the clean preset {spec.preset!r} has backdoor.enabled: true")
         if role == "backdoor" and not cfg.backdoor.enabled:
             raise ConfigError(f"the backdoor preset {spec.preset!r} does not enable backdoor training")
-        models[role] = _train_once(cfg, out / "runs" / role, role, timer, log)
+        models[role] = _train_once(cfg, role, timer, log)
 
     agents = []
     for role, folder in models.items():
@@ -219,7 +219,9 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
     return report
 
 
-def _train_once(cfg: ExperimentConfig, run_dir: Path, role: str, timer: _Timer, log) -> Path:
+def _train_once(cfg: ExperimentConfig, role: str, timer: _Timer, log) -> Path:
+    """Train the run ``cfg.run.out_dir / cfg.run.name`` unless it has finished (see train_or_resume)."""
+    run_dir = Path(cfg.run.out_dir) / cfg.run.name
     if not (run_dir / "model" / "card.json").exists():
         verb = "resuming" if (run_dir / "checkpoints" / "latest.txt").exists() else "training"
         log(f"{verb} the {role} agent ({cfg.grids[-1].label}, {cfg.ppo.total_steps:,} env steps) ...")
@@ -243,7 +245,7 @@ def _tradeoff(config: ReproduceConfig, out: Path, backdoor_model: Path, timer: _
                 name = f"backdoor_penalty{penalty:g}" + (f"_seed{train_cfg.run.seed}" if offset else "")
                 run = dataclasses.replace(train_cfg.run, out_dir=str(out / "runs"), name=name)  # this --out
                 train_cfg = dataclasses.replace(train_cfg, run=run)
-                model = _train_once(train_cfg, out / "runs" / name, name, timer, log)
+                model = _train_once(train_cfg, name, timer, log)
             log(f"measuring the trade-off for false_activation={penalty:g}, seed {train_cfg.run.seed} ...")
             t0 = time.perf_counter()
             agent, _, _ = load_agent(model, device=config.device)

@@ -75,7 +75,12 @@ def reuses_backdoor_agent(base: ExperimentConfig, penalty: float, cfg: TradeoffC
     return seed_offset == 0 and penalty == own_penalty(base) and cfg.total_steps in (None, base.ppo.total_steps)
 
 
-SUMMARISED = ("normal_success", "trojan_success", "activation_rate")
+SUMMARISED = {
+    "normal_success": lambda row: row["normal_success"],
+    "trojan_success": lambda row: row["trojan_success"],
+    "activation_rate": lambda row: row["activation_rate"],
+    "recall": lambda row: row["detection"]["recall"],
+}
 
 
 def summarise_penalties(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -84,11 +89,9 @@ def summarise_penalties(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for penalty in dict.fromkeys(r["penalty"] for r in rows):
         mine = [r for r in rows if r["penalty"] == penalty]
         entry: dict[str, Any] = {"penalty": penalty, "seeds": len(mine)}
-        for key in SUMMARISED:
-            values = np.array([r[key] for r in mine])
+        for key, value in SUMMARISED.items():
+            values = np.array([value(r) for r in mine])
             entry[key] = {"mean": float(values.mean()), "std": float(values.std(ddof=1)) if len(values) > 1 else 0.0}
-        recall = np.array([r["detection"]["recall"] for r in mine])
-        entry["recall"] = {"mean": float(recall.mean()), "std": float(recall.std(ddof=1)) if len(mine) > 1 else 0.0}
         out.append(entry)
     return out
 
