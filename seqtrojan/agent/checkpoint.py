@@ -8,7 +8,9 @@ tensors, and the card is plain JSON. A model folder holds::
                         label ("clean" or "backdoored"), metrics, tensor names/shapes and the weights' SHA-256
 
 Loading refuses pickled files (``.pt``, ``.pth``, ``.pkl``, ``.ckpt`` or pickle/zip content), corrupt files, and a
-card that does not match its weights, each with a clear :class:`CheckpointError`.
+card that does not match its weights, each with a clear :class:`CheckpointError`. The card and the safetensors
+header are untrusted input: :mod:`seqtrojan.agent.card` validates both (bounded sizes, schema, architecture limits,
+card = header = architecture) before any tensor is read or the network is built.
 """
 
 from __future__ import annotations
@@ -21,16 +23,38 @@ from typing import Any
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load, load_file, save_file
 
+from seqtrojan.agent.card import (
+    CARD,
+    FORMAT,
+    FORMAT_VERSION,
+    WEIGHTS,
+    ModelCard,
+    check_weights,
+    parse_card,
+    read_card,
+    read_header,
+)
 from seqtrojan.agent.network import RecurrentActorCritic
-from seqtrojan.config import ExperimentConfig, from_dict, to_dict
+from seqtrojan.config import ExperimentConfig, to_dict
 from seqtrojan.errors import CheckpointError, ConfigError
 
-FORMAT = "seqtrojan-model"
-FORMAT_VERSION = 1
-WEIGHTS = "model.safetensors"
-CARD = "card.json"
+__all__ = [
+    "CARD",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "PICKLE_SUFFIXES",
+    "WEIGHTS",
+    "ModelCard",
+    "build_agent",
+    "load_agent",
+    "read_card",
+    "read_safetensors",
+    "save_agent",
+    "sha256_file",
+]
+
 PICKLE_SUFFIXES = (".pt", ".pth", ".pkl", ".pickle", ".ckpt", ".bin")
 
 
@@ -48,15 +72,14 @@ def save_agent(
     metrics: dict[str, Any] | None = None,
     env_steps: int | None = None,
 ) -> Path:
-    """Write ``model.safetensors`` and ``card.json`` into ``folder`` (created); returns the folder."""
+    """Write ``model.safetensors`` and ``card.json`` into ``folder`` (created); returns the folder.
+
+    The card is checked with the same rules as loading before anything is written, so a saved model always loads.
+    """
     if label not in ("clean", "backdoored"):
         raise ConfigError(f"label must be 'clean' or 'backdoored', got {label!r}")
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().contiguous() for k, v in agent.state_dict().items()}
-    tmp = folder / (WEIGHTS + ".tmp")
-    save_file(tensors, str(tmp))
-    tmp.replace(folder / WEIGHTS)
     from seqtrojan import __version__
 
     card = {
@@ -76,8 +99,14 @@ def save_agent(
         "config": to_dict(config),
         "metrics": metrics or {},
         "tensors": {k: list(v.shape) for k, v in tensors.items()},
-        "weights_sha256": sha256_file(folder / WEIGHTS),
+        "weights_sha256": "0" * 64,
     }
+    parse_card(json.dumps(card), f"the card for {str(folder)!r}")  # refuse what load_agent would refuse
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = folder / (WEIGHTS + ".tmp")
+    save_file(tensors, str(tmp))
+    tmp.replace(folder / WEIGHTS)
+    card["weights_sha256"] = sha256_file(folder / WEIGHTS)
     _write_json(folder / CARD, card)
     return folder
 
@@ -85,7 +114,11 @@ def save_agent(
 def load_agent(
     folder: str | Path, device: str | torch.device = "cpu"
 ) -> tuple[RecurrentActorCritic, ExperimentConfig, dict[str, Any]]:
-    """Load a model folder; returns (agent in eval mode, its ExperimentConfig, the card)."""
+    """Load a model folder; returns (agent in eval mode, its ExperimentConfig, the card as a dict).
+
+    The card and the weights' header are validated (:mod:`seqtrojan.agent.card`) before the weights are read and
+    before the network is built; the weights must then match the card's SHA-256.
+    """
     folder = Path(folder)
     if folder.suffix.lower() in PICKLE_SUFFIXES or (folder.is_file() and folder.suffix != ".safetensors"):
         raise CheckpointError(
@@ -95,68 +128,34 @@ def load_agent(
     if folder.is_file():
         folder = folder.parent
     card = read_card(folder)
-    tensors = read_safetensors(folder / WEIGHTS)
-    expected = {k: list(v) for k, v in card["tensors"].items()}
-    actual = {k: list(v.shape) for k, v in tensors.items()}
-    if expected != actual:
-        diff = _first_difference(expected, actual)
-        raise CheckpointError(f"card.json does not match {WEIGHTS} in {str(folder)!r}: {diff}")
-    digest = sha256_file(folder / WEIGHTS)
-    if card.get("weights_sha256") not in (None, digest):
+    path = folder / WEIGHTS
+    header = read_header(path)
+    check_weights(card, header, repr(str(folder)))
+    with path.open("rb") as fh:  # size bounded by the validated architecture and header
+        data = fh.read(header.file_size + 1)
+    validated = header.header_len.to_bytes(8, "little") + header.raw
+    if len(data) != header.file_size or not data.startswith(validated):
+        raise CheckpointError(f"{str(path)!r} changed while it was being read")
+    if hashlib.sha256(data).hexdigest() != card.weights_sha256:
         raise CheckpointError(f"{WEIGHTS} in {str(folder)!r} does not match the SHA-256 recorded in card.json")
     try:
-        config = from_dict(ExperimentConfig, card["config"], "config")
-    except (ConfigError, KeyError) as err:
-        raise CheckpointError(f"card.json in {str(folder)!r} has an invalid config: {err}") from None
-    arch = card["architecture"]
-    if [arch["obs_dim"], arch["num_actions"], list(arch["lstm_sizes"])] != [
-        config.env.obs_dim,
-        config.env.num_actions,
-        list(config.agent.lstm_sizes),
-    ]:
-        raise CheckpointError(f"card.json in {str(folder)!r}: architecture {arch} disagrees with its config")
-    agent = build_agent(config)
+        tensors = load(data)
+    except (SafetensorError, ValueError) as err:
+        raise CheckpointError(f"{str(path)!r} is corrupt: {err}") from None
+    del data
+    agent = build_agent(card.config)
     try:
         agent.load_state_dict(tensors, strict=True)
     except RuntimeError as err:
         raise CheckpointError(
             f"{WEIGHTS} in {str(folder)!r} does not fit the architecture in card.json: {err}"
         ) from None
-    return agent.to(device).eval(), config, card
-
-
-def read_card(folder: Path) -> dict[str, Any]:
-    path = folder / CARD
-    if not path.is_file():
-        raise CheckpointError(f"no {CARD} in {str(folder)!r}: not a seqtrojan model folder")
-    try:
-        card = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise CheckpointError(f"{str(path)!r} is not valid JSON: {err}") from None
-    if not isinstance(card, dict) or card.get("format") != FORMAT:
-        raise CheckpointError(f"{str(path)!r} is not a seqtrojan model card (format must be {FORMAT!r})")
-    if card.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(
-            f"{str(path)!r} has format_version {card.get('format_version')}, expected {FORMAT_VERSION}"
-        )
-    for key in ("architecture", "config", "tensors", "label"):
-        if key not in card:
-            raise CheckpointError(f"{str(path)!r} lacks the field {key!r}")
-    return card
+    return agent.to(device).eval(), card.config, card.data
 
 
 def read_safetensors(path: Path) -> dict[str, torch.Tensor]:
-    """Load a safetensors file after checking that it is one (and not a pickle or a truncated file)."""
-    if not path.is_file():
-        raise CheckpointError(f"{str(path)!r} does not exist")
-    with path.open("rb") as fh:
-        head = fh.read(9)
-    if head[:2] == b"PK" or head[:1] == b"\x80":
-        raise CheckpointError(f"{str(path)!r} is a pickle/zip file, not safetensors: refusing to load it")
-    size = path.stat().st_size
-    header_len = int.from_bytes(head[:8], "little") if len(head) >= 8 else -1
-    if len(head) < 9 or header_len <= 0 or header_len + 8 > size or head[8:9] != b"{":
-        raise CheckpointError(f"{str(path)!r} is not a valid safetensors file (corrupt or truncated)")
+    """Load a safetensors file after checking that it is one (not a pickle, not truncated, a sane header)."""
+    read_header(path)
     try:
         return load_file(str(path))
     except (SafetensorError, OSError, ValueError) as err:
@@ -169,17 +168,6 @@ def sha256_file(path: Path) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
-
-
-def _first_difference(expected: dict[str, list[int]], actual: dict[str, list[int]]) -> str:
-    for name in sorted(set(expected) | set(actual)):
-        if name not in actual:
-            return f"tensor {name!r} is listed in the card but missing from the weights"
-        if name not in expected:
-            return f"tensor {name!r} is in the weights but not in the card"
-        if expected[name] != actual[name]:
-            return f"tensor {name!r} has shape {actual[name]} but the card says {expected[name]}"
-    return "unknown difference"
 
 
 def _write_json(path: Path, data: dict[str, Any]) -> None:

@@ -1,0 +1,484 @@
+"""Model cards and safetensors headers, validated as untrusted input before anything is allocated.
+
+A model folder comes from a shared-model marketplace, so ``card.json`` and the header of ``model.safetensors`` are
+hostile until proven otherwise. This module reads both with bounded sizes and checks them against a fixed schema:
+
+- ``card.json`` is at most :data:`MAX_CARD_BYTES`, nested at most :data:`MAX_JSON_DEPTH` deep and holds at most
+  :data:`MAX_VALUES` values (both checked before parsing, in linear time, so deep nesting never reaches Python's
+  recursive JSON parser), with at most :data:`MAX_ITEMS` entries in any list or object and no duplicate keys;
+- its fields have the types and values ``save_agent`` writes: label ``clean`` or ``backdoored``, a SHA-256 of the
+  weights, an architecture within :data:`MAX_OBS_DIM`, :data:`MAX_ACTIONS`, :data:`MAX_LAYERS`, :data:`MAX_WIDTH`
+  and :data:`MAX_PARAMETERS`, and an embedded config that parses to the same architecture;
+- the safetensors header (an 8-byte little-endian length, then JSON) is read alone, its length bounded by
+  :data:`MAX_HEADER_BYTES` before it is read; every tensor's dtype is known, its byte range matches its shape and
+  dtype, and the ranges tile the data exactly to the end of the file;
+- :func:`check_weights` then requires the card's tensor list, the header and the architecture to agree, and the
+  weights to be floating point.
+
+Only after all of this does :func:`seqtrojan.agent.checkpoint.load_agent` read the tensors and build the network,
+so the memory a model file can make a loader allocate is bounded by the file's real size and these limits.
+Every refusal is one :class:`~seqtrojan.errors.CheckpointError` line naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import math
+import os
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from seqtrojan.config import ExperimentConfig, from_dict
+from seqtrojan.errors import CheckpointError, SeqTrojanError
+
+FORMAT = "seqtrojan-model"
+FORMAT_VERSION = 1
+WEIGHTS = "model.safetensors"
+CARD = "card.json"
+LABELS = ("clean", "backdoored")
+ARCHITECTURE_TYPE = "RecurrentActorCritic"
+
+MAX_CARD_BYTES = 1 << 20
+"""largest card.json read (1 MiB; a real card is a few KiB)"""
+MAX_HEADER_BYTES = 1 << 20
+"""largest safetensors header read (1 MiB; a model's header is a few KiB)"""
+MAX_JSON_DEPTH = 32
+"""deepest nesting of lists/objects in a card or header (a real card nests 6 or 7 deep)"""
+MAX_ITEMS = 4096
+"""most entries in any one JSON list or object"""
+MAX_VALUES = 1 << 16
+"""most list items and object entries in one card or header, all together (a real card has about a hundred)"""
+MAX_LAYERS = 8
+MAX_WIDTH = 4096
+MAX_OBS_DIM = 1 << 15
+"""the largest view the env allows (57x57, 6 cell codes) has 19494 inputs"""
+MAX_ACTIONS = 64
+MAX_PARAMETERS = 1 << 26
+"""most parameters in a model (67M; 256 MiB as float32). The paper's network (64, 32) has about 40k"""
+MAX_RANK = 8
+"""most dimensions of one tensor"""
+MAX_MESSAGE = 200
+"""characters of a hostile value quoted in an error message"""
+
+DTYPE_SIZES = {
+    "BOOL": 1, "U8": 1, "I8": 1, "F8_E5M2": 1, "F8_E4M3": 1, "I16": 2, "U16": 2, "F16": 2, "BF16": 2,
+    "I32": 4, "U32": 4, "F32": 4, "I64": 8, "U64": 8, "F64": 8,
+}  # fmt: skip
+"""bytes per element of each safetensors dtype"""
+FLOAT_DTYPES = ("F16", "BF16", "F32", "F64")
+"""dtypes a model's weights may have"""
+
+_REQUIRED = ("format", "format_version", "label", "architecture", "config", "tensors", "weights_sha256")
+_OPTIONAL = ("seqtrojan_version", "created", "seed", "env_steps", "metrics")
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+_STRINGS = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*(?:"|\\?\Z)', re.DOTALL)
+"""a JSON string; one left open runs to the end of the text (so a match never fails and never backtracks far)"""
+_NOT_STRUCTURE = bytes(sorted(set(range(256)) - set(b"[]{},")))
+_BRACKET_STEP = [0] * 256
+for _c in b"[{":
+    _BRACKET_STEP[_c] = 1
+for _c in b"]}":
+    _BRACKET_STEP[_c] = -1
+
+
+@dataclasses.dataclass(frozen=True)
+class Architecture:
+    """The network a card describes: ``RecurrentActorCritic(obs_dim, num_actions, lstm_sizes)``."""
+
+    obs_dim: int
+    num_actions: int
+    lstm_sizes: tuple[int, ...]
+
+    def tensor_shapes(self) -> dict[str, tuple[int, ...]]:
+        """The network's state_dict names and shapes, computed without building it."""
+        shapes: dict[str, tuple[int, ...]] = {}
+        inputs = (self.obs_dim, *self.lstm_sizes[:-1])
+        for i, (n_in, width) in enumerate(zip(inputs, self.lstm_sizes)):
+            shapes[f"cells.{i}.weight_ih"] = (4 * width, n_in)
+            shapes[f"cells.{i}.weight_hh"] = (4 * width, width)
+            shapes[f"cells.{i}.bias_ih"] = (4 * width,)
+            shapes[f"cells.{i}.bias_hh"] = (4 * width,)
+        last = self.lstm_sizes[-1]
+        shapes["policy_head.weight"] = (self.num_actions, last)
+        shapes["policy_head.bias"] = (self.num_actions,)
+        shapes["value_head.weight"] = (1, last)
+        shapes["value_head.bias"] = (1,)
+        return shapes
+
+    @property
+    def num_parameters(self) -> int:
+        return sum(math.prod(shape) for shape in self.tensor_shapes().values())
+
+    def describe(self) -> str:
+        return f"obs_dim={self.obs_dim}, num_actions={self.num_actions}, lstm_sizes={list(self.lstm_sizes)}"
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelCard:
+    """A validated ``card.json``. ``data`` is the card as parsed JSON (what ``load_agent`` returns)."""
+
+    label: str
+    """'clean' or 'backdoored'"""
+    architecture: Architecture
+    config: ExperimentConfig
+    """the embedded training config (agrees with ``architecture``)"""
+    tensors: Mapping[str, tuple[int, ...]]
+    """tensor names and shapes the card lists"""
+    weights_sha256: str
+    metrics: Mapping[str, Any]
+    env_steps: int | None
+    seed: int | None
+    seqtrojan_version: str | None
+    created: str | None
+    data: dict[str, Any] = dataclasses.field(repr=False, compare=False)
+
+
+@dataclasses.dataclass(frozen=True)
+class TensorInfo:
+    """One entry of a safetensors header: dtype, shape and byte range within the data (after the header)."""
+
+    dtype: str
+    shape: tuple[int, ...]
+    begin: int
+    end: int
+
+
+@dataclasses.dataclass(frozen=True)
+class SafetensorsHeader:
+    """A validated safetensors header; the data starts at byte ``8 + header_len`` and runs to ``file_size``."""
+
+    header_len: int
+    file_size: int
+    tensors: Mapping[str, TensorInfo]
+    metadata: Mapping[str, str]
+    raw: bytes = dataclasses.field(repr=False)
+    """the header's bytes as read (the JSON after the 8-byte length)"""
+
+    @property
+    def shapes(self) -> dict[str, list[int]]:
+        return {name: list(t.shape) for name, t in self.tensors.items()}
+
+
+# ---------------------------------------------------------------------- card
+
+
+def read_card(folder: str | Path) -> ModelCard:
+    """Read and validate ``folder/card.json`` (no weights are read). Raises :class:`CheckpointError`."""
+    folder = Path(folder)
+    path = folder / CARD
+    if not path.is_file():
+        raise CheckpointError(f"no {CARD} in {str(folder)!r}: not a seqtrojan model folder")
+    with path.open("rb") as fh:
+        raw = fh.read(MAX_CARD_BYTES + 1)
+    if len(raw) > MAX_CARD_BYTES:
+        raise CheckpointError(f"{str(path)!r} is larger than the {MAX_CARD_BYTES} bytes a model card may have")
+    return parse_card(raw, repr(str(path)))
+
+
+def parse_card(raw: bytes | str, where: str = CARD) -> ModelCard:
+    """Validate card text (``where`` names it in errors); see the module docstring for what is checked."""
+    if len(raw) > MAX_CARD_BYTES:
+        raise CheckpointError(f"{where} is larger than the {MAX_CARD_BYTES} bytes a model card may have")
+    card = load_json(raw, where)
+    if not isinstance(card, dict) or card.get("format") != FORMAT:
+        raise CheckpointError(f"{where} is not a seqtrojan model card (format must be {FORMAT!r})")
+    version = card.get("format_version")
+    if type(version) is not int or version != FORMAT_VERSION:
+        raise CheckpointError(f"{where} has format_version {_clip(version)}, expected {FORMAT_VERSION}")
+    for key in _REQUIRED:
+        if key not in card:
+            raise CheckpointError(f"{where} lacks the field {key!r}")
+    unknown = sorted(set(card) - set(_REQUIRED) - set(_OPTIONAL))
+    if unknown:
+        raise CheckpointError(f"{where} has unknown field(s) {_clip(unknown)}; known: {[*_REQUIRED, *_OPTIONAL]}")
+    label = card["label"]
+    if label not in LABELS:
+        raise CheckpointError(f"{where}: label must be 'clean' or 'backdoored', got {_clip(label)}")
+    sha = card["weights_sha256"]
+    if not isinstance(sha, str) or not _SHA256.fullmatch(sha):
+        raise CheckpointError(
+            f"{where}: weights_sha256 must be the weights' SHA-256 (64 lowercase hex digits), got {_clip(sha)}"
+        )
+    arch = _architecture(card["architecture"], where)
+    tensors = _tensor_list(card["tensors"], where)
+    metrics = card.get("metrics", {})
+    if not isinstance(metrics, dict):
+        raise CheckpointError(f"{where}: metrics must be a mapping, got {type(metrics).__name__}")
+    env_steps = _optional_int(card, "env_steps", where, minimum=0)
+    seed = _optional_int(card, "seed", where)
+    version_text, created = (_optional_str(card, key, where) for key in ("seqtrojan_version", "created"))
+    config = _config(card["config"], where)
+    from_config = Architecture(config.env.obs_dim, config.env.num_actions, tuple(config.agent.lstm_sizes))
+    if from_config != arch:
+        raise CheckpointError(
+            f"{where}: architecture ({arch.describe()}) disagrees with its config ({from_config.describe()})"
+        )
+    return ModelCard(label, arch, config, tensors, sha, metrics, env_steps, seed, version_text, created, card)
+
+
+def _architecture(value: Any, where: str) -> Architecture:
+    if not isinstance(value, dict):
+        raise CheckpointError(f"{where}: architecture must be a mapping, got {type(value).__name__}")
+    keys = {"type", "obs_dim", "num_actions", "lstm_sizes"}
+    if set(value) != keys:
+        missing, extra = sorted(keys - set(value)), sorted(set(value) - keys)
+        raise CheckpointError(
+            f"{where}: architecture must have exactly the keys {sorted(keys)} (missing {missing}, unknown "
+            f"{_clip(extra)})"
+        )
+    if value["type"] != ARCHITECTURE_TYPE:
+        raise CheckpointError(f"{where}: architecture.type must be {ARCHITECTURE_TYPE!r}, got {_clip(value['type'])}")
+    obs_dim = _bounded_int(value["obs_dim"], 1, MAX_OBS_DIM, f"{where}: architecture.obs_dim")
+    num_actions = _bounded_int(value["num_actions"], 1, MAX_ACTIONS, f"{where}: architecture.num_actions")
+    sizes = value["lstm_sizes"]
+    if not isinstance(sizes, list) or not 1 <= len(sizes) <= MAX_LAYERS:
+        raise CheckpointError(
+            f"{where}: architecture.lstm_sizes must be a list of 1 to {MAX_LAYERS} layer widths, got {_clip(sizes)}"
+        )
+    widths = tuple(_bounded_int(w, 1, MAX_WIDTH, f"{where}: architecture.lstm_sizes[{i}]") for i, w in enumerate(sizes))
+    arch = Architecture(obs_dim, num_actions, widths)
+    if arch.num_parameters > MAX_PARAMETERS:
+        raise CheckpointError(
+            f"{where}: architecture ({arch.describe()}) has {arch.num_parameters} parameters, more than the "
+            f"limit of {MAX_PARAMETERS}"
+        )
+    return arch
+
+
+def _tensor_list(value: Any, where: str) -> dict[str, tuple[int, ...]]:
+    if not isinstance(value, dict):
+        raise CheckpointError(f"{where}: tensors must be a mapping of name to shape, got {type(value).__name__}")
+    out = {}
+    for name, shape in value.items():
+        out[name] = _shape(shape, f"{where}: tensors[{_clip(name)}]")
+    return out
+
+
+def _config(value: Any, where: str) -> ExperimentConfig:
+    try:
+        return from_dict(ExperimentConfig, value, "config")
+    except Exception as err:  # from_dict on untrusted data is pure: any failure means a bad config
+        message = str(err) if isinstance(err, SeqTrojanError) else f"{type(err).__name__}: {err}"
+        raise CheckpointError(f"{where} has an invalid config: {_clip_text(message)}") from None
+
+
+def _shape(value: Any, what: str) -> tuple[int, ...]:
+    if not isinstance(value, list) or len(value) > MAX_RANK:
+        raise CheckpointError(f"{what} must be a list of at most {MAX_RANK} dimensions, got {_clip(value)}")
+    if any(type(d) is not int or d < 0 for d in value):
+        raise CheckpointError(f"{what} must hold non-negative integers, got {_clip(value)}")
+    return tuple(value)
+
+
+def _bounded_int(value: Any, lo: int, hi: int, what: str) -> int:
+    if type(value) is not int or not lo <= value <= hi:
+        raise CheckpointError(f"{what} must be an integer in [{lo}, {hi}], got {_clip(value)}")
+    return value
+
+
+def _optional_int(card: dict[str, Any], key: str, where: str, minimum: int | None = None) -> int | None:
+    value = card.get(key)
+    if value is None:
+        return None
+    if type(value) is not int or (minimum is not None and value < minimum):
+        bound = f" >= {minimum}" if minimum is not None else ""
+        raise CheckpointError(f"{where}: {key} must be an integer{bound} or null, got {_clip(value)}")
+    return value
+
+
+def _optional_str(card: dict[str, Any], key: str, where: str) -> str | None:
+    value = card.get(key)
+    if value is not None and not isinstance(value, str):
+        raise CheckpointError(f"{where}: {key} must be a string or null, got {_clip(value)}")
+    return value
+
+
+# ---------------------------------------------------------------------- safetensors header
+
+
+def read_header(path: str | Path) -> SafetensorsHeader:
+    """Read and validate the header of a safetensors file without reading its tensors."""
+    path = Path(path)
+    where = repr(str(path))
+    if not path.is_file():
+        raise CheckpointError(f"{where} does not exist")
+    with path.open("rb") as fh:
+        head = fh.read(9)
+        size = os.fstat(fh.fileno()).st_size
+        if head[:2] == b"PK" or head[:1] == b"\x80":
+            raise CheckpointError(f"{where} is a pickle/zip file, not safetensors: refusing to load it")
+        header_len = int.from_bytes(head[:8], "little") if len(head) >= 8 else -1
+        if header_len > MAX_HEADER_BYTES:
+            raise CheckpointError(
+                f"{where} declares a safetensors header of {header_len} bytes, more than the limit of "
+                f"{MAX_HEADER_BYTES}: refusing to read it"
+            )
+        if len(head) < 9 or header_len <= 0 or header_len + 8 > size or head[8:9] != b"{":
+            raise CheckpointError(f"{where} is not a valid safetensors file (corrupt or truncated)")
+        fh.seek(8)
+        raw = fh.read(header_len)
+    if len(raw) != header_len:
+        raise CheckpointError(f"{where} is not a valid safetensors file (corrupt or truncated)")
+    return parse_header(raw, size, where)
+
+
+def parse_header(raw: bytes, file_size: int, where: str = WEIGHTS) -> SafetensorsHeader:
+    """Validate a safetensors header (the JSON after the 8-byte length) for a file of ``file_size`` bytes."""
+    header = load_json(raw, f"the safetensors header of {where}")
+    if not isinstance(header, dict):
+        raise CheckpointError(f"the safetensors header of {where} is not a JSON object")
+    data_len = file_size - 8 - len(raw)
+    metadata = header.pop("__metadata__", {})
+    if not isinstance(metadata, dict) or not all(isinstance(v, str) for v in metadata.values()):
+        raise CheckpointError(f"the safetensors header of {where}: __metadata__ must map strings to strings")
+    tensors = {}
+    for name, entry in header.items():
+        what = f"{where}: tensor {_clip(name)} in the safetensors header"
+        if not isinstance(entry, dict) or set(entry) != {"dtype", "shape", "data_offsets"}:
+            raise CheckpointError(f"{what} must have exactly dtype, shape and data_offsets, got {_clip(entry)}")
+        dtype = entry["dtype"]
+        if dtype not in DTYPE_SIZES:
+            raise CheckpointError(f"{what} has unknown dtype {_clip(dtype)}")
+        shape = _shape(entry["shape"], f"{what}: shape")
+        offsets = entry["data_offsets"]
+        if (
+            not isinstance(offsets, list)
+            or len(offsets) != 2
+            or any(type(o) is not int for o in offsets)
+            or not 0 <= offsets[0] <= offsets[1]
+        ):
+            raise CheckpointError(f"{what} has invalid data_offsets {_clip(offsets)}")
+        begin, end = offsets
+        if end > data_len:
+            raise CheckpointError(
+                f"{what} has data_offsets [{begin}, {end}] past the end of the data ({data_len} bytes): corrupt or "
+                f"truncated"
+            )
+        need = math.prod(shape) * DTYPE_SIZES[dtype]
+        if end - begin != need:
+            raise CheckpointError(
+                f"{what} says dtype {dtype} and shape {list(shape)}, which need {need} bytes, but its data_offsets "
+                f"[{begin}, {end}] hold {end - begin}"
+            )
+        tensors[name] = TensorInfo(dtype, shape, begin, end)
+    cursor = 0
+    for name, info in sorted(tensors.items(), key=lambda item: (item[1].begin, item[1].end)):
+        if info.begin != cursor:
+            problem = "overlaps another tensor" if info.begin < cursor else "leaves a gap before it"
+            raise CheckpointError(f"{where} is corrupt: tensor {_clip(name)} in the safetensors header {problem}")
+        cursor = info.end
+    if cursor != data_len:
+        raise CheckpointError(
+            f"{where} is corrupt or truncated: its tensors cover {cursor} bytes but the file holds {data_len} after "
+            f"the header"
+        )
+    return SafetensorsHeader(len(raw), file_size, tensors, metadata, bytes(raw))
+
+
+def check_weights(card: ModelCard, header: SafetensorsHeader, where: str) -> None:
+    """Refuse weights whose header disagrees with the card's tensor list or architecture, or are not float."""
+    actual = header.shapes
+    listed = {k: list(v) for k, v in card.tensors.items()}
+    if listed != actual:
+        raise CheckpointError(f"{CARD} does not match {WEIGHTS} in {where}: {first_difference(listed, actual)}")
+    needed = {k: list(v) for k, v in card.architecture.tensor_shapes().items()}
+    if needed != actual:
+        diff = first_difference(needed, actual, "the architecture")
+        raise CheckpointError(
+            f"{WEIGHTS} in {where} does not fit the architecture in {CARD} ({card.architecture.describe()}): {diff}"
+        )
+    for name, info in header.tensors.items():
+        if info.dtype not in FLOAT_DTYPES:
+            raise CheckpointError(
+                f"{WEIGHTS} in {where}: tensor {name!r} has dtype {info.dtype}; weights must be one of {FLOAT_DTYPES}"
+            )
+
+
+def first_difference(expected: dict[str, list[int]], actual: dict[str, list[int]], source: str = "the card") -> str:
+    """The first tensor (by name) whose presence or shape differs between ``source`` (expected) and the weights."""
+    for name in sorted(set(expected) | set(actual)):
+        if name not in actual:
+            return f"tensor {_clip(name)} is listed in {source} but missing from the weights"
+        if name not in expected:
+            return f"tensor {_clip(name)} is in the weights but not in {source}"
+        if expected[name] != actual[name]:
+            return f"tensor {_clip(name)} has shape {_clip(actual[name])} but {source} says {_clip(expected[name])}"
+    return "unknown difference"
+
+
+# ---------------------------------------------------------------------- bounded JSON
+
+
+class _DuplicateKeyError(ValueError):
+    pass
+
+
+def load_json(raw: bytes | str, where: str) -> Any:
+    """Parse untrusted JSON with bounded cost: nesting depth and the number of values are checked before parsing,
+    then no duplicate keys and no list or object with more than :data:`MAX_ITEMS` entries."""
+    data = raw if isinstance(raw, bytes) else raw.encode("utf-8", "surrogatepass")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise CheckpointError(f"{where} is not valid JSON: {err}") from None
+    if data.count(b'"') > 4 * MAX_VALUES:  # a key and a string value per entry, two quotes each
+        raise CheckpointError(f"{where} has more strings than {MAX_VALUES} values can hold: refusing to parse it")
+    structure = _structure(data)
+    if structure.count(b",") + 1 > MAX_VALUES:
+        raise CheckpointError(f"{where} has more than {MAX_VALUES} values: refusing to parse it")
+    if _depth(structure) > MAX_JSON_DEPTH:
+        raise CheckpointError(f"{where} nests lists/objects more than {MAX_JSON_DEPTH} deep: refusing to parse it")
+    try:
+        value = json.loads(text, object_pairs_hook=_unique_keys)
+    except (ValueError, RecursionError) as err:  # JSONDecodeError, duplicate keys, over-long integers
+        raise CheckpointError(f"{where} is not valid JSON: {_clip_text(str(err))}") from None
+    stack = [value]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, (dict, list)):
+            if len(item) > MAX_ITEMS:
+                kind = "an object" if isinstance(item, dict) else "a list"
+                raise CheckpointError(
+                    f"{where} has {kind} with {len(item)} entries, more than the limit of {MAX_ITEMS}"
+                )
+            stack.extend(item.values() if isinstance(item, dict) else item)
+    return value
+
+
+def nesting_depth(text: bytes) -> int:
+    """Deepest list/object nesting in JSON text, ignoring brackets inside strings: linear time, no recursion.
+
+    (Invalid JSON, e.g. with unbalanced brackets or an unterminated string, is refused by the parser anyway.)"""
+    return _depth(_structure(text))
+
+
+def _structure(text: bytes) -> bytes:
+    """The brackets and commas of JSON text that are outside strings."""
+    return _STRINGS.sub(b"", text).translate(None, _NOT_STRUCTURE)
+
+
+def _depth(structure: bytes) -> int:
+    return max(itertools.accumulate(map(_BRACKET_STEP.__getitem__, structure)), default=0)
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKeyError(f"duplicate key {_clip(key)}")
+        out[key] = value
+    return out
+
+
+def _clip(value: Any) -> str:
+    """``repr(value)``, shortened: hostile values can be a megabyte long."""
+    return _clip_text(repr(value))
+
+
+def _clip_text(text: str) -> str:
+    text = " ".join(text.split())
+    return text if len(text) <= MAX_MESSAGE else text[: MAX_MESSAGE - 3] + "..."
