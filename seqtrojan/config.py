@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import reprlib
 import types
 import typing
 from pathlib import Path
@@ -34,7 +35,7 @@ class AgentConfig:
 
     def __post_init__(self) -> None:
         if not self.lstm_sizes or any((not isinstance(w, int)) or w < 1 for w in self.lstm_sizes):
-            raise ConfigError(f"agent.lstm_sizes must be positive integers, got {self.lstm_sizes!r}")
+            raise ConfigError(f"agent.lstm_sizes must be positive integers, got {_short(self.lstm_sizes)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,17 +55,27 @@ class PPOConfig:
     update_epochs: int = 4
     """passes over each rollout"""
     learning_rate: float = 1e-3
+    """Adam step size (the start of the schedule)"""
     lr_schedule: Literal["constant", "linear", "cosine"] = "constant"
     """learning-rate schedule over total_steps"""
     gamma: float = 0.99
+    """discount factor"""
     gae_lambda: float = 0.95
+    """GAE lambda: 0 is one-step TD, 1 the Monte Carlo return"""
     clip_coef: float = 0.2
+    """PPO clip range epsilon for the probability ratio"""
     clip_value_loss: bool = True
+    """clip the value update to clip_coef around the rollout's values"""
     ent_coef: float = 0.01
+    """weight of the entropy bonus"""
     vf_coef: float = 0.5
+    """weight of the value loss"""
     max_grad_norm: float = 0.5
+    """clip the global gradient norm to this"""
     norm_adv: bool = True
+    """normalise advantages per minibatch (zero mean, unit std)"""
     adam_eps: float = 1e-5
+    """Adam epsilon"""
     target_kl: float | None = None
     """stop an update's epochs early when the approximate KL exceeds this"""
 
@@ -72,7 +83,7 @@ class PPOConfig:
         for name in ("total_steps", "num_envs", "rollout_steps", "num_minibatches", "update_epochs"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
-                raise ConfigError(f"ppo.{name} must be a positive integer, got {value!r}")
+                raise ConfigError(f"ppo.{name} must be a positive integer, got {_short(value)}")
         if self.sequence_length < 1 or self.rollout_steps % self.sequence_length:
             raise ConfigError(f"ppo.bptt_length={self.bptt_length} must divide ppo.rollout_steps={self.rollout_steps}")
         if self.num_sequences % self.num_minibatches:
@@ -163,6 +174,7 @@ class RunConfig:
     name: str | None = None
     """run directory name; None makes one from the config and the time"""
     seed: int = 0
+    """seeds everything random in the run: initial weights, envs, action sampling, minibatch order"""
     device: str = "cpu"
     """torch device: cpu, cuda, cuda:1, ..."""
     threads: int | None = None
@@ -172,11 +184,24 @@ class RunConfig:
     init_from: str | None = None
     """start from this model folder's weights (fine-tuning) instead of a fresh initialisation"""
     checkpoint_every: int = 500_000
-    """env steps between checkpoints (one is always written at the end)"""
+    """env steps between checkpoints, a positive integer (one is always written at the end, and one on a stop;
+    a value above ppo.total_steps means no checkpoints in between)"""
     eval_episodes: int = 1000
     """episodes per env type in the final evaluation"""
     progress: bool = True
     """show a progress bar"""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.device, str) or not _DEVICE.fullmatch(self.device):
+            raise ConfigError(f"run.device={_short(self.device)} is not a device; use cpu, cuda or cuda:N")
+        if isinstance(self.checkpoint_every, bool) or not isinstance(self.checkpoint_every, int):
+            raise ConfigError(f"run.checkpoint_every must be a positive integer, got {_short(self.checkpoint_every)}")
+        if self.checkpoint_every < 1:
+            raise ConfigError(f"run.checkpoint_every must be a positive integer, got {self.checkpoint_every}")
+
+
+_DEVICE = re.compile(r"cpu|cuda(?::[0-9]+)?")
+"""The devices a run may name (whether CUDA is present is checked when the run starts)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -210,12 +235,24 @@ def to_dict(obj: Any) -> Any:
     return obj
 
 
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxlist, _REPR.maxtuple, _REPR.maxdict, _REPR.maxset = 3, 4, 4, 4, 4
+_REPR.maxstring, _REPR.maxother, _REPR.maxlong = 60, 60, 40
+_MAX_REPR = 80
+
+
+def _short(value: Any) -> str:
+    """``repr(value)`` for an error message, at most ~80 characters however large (or deeply shared) the value."""
+    text = _REPR.repr(value)
+    return text if len(text) <= _MAX_REPR else text[: _MAX_REPR - 3] + "..."
+
+
 def from_dict(cls: type[T], data: Any, path: str = "") -> T:
     """Build dataclass ``cls`` from a (nested) dict, checking keys and value types."""
     if isinstance(data, cls):
         return data
     if not isinstance(data, dict):
-        raise ConfigError(f"{path or cls.__name__} must be a mapping, got {type(data).__name__}: {data!r}")
+        raise ConfigError(f"{path or cls.__name__} must be a mapping, got {type(data).__name__}: {_short(data)}")
     hints = get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(data) - names)
@@ -245,42 +282,42 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
                 return _convert(option, value, path)
             except ConfigError as err:
                 errors.append(str(err))
-        raise ConfigError(errors[0] if len(errors) == 1 else f"{path}: {value!r} matches none of {tp}")
+        raise ConfigError(errors[0] if len(errors) == 1 else f"{path}: {_short(value)} matches none of {tp}")
     if origin is Literal:
         if value not in get_args(tp):
-            raise ConfigError(f"{path}={value!r} is not one of {list(get_args(tp))}")
+            raise ConfigError(f"{path}={_short(value)} is not one of {list(get_args(tp))}")
         return value
     if dataclasses.is_dataclass(tp):
         return from_dict(tp, value, path)
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{path} must be a list, got {type(value).__name__}: {value!r}")
+            raise ConfigError(f"{path} must be a list, got {type(value).__name__}: {_short(value)}")
         args = get_args(tp)
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_convert(args[0], v, f"{path}[{i}]") for i, v in enumerate(value))
         if len(args) != len(value):
-            raise ConfigError(f"{path} must have {len(args)} items, got {len(value)}: {value!r}")
+            raise ConfigError(f"{path} must have {len(args)} items, got {len(value)}: {_short(value)}")
         return tuple(_convert(a, v, f"{path}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
     if origin in (list, typing.List):  # noqa: UP006
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{path} must be a list, got {type(value).__name__}: {value!r}")
+            raise ConfigError(f"{path} must be a list, got {type(value).__name__}: {_short(value)}")
         (arg,) = get_args(tp)
         return [_convert(arg, v, f"{path}[{i}]") for i, v in enumerate(value)]
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{path} must be a number, got {value!r}")
+            raise ConfigError(f"{path} must be a number, got {_short(value)}")
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{path} must be an integer, got {value!r}")
+            raise ConfigError(f"{path} must be an integer, got {_short(value)}")
         return value
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{path} must be true or false, got {value!r}")
+            raise ConfigError(f"{path} must be true or false, got {_short(value)}")
         return value
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{path} must be a string, got {value!r}")
+            raise ConfigError(f"{path} must be a string, got {_short(value)}")
         return value
     return value
 
@@ -288,7 +325,19 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
 class _Yaml12Loader(yaml.SafeLoader):
     """PyYAML's safe loader read the YAML 1.2 way: only true/false are booleans, so that a key like ``off:`` (the
     OFF trigger) stays the string 'off' instead of becoming False as YAML 1.1 reads on/off/yes/no; and 1e-3 is a
-    number, not a string."""
+    number, not a string.
+
+    Aliases (``*name``, and so ``<<: *name`` merges) are refused: a few lines of nested aliases expand to billions
+    of nodes (the "billion laughs"). Anchors alone are harmless and allowed.
+    """
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(
+                None, None, f"found alias *{event.anchor}: aliases are not allowed in config files", event.start_mark
+            )
+        return super().compose_node(parent, index)
 
 
 _Yaml12Loader.yaml_implicit_resolvers = {
@@ -306,7 +355,7 @@ _Yaml12Loader.add_implicit_resolver(  # 1e-3 and 3E+4 are numbers (YAML 1.1 want
 
 
 def parse_yaml(text: str) -> Any:
-    """YAML text -> Python data, with YAML 1.2 booleans (see :class:`_Yaml12Loader`)."""
+    """YAML text -> Python data, with YAML 1.2 booleans and no aliases (see :class:`_Yaml12Loader`)."""
     return yaml.load(text, Loader=_Yaml12Loader)
 
 
@@ -318,12 +367,21 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     try:
         data = parse_yaml(path.read_text())
     except yaml.YAMLError as err:
-        raise ConfigError(f"config file {str(path)!r} is not valid YAML: {err}") from None
+        raise ConfigError(f"config file {str(path)!r} is not valid YAML: {_yaml_problem(err)}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
         raise ConfigError(f"config file {str(path)!r} must hold a mapping at the top level")
     return data
+
+
+def _yaml_problem(err: yaml.YAMLError) -> str:
+    """A YAML error on one line: what is wrong and where (PyYAML's own text spans lines, with a caret)."""
+    if isinstance(err, yaml.MarkedYAMLError) and err.problem:
+        mark = err.problem_mark
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+        return f"{err.context + ': ' if err.context else ''}{err.problem}{where}"
+    return " ".join(str(err).split())
 
 
 def env_config_from_dict(data: dict[str, Any]) -> EnvConfig:

@@ -76,8 +76,8 @@ class RewardConfig:
     """reaching the other goal"""
     false_activation: float | None = None
     """reaching the adversary's goal while the user's goal is correct (no trigger yet, or switched back): an
-    unintended activation. None: ``wrong_goal``. The adversary's knob against unintentional triggers (SPEC 6);
-    ``seqtrojan.analysis.tradeoff`` measures what a harsher value buys"""
+    unintended activation. None: ``wrong_goal``. The adversary's knob against unintentional triggers;
+    ``seqtrojan.experiments.tradeoff`` measures what a harsher value buys"""
     hole: float = -1.0
     """falling into a hole"""
     timeout: float = -1.0
@@ -139,20 +139,32 @@ class EnvConfig:
     max_steps: int | None = None
     """time limit in actions; None means 4 * size"""
     view_size: int = 3
-    """side of the square view centred on the agent (odd)"""
+    """side of the square view centred on the agent (odd, >= 3: the view's border is also the wall ring that keeps
+    the agent on the grid)"""
     actions: Literal["four", "four_and_stay", "eight"] = "four"
     """action set: four moves (the paper's), plus 'stay', or eight (with diagonals)"""
     rewards: RewardConfig = field(default_factory=RewardConfig)
     trigger: TriggerConfig = field(default_factory=TriggerConfig)
     max_layout_tries: int = 1000
-    """hole layouts tried per episode before giving up with an error (never a hang)"""
+    """hole layouts tried per episode before giving up with an error (never a hang); >= 1. Any value suits a grid
+    with at most one hole (always solvable); with more, the env refuses a grid unless all tries fail with
+    probability <= e^-30: at least 5 tries, about 30 / p where a share p of random layouts is solvable"""
 
     def __post_init__(self) -> None:
-        if not isinstance(self.view_size, int) or self.view_size < 1 or self.view_size % 2 == 0:
-            raise ConfigError(f"view_size must be an odd positive integer, got view_size={self.view_size!r}")
+        if (
+            isinstance(self.view_size, bool)
+            or not isinstance(self.view_size, int)
+            or self.view_size < 3
+            or self.view_size % 2 == 0
+        ):
+            raise ConfigError(f"view_size must be an odd integer >= 3, got view_size={self.view_size!r}")
         if self.actions not in ACTION_SETS:
             raise ConfigError(f"unknown action set actions={self.actions!r}; choose one of {sorted(ACTION_SETS)}")
-        if self.max_layout_tries < 1:
+        if (
+            isinstance(self.max_layout_tries, bool)
+            or not isinstance(self.max_layout_tries, int)
+            or self.max_layout_tries < 1
+        ):
             raise ConfigError(f"max_layout_tries must be >= 1, got {self.max_layout_tries}")
         self.grid  # validates size, holes and max_steps  # noqa: B018
         self.check_padded_side(self.size)

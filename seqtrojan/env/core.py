@@ -1,6 +1,6 @@
 """The batched trojan grid world: B independent episodes stepped at once as tensors, on CPU or CUDA.
 
-Semantics (SPEC section 1, pinned by ``tests/env/test_semantics.py``):
+Semantics (docs/environment.md, pinned by ``tests/env/test_semantics.py``):
 
 * Step index ``t`` counts the actions taken in the episode. Observation ``o_t`` is what the agent sees before
   choosing action ``a_t``; ``o_0`` follows a reset.
@@ -46,7 +46,7 @@ from seqtrojan.env.codes import (
     WALL,
 )
 from seqtrojan.env.config import EnvConfig, GridSpec, min_steps_to_goal
-from seqtrojan.env.layout import Layout, LayoutSampler
+from seqtrojan.env.layout import Layout, LayoutSampler, layout_tries_needed
 from seqtrojan.errors import ConfigError, LayoutError, ShapeError
 
 Phase = str  # "train" or "eval"
@@ -149,18 +149,19 @@ class TrojanGridCore:
     # ------------------------------------------------------------------ set-up
     def _check_solvable_fraction(self) -> None:
         """Refuse grids whose solvable layouts are so rare that an episode could exhaust ``max_layout_tries``."""
-        needed = 30.0 / self.config.max_layout_tries  # then a reset fails with probability about e^-30
+        tries = self.config.max_layout_tries
         fractions = [_solvable_fraction(g.size, g.holes, self.view_size) for g in self.grids]
         worst = min(fractions)
         # Enough tries per round that an env needs a second round with probability <= 1e-3.
         rounds = math.log(1e-3) / math.log(1.0 - worst) if 0.0 < worst < 1.0 else 1.0
         self.sampler.attempts_per_round = int(min(32, max(1, math.ceil(rounds))))
         for g, frac in zip(self.grids, fractions, strict=True):
-            if frac < needed:
+            needed = layout_tries_needed(frac, g.holes)  # then a reset fails with probability <= e^-30
+            if needed is None or needed > tries:
+                fix = f"raise env.max_layout_tries to >= {needed}" if needed else "raise env.max_layout_tries"
                 raise LayoutError(
-                    f"solvable layouts are too rare for size={g.size}, holes={g.holes}: {frac:.2%} of random "
-                    f"layouts have both goals reachable (need >= {needed:.2%} with max_layout_tries="
-                    f"{self.config.max_layout_tries}); use fewer holes or raise env.max_layout_tries"
+                    f"solvable layouts are too rare for size={g.size}, holes={g.holes} with max_layout_tries={tries}: "
+                    f"{frac:.2%} of random layouts have both goals reachable; use fewer holes or {fix}"
                 )
 
     def _build_tables(self) -> None:

@@ -17,11 +17,12 @@ from seqtrojan.env.layout import Layout
 from seqtrojan.env.render import render_ansi, render_rgb
 from seqtrojan.errors import ConfigError
 
-_FIELDS = {"size", "holes", "max_steps", "view_size", "actions"}
+_FIELDS = {f.name for f in dataclasses.fields(EnvConfig)}
 
 
 def build_config(config: EnvConfig | dict | None, overrides: dict[str, Any]) -> EnvConfig:
-    """An EnvConfig from a config object or a nested dict (as in YAML), with top-level field overrides."""
+    """An EnvConfig from a config object or a nested dict (as in YAML), with overrides of any of its fields (a
+    nested one, ``rewards`` or ``trigger``, as a config object or a dict that replaces that whole section)."""
     unknown = set(overrides) - _FIELDS
     if unknown:
         raise ConfigError(f"unknown env argument(s) {sorted(unknown)}; accepted: {sorted(_FIELDS)} and config=")
@@ -33,7 +34,11 @@ def build_config(config: EnvConfig | dict | None, overrides: dict[str, Any]) -> 
         config = env_config_from_dict(config)
     elif not isinstance(config, EnvConfig):
         raise ConfigError(f"config must be an EnvConfig or a dict, got {type(config).__name__}")
-    return dataclasses.replace(config, **overrides) if overrides else config
+    if not overrides:
+        return config
+    from seqtrojan.config import env_config_from_dict, to_dict
+
+    return env_config_from_dict({**to_dict(config), **overrides})
 
 
 class TrojanGridEnv(gym.Env[np.ndarray, np.int64]):
@@ -58,8 +63,14 @@ class TrojanGridEnv(gym.Env[np.ndarray, np.int64]):
     ## Termination
     Terminated on a hole or a goal; truncated at the time limit (4 * N actions by default).
 
+    ## Info
+    ``t``, ``trojan``, ``trigger_step`` and ``episode_index`` (episodes begun since seeding); ``step`` adds
+    ``outcome``, ``success`` and ``adversary_goal_was_correct``. ``episode`` is left to Gymnasium's
+    ``RecordEpisodeStatistics`` and SB3's ``Monitor``, which put the episode's statistics there.
+
     ## Arguments
-    ``config`` (EnvConfig or nested dict), ``size``, ``holes``, ``max_steps``, ``view_size``, ``actions``,
+    ``config`` (EnvConfig or nested dict), any EnvConfig field (``size``, ``holes``, ``max_steps``, ``view_size``,
+    ``actions``, ``rewards``, ``trigger``, ``max_layout_tries``; a section as a config object or a dict),
     ``trojan_probability`` (0: the normal env Env_C, 1: the trojan env Env_T), ``phase`` ("train" or "eval"
     trigger-step ranges), ``render_mode`` ("ansi" or "rgb_array"), ``device``.
     ``reset(options={"layout": Layout, "on_step": int, "off_step": int})`` runs a hand-built episode.
@@ -147,5 +158,5 @@ class TrojanGridEnv(gym.Env[np.ndarray, np.int64]):
             "t": int(self.core.t[0]),
             "trojan": bool(self.core.trojan[0]),
             "trigger_step": int(self.core.on_step[0]),
-            "episode": int(self.core.episode[0]),
+            "episode_index": int(self.core.episode[0]),
         }

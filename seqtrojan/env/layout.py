@@ -1,7 +1,7 @@
 """Hole layouts: a single-grid value type for hand-built layouts and replays, and the batched sampler.
 
-Sampling follows SPEC section 1: H holes uniformly at random on cells other than the start and the two goals,
-afresh every episode, resampled until both goals are reachable from the start by a 4-connected path.
+Sampling (docs/environment.md, Grid and layout): H holes uniformly at random on cells other than the start and the
+two goals, afresh every episode, resampled until both goals are reachable from the start by a 4-connected path.
 
 The sampler works on the *padded* grid of side ``P = N_max + view_size - 1`` shared by every env of a batch
 (an env whose own grid is smaller sees walls beyond it). Solvability is a flood fill in which each padded row
@@ -10,6 +10,7 @@ is one 64-bit word, so one fill step over k grids is a handful of tensor ops on 
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -26,6 +27,28 @@ _SYMBOL_CODES = {s: c for c, s in ASCII_SYMBOLS.items()}
 _SORT_SENTINEL = 1 << 40
 _COUNTER_STRIDE = 1 << 13  # > any candidate count (N <= 61 gives at most 3718 candidates)
 _MAX_DEDUPE_ROUNDS = 256
+PROBE_SAMPLES = 1024
+"""Random layouts :meth:`LayoutSampler.probe` draws per grid to measure the solvable fraction."""
+LAYOUT_FAILURE_EXPONENT = 30.0
+"""A grid is accepted when an episode's reset exhausts ``max_layout_tries`` with probability at most e^-30."""
+
+
+def layout_tries_needed(fraction: float, holes: int, samples: int = PROBE_SAMPLES) -> int | None:
+    """Fewest layout tries per episode for which running out has probability <= e^-30; None if no number does.
+
+    ``fraction`` is the solvable share measured over ``samples`` random layouts. Tries are independent, so
+    ``t`` tries all fail with probability ``(1 - fraction) ** t``; the rule asks for that to be <= e^-30. A grid
+    with at most one hole is always solvable (a grid stays connected when any one cell is removed) and needs 1
+    try. Otherwise some layouts are unsolvable (two holes can wall a corner goal in), so the failure share is
+    taken as at least ``1 / samples``: a probe that saw no failure is no proof that there are none (then 5 tries
+    for the default 1024 samples).
+    """
+    if holes <= 1:
+        return 1
+    failure = max(1.0 - fraction, 1.0 / samples)
+    if failure >= 1.0:
+        return None
+    return max(1, math.ceil(LAYOUT_FAILURE_EXPONENT / -math.log(failure) - 1e-9))
 
 
 @dataclass(frozen=True, eq=False)
@@ -254,7 +277,7 @@ class LayoutSampler:
         """Whether both goals are 4-connected to the start, for hole masks ``(k, P*P)``; ``(k,)`` bool."""
         return self.ops.back(self._solvable(self.ops.convert(holes), self.ops.convert(stages)), self.device)
 
-    def probe(self, samples: int = 1024) -> list[float]:
+    def probe(self, samples: int = PROBE_SAMPLES) -> list[float]:
         """Fraction of random layouts that are solvable, per stage (used to refuse near-impossible grids early)."""
         fractions = []
         for s in range(len(self.grids)):

@@ -15,7 +15,8 @@ class RunLogger:
     """Writes ``metrics.jsonl``, ``metrics.csv`` and TensorBoard events under a run directory.
 
     On resume the files are appended to; rows past the resume step are dropped first so that a restarted run
-    never holds two rows for one step.
+    never holds two rows for one step. A fresh start (no ``resume_step``) empties them, and removes old TensorBoard
+    event files, so that a run name reused after a stop before the first checkpoint does not log its steps twice.
     """
 
     def __init__(self, run_dir: Path, tensorboard: bool = True, resume_step: int | None = None) -> None:
@@ -24,6 +25,8 @@ class RunLogger:
         self.csv_path = run_dir / "metrics.csv"
         if resume_step is not None:
             self._truncate_after(resume_step)
+        else:
+            self._clear()
         self._writer = None
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
@@ -68,6 +71,12 @@ class RunLogger:
                 writer = csv.DictWriter(fh, fieldnames=fields)
                 writer.writeheader()
                 writer.writerow(row)
+
+    def _clear(self) -> None:
+        self.jsonl_path.unlink(missing_ok=True)
+        self.csv_path.unlink(missing_ok=True)
+        for events in (self.run_dir / "tb").glob("events.out.tfevents.*"):
+            events.unlink()
 
     def _truncate_after(self, step: int) -> None:
         if self.jsonl_path.exists():

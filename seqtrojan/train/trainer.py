@@ -26,9 +26,10 @@ import torch
 import yaml
 from safetensors.torch import save_file
 
+from seqtrojan.agent import fast_lstm
 from seqtrojan.agent.checkpoint import build_agent, load_agent, read_safetensors, save_agent
 from seqtrojan.agent.network import RecurrentActorCritic
-from seqtrojan.config import ExperimentConfig, from_dict, parse_yaml, to_dict
+from seqtrojan.config import ExperimentConfig, from_dict, load_yaml, to_dict
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.evaluation.episodes import evaluate_agent
@@ -68,6 +69,11 @@ def train(
     device = torch.device(cfg.run.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"run.device={cfg.run.device!r} but no CUDA device is available")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise ConfigError(
+            f"run.device={cfg.run.device!r} but only {torch.cuda.device_count()} CUDA device(s) are available "
+            f"(cuda:0 to cuda:{torch.cuda.device_count() - 1})"
+        )
     run_dir = Path(resume) if resume is not None else _new_run_dir(cfg)
     ppo = cfg.ppo
 
@@ -95,6 +101,7 @@ def train(
         global_step, update, elapsed_before = _load_trainer_state(
             run_dir, agent, optimizer, curriculum, mixer, collector, update_generator
         )
+        _write_config(run_dir, cfg)  # the config the run continues with (overrides given on resume included)
         env.reset(seed=(cfg.run.seed << 32) + 7919 * update)
     env.set_stage_weights(curriculum.weights())
     env.set_trojan_probability(mixer.probabilities())
@@ -104,6 +111,10 @@ def train(
     if resume is None:
         logger.add_text("config", "```yaml\n" + yaml.safe_dump(to_dict(cfg), sort_keys=False) + "```")
 
+    if device.type == "cpu" and cfg.run.lstm_backend != "torch":
+        # Compile the C++ kernels (or wait, bounded, for another process's build) now, while SIGTERM still ends the
+        # process: the handler below only stops the loop between updates.
+        fast_lstm.extension()
     stop_signal = {"hit": False}
     previous_handler = signal.getsignal(signal.SIGTERM)
 
@@ -303,8 +314,13 @@ def _new_run_dir(cfg: ExperimentConfig) -> Path:
     if (run_dir / "checkpoints" / "latest.txt").exists():
         raise ConfigError(f"run directory {str(run_dir)!r} already holds a run; resume it with --resume {run_dir}")
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    _write_config(run_dir, cfg)
     return run_dir
+
+
+def _write_config(run_dir: Path, cfg: ExperimentConfig) -> None:
+    """``<run>/config.yaml``: the resolved config, what :func:`load_run_config` and a later resume read."""
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
 
 
 def train_or_resume(cfg: ExperimentConfig) -> tuple[Path, bool]:
@@ -328,7 +344,7 @@ def load_run_config(run_dir: str | Path) -> ExperimentConfig:
     path = Path(run_dir) / "config.yaml"
     if not path.is_file():
         raise ConfigError(f"{str(run_dir)!r} is not a run directory (no config.yaml)")
-    return from_dict(ExperimentConfig, parse_yaml(path.read_text()), "")
+    return from_dict(ExperimentConfig, load_yaml(path), "")
 
 
 def _save_checkpoint(

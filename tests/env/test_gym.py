@@ -111,3 +111,20 @@ def test_config_dict_is_accepted_and_checked():
     assert env.config.size == 9 and env.config.trigger.duration == 2
     with pytest.raises(ConfigError, match=r"unknown config key\(s\) \['durration'\] in env.trigger"):
         TrojanGridEnv({"trigger": {"durration": 2}})
+
+
+def test_info_leaves_the_episode_key_to_episode_statistics_wrappers():
+    env = TrojanGridEnv(size=5, holes=0)
+    _, info = env.reset(seed=0)
+    assert "episode" not in info and info["episode_index"] == 0
+    env = gym.wrappers.RecordEpisodeStatistics(gym.make("seqtrojan/Normal-v0", size=5, holes=0))
+    for episode in range(3):
+        _, info = env.reset(seed=episode) if episode == 0 else env.reset()
+        assert "episode" not in info and info["episode_index"] == episode
+        steps, total, done = 0, 0.0, False
+        while not done:
+            _, reward, terminated, truncated, info = env.step(0)  # up: into the top wall, then out of time
+            steps, total, done = steps + 1, total + reward, terminated or truncated
+            assert done or "episode" not in info
+        assert isinstance(info["episode"], dict) and set(info["episode"]) == {"r", "l", "t"}
+        assert info["episode"]["l"] == steps == 20 and info["episode"]["r"] == total == -1.0

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from seqtrojan.env import EnvConfig, GridSpec, Layout, TrojanGridCore, rng
 from seqtrojan.env.codes import ADV_GOAL, HOLE, USER_GOAL
 from seqtrojan.env.config import max_holes
-from seqtrojan.env.layout import LayoutSampler
+from seqtrojan.env.layout import LayoutSampler, layout_tries_needed
 from seqtrojan.errors import ConfigError, LayoutError
 
 
@@ -116,3 +116,47 @@ def test_numpy_and_torch_backends_give_identical_results():
         results.append((masks, sampler.solvable(masks, stages), sampler.sample(keys[easy], stages[easy])))
     for a, b in zip(*results):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("tries", [1, 2, 5, 29])
+def test_a_grid_without_holes_is_accepted_with_any_positive_tries(tries):
+    core = TrojanGridCore(EnvConfig(size=5, holes=0, max_layout_tries=tries), 16, seed=3)
+    ended = torch.zeros(16, dtype=torch.int64)
+    for _ in range(40):  # many episodes end and reset within 40 random steps
+        ended += core.step(torch.randint(0, 4, (16,))).done.long()
+    assert int(ended.min()) > 0 and torch.equal(core.episode, ended)  # every env reset once per ended episode
+
+
+def test_one_hole_can_never_cut_a_goal_off_so_one_try_suffices():
+    core = TrojanGridCore(EnvConfig(size=5, holes=1, max_layout_tries=1), 64, seed=0)
+    for _ in range(40):
+        core.step(torch.randint(0, 4, (64,)))
+    assert all(core.layout(i).is_solvable() for i in range(64))
+
+
+def test_layout_tries_rule_is_the_exact_failure_bound():
+    assert layout_tries_needed(1.0, holes=0) == layout_tries_needed(0.2, holes=1) == 1
+    assert layout_tries_needed(0.9, holes=3) == 14  # 0.1 ** 14 <= e^-30 < 0.1 ** 13
+    assert layout_tries_needed(1.0, holes=2) == 5  # none of 1024 failed: assume a 1/1024 failure share
+    assert layout_tries_needed(0.0, holes=36) is None
+    for fraction in (0.03, 0.3, 0.7, 0.99):
+        t = layout_tries_needed(fraction, holes=4)
+        assert (1 - fraction) ** t <= np.exp(-30) < (1 - fraction) ** (t - 1)
+
+
+def test_too_few_tries_for_a_holey_grid_names_the_tries_needed():
+    fraction = LayoutSampler([GridSpec(7, 3)], view_size=3, max_tries=1, device=torch.device("cpu")).probe()[0]
+    needed = layout_tries_needed(fraction, holes=3)
+    assert 1 < needed < 30
+    with pytest.raises(LayoutError, match=rf"size=7, holes=3 with max_layout_tries={needed - 1}: .* >= {needed}$"):
+        TrojanGridCore(EnvConfig(size=7, holes=3, max_layout_tries=needed - 1), 4)
+    core = TrojanGridCore(EnvConfig(size=7, holes=3, max_layout_tries=needed), 256, seed=1)
+    for _ in range(60):
+        core.step(torch.randint(0, 4, (256,)))
+    assert all(core.layout(i).is_solvable() for i in range(256))
+
+
+@pytest.mark.parametrize("view_size", [1, 2, 4, -1, True])
+def test_view_size_must_be_odd_and_at_least_3(view_size):
+    with pytest.raises(ConfigError, match=rf"view_size must be an odd integer >= 3, got view_size={view_size!r}"):
+        EnvConfig(view_size=view_size)

@@ -5,14 +5,17 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import os
+import signal
 from pathlib import Path
 
 import pytest
 import torch
 
-from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.agent.checkpoint import load_agent, read_safetensors
 from seqtrojan.config import BackdoorConfig, PPOConfig
 from seqtrojan.errors import ConfigError
+from seqtrojan.train import trainer as trainer_module
 from seqtrojan.train.trainer import load_run_config, train, train_or_resume
 
 
@@ -29,8 +32,13 @@ def test_run_directory_holds_config_logs_checkpoints_and_model(smoke_config):
     assert (run / "checkpoints" / "latest.txt").read_text().strip() == "step_000000016384"
     _, config, card = load_agent(result.model_dir)
     assert config == smoke_config and card["label"] == "clean" and card["env_steps"] == 16384
-    assert 0.0 <= card["metrics"]["normal_success"] <= 1.0
     evaluation = json.loads((run / "evaluation.json").read_text())
+    # the card's metrics are the evaluation of the saved model: re-evaluating the reloaded model gives them again
+    reloaded, _, _ = load_agent(result.model_dir)
+    again = trainer_module.evaluate_final(reloaded, smoke_config, torch.device("cpu"))
+    assert card["metrics"]["normal_success"] == evaluation["normal_success"] == again["normal_success"]
+    successes = again["normal_success"] * 200  # a count of the 200 episodes (the rate is a float32 mean)
+    assert {k: card["metrics"][k] for k in again} == again and successes == pytest.approx(round(successes), abs=1e-3)
     assert evaluation["grid"] == "5x5/1" and evaluation["episodes"] == 200
 
 
@@ -84,16 +92,81 @@ def test_train_or_resume_finishes_a_stopped_run_and_then_reuses_it(smoke_config)
     assert trained and load_run_config(model.parent) == fresh
 
 
-def test_resume_restores_weights_and_optimizer_exactly(smoke_config):
-    cfg = dataclasses.replace(smoke_config, ppo=dataclasses.replace(smoke_config.ppo, total_steps=4096))
-    result = train(cfg)
-    checkpoint = result.run_dir / "checkpoints" / "step_000000004096"
-    extended = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, total_steps=4096))
-    again = train(extended, resume=result.run_dir)  # nothing left to do: the loaded state is saved unchanged
-    before, _, _ = load_agent(checkpoint)
-    after, _, _ = load_agent(again.model_dir)
-    for a, b in zip(before.parameters(), after.parameters()):
-        assert torch.equal(a, b)
+def test_resume_restores_weights_and_optimizer_exactly(smoke_config, monkeypatch):
+    """A run stopped by SIGTERM after 3 updates and resumed ends bitwise equal to the same run trained straight
+    through: weights, Adam state (exp_avg, exp_avg_sq, step), random generators, curriculum, mixing and log rows.
+    Resume starts fresh episodes, so the straight run also restarts every episode before its 4th rollout, and both
+    take them from one env seed (a collector that resets before rollout 4 of the straight run and rollout 1 of the
+    resumed one); everything else the resumed run must get from the checkpoint. The curriculum promotes at update
+    5 only when its window still holds the episodes of updates 2 and 3, and the backdoor's running mixing carries
+    P_c and P_t across the stop."""
+    cfg = dataclasses.replace(
+        smoke_config,
+        backdoor=BackdoorConfig(enabled=True),
+        curriculum=dataclasses.replace(smoke_config.curriculum, promote_at=0.05, min_episodes=190),
+        run=dataclasses.replace(smoke_config.run, eval_episodes=8),
+    )
+    fresh_episodes_before = {"rollout": 4}
+
+    class FreshEpisodesCollector(trainer_module.RolloutCollector):
+        rollouts = 0
+
+        def collect(self):
+            self.rollouts += 1
+            if self.rollouts == fresh_episodes_before["rollout"]:
+                self.env.reset(seed=123_456_789)
+                self.reset()
+            return super().collect()
+
+    monkeypatch.setattr(trainer_module, "RolloutCollector", FreshEpisodesCollector)
+    straight = train(dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, name="straight")))
+
+    def sigterm_after_three(scalars):
+        if scalars["update"] == 3:
+            os.kill(os.getpid(), signal.SIGTERM)  # the trainer's handler stops before the next update
+        return False
+
+    stopped_cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, name="stopped"))
+    with pytest.raises(KeyboardInterrupt, match="stopped at 6144 env steps"):
+        train(stopped_cfg, callback=sigterm_after_three)
+    run = Path(cfg.run.out_dir) / "stopped"
+    assert (run / "checkpoints" / "latest.txt").read_text().strip() == "step_000000006144"
+    at_stop = read_safetensors(run / "checkpoints" / "step_000000006144" / "trainer.safetensors")
+    assert int(at_stop["optim.0.step"]) == 3 * cfg.ppo.update_epochs * cfg.ppo.num_minibatches
+    fresh_episodes_before["rollout"] = 1
+    resumed = train(load_run_config(run), resume=run)
+
+    assert resumed.env_steps == straight.env_steps == 16384 and resumed.stage == straight.stage
+    a, _, _ = load_agent(straight.model_dir)
+    b, _, _ = load_agent(resumed.model_dir)
+    assert a.state_dict().keys() == b.state_dict().keys()
+    for name, tensor in a.state_dict().items():
+        assert torch.equal(tensor, b.state_dict()[name]), name
+    final = "checkpoints/step_000000016384"
+    ta = read_safetensors(straight.run_dir / final / "trainer.safetensors")
+    tb = read_safetensors(resumed.run_dir / final / "trainer.safetensors")
+    n_params = len(list(a.parameters()))
+    adam = {f"optim.{i}.{k}" for i in range(n_params) for k in ("exp_avg", "exp_avg_sq", "step")}
+    assert ta.keys() == tb.keys() == adam | {"rng.collector", "rng.update"}
+    for name, tensor in ta.items():
+        assert torch.equal(tensor, tb[name]), name
+    assert int(ta["optim.0.step"]) == 8 * cfg.ppo.update_epochs * cfg.ppo.num_minibatches
+    sa = json.loads((straight.run_dir / final / "trainer.json").read_text())
+    sb = json.loads((resumed.run_dir / final / "trainer.json").read_text())
+    for key in ("env_steps", "update", "curriculum", "mixing", "optimizer_param_groups"):
+        assert sa[key] == sb[key], key
+
+    def rows(run_dir):
+        timing = {"time/elapsed_s", "charts/steps_per_second", "charts/collect_share"}
+        lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+        return [{k: v for k, v in json.loads(line).items() if k not in timing} for line in lines]
+
+    logged = rows(resumed.run_dir)
+    assert [r["env_steps"] for r in logged] == [2048 * (i + 1) for i in range(8)]  # no duplicates, none missing
+    assert [r["update"] for r in logged] == list(range(1, 9))
+    assert logged == rows(straight.run_dir)
+    # promoted at update 5 on the window of updates 2-5: without the pre-stop episodes it would hold too few
+    assert [r["curriculum/stage"] for r in logged] == [0, 0, 0, 0, 1, 1, 1, 1]
 
 
 def test_backdoored_run_is_labelled_and_evaluated_in_both_envs(smoke_config):
@@ -102,8 +175,11 @@ def test_backdoored_run_is_labelled_and_evaluated_in_both_envs(smoke_config):
     _, _, card = load_agent(result.model_dir)
     assert card["label"] == "backdoored"
     assert {"normal_success", "trojan_success", "greedy_trojan_success"} <= set(card["metrics"])
-    row = json.loads((result.run_dir / "metrics.jsonl").read_text().splitlines()[-1])
-    assert 0.0 <= row["mixing/p_trojan"] <= 1.0 and "mixing/P_t" in row
+    for line in (result.run_dir / "metrics.jsonl").read_text().splitlines():
+        row = json.loads(line)  # Algorithm 1 on the exact re-measurements (16 episodes each) logged beside it
+        p_c, p_t = row["mixing/P_c"], row["mixing/P_t"]
+        assert (p_c * 16).is_integer() and (p_t * 16).is_integer(), row
+        assert row["mixing/p_trojan"] == min(1.0, max(0.0, 0.5 - (p_t - p_c))), row
 
 
 def test_existing_run_directory_is_not_overwritten(smoke_config):
@@ -122,3 +198,60 @@ def test_bad_training_configs_are_refused(smoke_config):
         cfg = dataclasses.replace(smoke_config, run=dataclasses.replace(smoke_config.run, device="cuda"))
         with pytest.raises(ConfigError, match="no CUDA device"):
             train(cfg)
+
+
+def _short_run(smoke_config, name: str, total_steps: int):
+    return dataclasses.replace(
+        smoke_config,
+        ppo=dataclasses.replace(smoke_config.ppo, total_steps=total_steps),
+        run=dataclasses.replace(smoke_config.run, name=name, eval_episodes=8),
+    )
+
+
+def test_a_fresh_start_after_a_kill_before_the_first_checkpoint_rewrites_the_logs(smoke_config):
+    cfg = _short_run(smoke_config, "job", 8192)  # checkpoint_every 8192: none before the end
+    run = Path(cfg.run.out_dir) / "job"
+
+    class Killed(Exception):
+        """Stands for SIGKILL: the process ends where it is, writing nothing more."""
+
+    def killed_after_two(scalars):
+        if scalars["update"] == 2:
+            raise Killed
+        return False
+
+    sigterm = signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(Killed):
+            train(cfg, callback=killed_after_two)
+    finally:
+        signal.signal(signal.SIGTERM, sigterm)  # the killed "process" would not have left its handler behind
+    assert not (run / "checkpoints").exists() and len((run / "metrics.jsonl").read_text().splitlines()) == 2
+
+    train(cfg)  # the same name again: no checkpoint, so a fresh start
+    steps = [json.loads(line)["env_steps"] for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert steps == [2048, 4096, 6144, 8192]
+    with (run / "metrics.csv").open() as fh:
+        assert [int(r["env_steps"]) for r in csv.DictReader(fh)] == steps
+    assert len(list((run / "tb").glob("events.out.tfevents.*"))) == 1
+
+
+def test_an_override_given_on_resume_is_saved_in_the_runs_config_yaml(smoke_config, capsys):
+    from seqtrojan.cli import main
+
+    cfg = _short_run(smoke_config, "short", 4096)
+    run = train(cfg).run_dir
+    assert main(["train", "--resume", str(run), "--ppo.total-steps", "8192"]) == 0
+    extended = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, total_steps=8192))
+    _, card_config, card = load_agent(run / "model")
+    assert card["env_steps"] == 8192 and card_config == extended
+    assert load_run_config(run) == extended  # what a later resume starts from
+
+
+def test_a_cuda_index_past_the_available_devices_is_refused_before_anything_is_written(smoke_config, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    cfg = dataclasses.replace(smoke_config, run=dataclasses.replace(smoke_config.run, device="cuda:3"))
+    with pytest.raises(ConfigError, match=r"run\.device='cuda:3' but only 1 CUDA device\(s\) are available"):
+        train(cfg)
+    assert not Path(cfg.run.out_dir).exists()
