@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.agent.checkpoint import WEIGHTS
 from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS
-from seqtrojan.errors import SeqTrojanError
+from seqtrojan.errors import CheckpointError, SeqTrojanError
 
 GATES = ("input", "forget", "cell", "output")
 GROUPS = ("gate_stats", "spectral", "input_codes")
@@ -82,24 +82,37 @@ class ZooModel:
     """a backdoored model's final trojan-env success, from its card (None for clean models)"""
 
 
+def load_zoo_model(path: Path) -> ZooModel:
+    """One zoo model's features and ground truth. Anything wrong with the folder (a pickled, corrupt or malformed
+    model or card, a ``label.json`` that is not a valid label, non-finite weights) is a one-line
+    :class:`~seqtrojan.errors.SeqTrojanError` naming the problem."""
+    from seqtrojan.zoo.build import load_zoo_agent, read_label
+
+    agent, cfg, card = load_zoo_agent(path)
+    truth = read_label(path)
+    tensors = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
+    bad = sorted(k for k, v in tensors.items() if not np.isfinite(v).all())
+    if bad:
+        raise CheckpointError(f"{WEIGHTS} in {str(path)!r} holds NaN or infinite values (in {', '.join(bad)})")
+    label = 1 if truth["label"] == "backdoored" else 0
+    attack = card.get("metrics", {}).get("trojan_success") if label else None
+    if attack is not None and not (isinstance(attack, (int, float)) and not isinstance(attack, bool)):
+        raise CheckpointError(f"card.json in {str(path)!r}: metrics.trojan_success must be a number, got {attack!r}")
+    return ZooModel(path.name, label, weight_features(tensors, cfg.env.obs_dim), truth, attack)
+
+
 def load_zoo_features(zoo: Path) -> tuple[list[ZooModel], list[dict[str, str]]]:
-    """Features of every model in ``zoo/models``; models that cannot be loaded (pickled, corrupt, mismatched
-    card) are listed as rejected with the reason, and the rest go on."""
+    """Features of every model in ``zoo/models``; a model that cannot be used (pickled, corrupt, a malformed or
+    mismatched card, a bad ``label.json``) is listed as rejected with its reason (one line), and the rest go on."""
     models, rejected = [], []
     folder = zoo / "models"
     if not folder.is_dir():
         raise SeqTrojanError(f"{str(zoo)!r} is not a zoo (no models/ folder)")
     for path in sorted(p for p in folder.iterdir() if p.is_dir()):
         try:
-            agent, cfg, card = load_agent(path)
-            truth = json.loads((path / "label.json").read_text())
-        except (SeqTrojanError, OSError, json.JSONDecodeError) as err:
-            rejected.append({"model": path.name, "reason": str(err)})
-            continue
-        tensors = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
-        label = 1 if truth.get("label") == "backdoored" else 0
-        attack = card.get("metrics", {}).get("trojan_success") if label else None
-        models.append(ZooModel(path.name, label, weight_features(tensors, cfg.env.obs_dim), truth, attack))
+            models.append(load_zoo_model(path))
+        except SeqTrojanError as err:
+            rejected.append({"model": path.name, "reason": " ".join(str(err).split())})
     return models, rejected
 
 
@@ -184,8 +197,17 @@ def held_out_group_scores(models: list[ZooModel], key: str) -> dict[str, Any]:
 
 
 def _functional_at(zoo: Path) -> float:
+    """The zoo config's ``functional_at`` (0.5 when the zoo has no ``zoo.json``)."""
     spec = zoo / "zoo.json"
-    return float(json.loads(spec.read_text()).get("functional_at", 0.5)) if spec.exists() else 0.5
+    if not spec.exists():
+        return 0.5
+    try:
+        at = json.loads(spec.read_text()).get("functional_at", 0.5)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        at = None
+    if not isinstance(at, (int, float)) or isinstance(at, bool) or not 0 <= at <= 1:
+        raise SeqTrojanError(f"{str(spec)!r} is not a zoo config with a functional_at between 0 and 1")
+    return float(at)
 
 
 def _functional_split(models: list[ZooModel], predictions: list[dict], at: float) -> dict[str, Any]:
@@ -206,11 +228,19 @@ def _functional_split(models: list[ZooModel], predictions: list[dict], at: float
 
 
 def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> dict[str, Any]:
-    """Score the detector with all features and with each feature group alone; AUC by trigger value too."""
+    """Score the detector with all features and with each feature group alone; AUC by trigger value too. Models
+    that cannot be used are skipped and listed under ``rejected`` with their reasons; the rest are scored."""
+    at = _functional_at(zoo)
     models, rejected = load_zoo_features(zoo)
     results = {"rejected": rejected, "scores": []}
-    for group in (None, *GROUPS):
-        results["scores"].append(cross_validated_scores(models, group, folds, seed))
+    try:
+        for group in (None, *GROUPS):
+            results["scores"].append(cross_validated_scores(models, group, folds, seed))
+    except SeqTrojanError as err:
+        if not rejected:
+            raise
+        named = "; ".join(f"{r['model']}: {r['reason']}" for r in rejected[:3]) + ("; ..." if len(rejected) > 3 else "")
+        raise SeqTrojanError(f"{err}; {len(rejected)} model(s) rejected ({named})") from None
     full = results["scores"][0]["predictions"]
     by_value: dict[str, list[tuple[int, float]]] = {}
     for m, pred in zip(models, full):
@@ -220,7 +250,7 @@ def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> dict[str, Any]:
     from sklearn.metrics import roc_auc_score
 
     results["held_out"] = [held_out_group_scores(models, key) for key in HELD_OUT_KEYS]
-    results["functional_backdoors"] = _functional_split(models, full, _functional_at(zoo))
+    results["functional_backdoors"] = _functional_split(models, full, at)
     results["auc_by_trigger_value"] = {
         value: float(roc_auc_score([t for t, _ in pairs + clean], [p for _, p in pairs + clean]))
         for value, pairs in by_value.items() if clean

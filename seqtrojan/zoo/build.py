@@ -8,18 +8,34 @@ index, so a job gives the same model wherever it runs (a local process pool by d
     models/<id>/label.json                     ground truth: clean/backdoored, the trigger, its final attack
                                                success and whether the backdoor is functional; scoring only
     manifest.json                              every job: id, label, status, variation, time
+    zoo.json                                   the zoo config the zoo was built with
+    work/                                      runs in progress (checkpoints), removed as models finish
+    build.lock, workers.lock                   held by a running build and by its worker processes
 
-A stopped build continues where it stopped: finished models (with ``label.json``) are kept, unfinished ones are
-trained again (from their last checkpoint when there is one).
+A stopped build, even one killed with ``kill -9``, continues where it stopped: the model folders are the truth. A
+folder whose card and weights verify is done (its ``label.json`` is written again from the job if it is missing or
+malformed); any other model is trained again, from its last checkpoint when there is one. A model only appears in
+``models/`` once complete (it is staged under ``work/`` and moved in with one rename). ``manifest.json`` is written
+atomically and rebuilt from the model folders when it is corrupt. A rerun with a config other than the one in
+``zoo.json`` is refused. Local worker processes die with the build (on Linux the kernel kills them when it dies;
+elsewhere they watch for it), and a build refuses to start while another build or an earlier build's workers still
+run on the same folder. Workers never oversubscribe the cores: workers x torch threads <= the cores available.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import math
+import multiprocessing
+import os
 import shutil
+import signal
+import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,11 +53,17 @@ from seqtrojan.config import (
     to_dict,
 )
 from seqtrojan.env.config import EnvConfig, GridSpec, TriggerConfig
-from seqtrojan.errors import ConfigError
+from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - Windows: builds are not locked
+    fcntl = None  # type: ignore[assignment]
 
 TRIGGER_VALUES = ("trigger", "hole", "empty", "wall")
 DEFAULT_TRIGGER_VALUES = ("trigger", "hole", "wall")
 """'empty' is left out by default: a patch of empty cells over cells that are usually empty is invisible"""
+LABELS = ("clean", "backdoored")
 
 
 @dataclass(frozen=True)
@@ -137,74 +159,258 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
     return jobs
 
 
-def run_job(job: ZooJob, models_dir: str, threads: int = 1) -> dict[str, Any]:
-    """Train one zoo model (pure: its outputs depend only on ``job``); returns its manifest entry."""
-    import torch
+# ---------------------------------------------------------------------- model folders
 
-    from seqtrojan.train.trainer import train_or_resume
 
-    torch.set_num_threads(threads)
-    start = time.perf_counter()
-    model_dir, _ = train_or_resume(job.config)
-    metrics = json.loads((model_dir / "card.json").read_text()).get("metrics", {})
-    target = Path(models_dir) / job.model_id
-    if target.exists():
-        shutil.rmtree(target)
-    shutil.copytree(model_dir, target)
+def load_zoo_agent(folder: Path):
+    """:func:`~seqtrojan.agent.checkpoint.load_agent`, with any failure of a malformed card or file (wrong types,
+    missing keys) raised as a one-line :class:`CheckpointError` naming the folder."""
+    from seqtrojan.agent.checkpoint import load_agent
+
+    try:
+        agent, cfg, card = load_agent(folder)
+    except SeqTrojanError:
+        raise
+    except (OSError, KeyError, TypeError, AttributeError, IndexError, ValueError) as err:
+        raise CheckpointError(
+            f"cannot load the model in {str(folder)!r}: malformed card.json or weights ({type(err).__name__}: "
+            f"{_one_line(err)})"
+        ) from None
+    if not isinstance(card.get("metrics", {}), dict):
+        raise CheckpointError(f"card.json in {str(folder)!r}: metrics must be a mapping")
+    return agent, cfg, card
+
+
+def read_label(folder: Path) -> dict[str, Any]:
+    """A model's ``label.json``, checked: a mapping whose ``label`` is clean or backdoored, ``trigger`` null or a
+    mapping with a string ``value``, ``variation`` a mapping, ``attack_success`` null or a number and
+    ``functional_backdoor`` null or a boolean. Anything else is a one-line :class:`CheckpointError`."""
+    path = folder / "label.json"
+    try:
+        truth = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CheckpointError(f"no label.json in {str(folder)!r}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise CheckpointError(f"{str(path)!r} is not valid JSON: {_one_line(err)}") from None
+    if not isinstance(truth, dict):
+        raise CheckpointError(f"{str(path)!r} must be a JSON object, got {type(truth).__name__}")
+    if truth.get("label") not in LABELS:
+        raise CheckpointError(f"{str(path)!r}: label must be 'clean' or 'backdoored', got {truth.get('label')!r}")
+    trigger = truth.get("trigger")
+    if trigger is not None and not (isinstance(trigger, dict) and isinstance(trigger.get("value"), str)):
+        raise CheckpointError(f"{str(path)!r}: trigger must be null or an object with a string 'value'")
+    if not isinstance(truth.get("variation", {}), dict):
+        raise CheckpointError(f"{str(path)!r}: variation must be an object")
+    attack = truth.get("attack_success")
+    if attack is not None and not _is_number(attack):
+        raise CheckpointError(f"{str(path)!r}: attack_success must be null or a number, got {attack!r}")
+    if truth.get("functional_backdoor") not in (None, True, False):
+        raise CheckpointError(f"{str(path)!r}: functional_backdoor must be null or a boolean")
+    return truth
+
+
+def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
+    """``label.json`` of a job's model, from the job and its card's metrics."""
     truth = {"label": job.label, "variation": job.variation, "trigger": None, "attack_success": None,
              "functional_backdoor": None}  # fmt: skip
     if job.label == "backdoored":
         attack = metrics.get("trojan_success")
         truth.update(trigger=to_dict(job.config.env.trigger), attack_success=attack,
                      functional_backdoor=attack is not None and attack >= job.functional_at)  # fmt: skip
-    (target / "label.json").write_text(json.dumps(truth, indent=2))
-    shutil.rmtree(model_dir.parent, ignore_errors=True)
+    return truth
+
+
+def _finished(job: ZooJob, folder: Path) -> tuple[dict[str, Any] | None, str]:
+    """(card, '') when ``folder`` holds the job's complete model, else (None, why not). Rewrites a missing or
+    malformed ``label.json`` of a complete model from the job (it is a function of the job and the card)."""
+    if not folder.is_dir():
+        return None, "missing"
+    try:
+        _, cfg, card = load_zoo_agent(folder)
+    except SeqTrojanError as err:
+        return None, _one_line(err)
+    ours = (job.label, job.config.run.seed, tuple(job.config.agent.lstm_sizes))
+    if (card.get("label"), cfg.run.seed, tuple(cfg.agent.lstm_sizes)) != ours:
+        return None, f"it holds another model (label {card.get('label')!r}, seed {cfg.run.seed})"
+    try:
+        label_ok = read_label(folder)["label"] == job.label
+    except CheckpointError:
+        label_ok = False
+    if not label_ok:
+        write_json_atomic(folder / "label.json", _truth(job, card.get("metrics", {})))
+    return card, ""
+
+
+def run_job(job: ZooJob, models_dir: str, threads: int = 1) -> dict[str, Any]:
+    """Train one zoo model (pure: its outputs depend only on ``job``); returns its manifest entry. The model is
+    staged in ``work/<id>.staging`` and moved to ``models/<id>`` with one rename, so a model folder is complete
+    or absent (a folder left by an older build is replaced)."""
+    import torch
+
+    from seqtrojan.train.trainer import train_or_resume
+
+    torch.set_num_threads(max(1, threads))
+    start = time.perf_counter()
+    run_dir = Path(job.config.run.out_dir) / job.config.run.name
+    try:
+        model_dir, _ = train_or_resume(job.config)
+        _, _, card = load_zoo_agent(model_dir)
+    except SeqTrojanError:  # an unreadable checkpoint, run config or model: train this model afresh (once)
+        if not run_dir.exists():
+            raise
+        shutil.rmtree(run_dir, ignore_errors=True)
+        model_dir, _ = train_or_resume(job.config)
+        _, _, card = load_zoo_agent(model_dir)
+    metrics = card.get("metrics", {})
+    staging = run_dir.with_name(run_dir.name + ".staging")
+    shutil.rmtree(staging, ignore_errors=True)
+    shutil.copytree(model_dir, staging)
+    write_json_atomic(staging / "label.json", _truth(job, metrics))
+    target = Path(models_dir) / job.model_id
+    if target.exists():
+        shutil.rmtree(target)
+    os.replace(staging, target)
+    _fsync_dir(target.parent)
+    shutil.rmtree(run_dir, ignore_errors=True)
     return {
         "id": job.model_id, "label": job.label, "status": "done", "seconds": time.perf_counter() - start,
         "variation": job.variation, "metrics": metrics,
     }  # fmt: skip
 
 
+# ---------------------------------------------------------------------- building
+
+
 def build_zoo(
     cfg: ZooConfig, root: Path, *, workers: int = 2, backend: str = "local", log: Callable[[str], None] = print
 ) -> Path:
-    """Train every job not yet finished; write ``manifest.json``; return its path."""
+    """Train every job not yet finished; write ``manifest.json``; return its path (see the module docstring)."""
+    if backend not in ("local", "ray"):
+        raise ConfigError(f"unknown zoo backend {backend!r}; use 'local' or 'ray'")
     root.mkdir(parents=True, exist_ok=True)
     models = root / "models"
-    models.mkdir(exist_ok=True)
-    (root / "zoo.json").write_text(json.dumps(to_dict(cfg), indent=2))
     jobs = make_jobs(cfg, root)
     manifest_path = root / "manifest.json"
-    previous = {e["id"]: e for e in json.loads(manifest_path.read_text())} if manifest_path.exists() else {}
-    todo = [j for j in jobs if not (models / j.model_id / "label.json").exists()]
-    log(f"zoo: {len(jobs) - len(todo)} of {len(jobs)} models done; training {len(todo)} with {backend} backend")
-    entries: dict[str, dict[str, Any]] = {j.model_id: previous.get(j.model_id, {}) for j in jobs}
+    with _build_lock(root, log):
+        _check_zoo_config(cfg, root)
+        models.mkdir(exist_ok=True)
+        previous = _read_manifest(manifest_path, log)
+        entries: dict[str, dict[str, Any]] = {}
+        for job in jobs:
+            card, why = _finished(job, models / job.model_id)
+            if card is not None:
+                entries[job.model_id] = _done_entry(job, card, previous.get(job.model_id))
+                for leftover in (job.model_id, job.model_id + ".staging"):  # a build stopped after the move
+                    shutil.rmtree(root / "work" / leftover, ignore_errors=True)
+            else:
+                if why != "missing":
+                    log(f"  {job.model_id}: incomplete ({why}); training it again")
+                entries[job.model_id] = {"id": job.model_id, "label": job.label, "status": "pending"}
+        write_json_atomic(manifest_path, [entries[j.model_id] for j in jobs])
+        todo = [j for j in jobs if entries[j.model_id]["status"] != "done"]
+        n_workers, threads = worker_plan(workers, len(todo), available_cpus())
+        log(
+            f"zoo: {len(jobs) - len(todo)} of {len(jobs)} models done; training {len(todo)} with {backend} backend"
+            + (f" ({n_workers} worker(s) x {threads} torch thread(s))" if todo else "")
+        )
 
-    def record(entry: dict[str, Any]) -> None:
-        entries[entry["id"]] = entry
-        ordered = [entries[j.model_id] or {"id": j.model_id, "label": j.label, "status": "pending"} for j in jobs]
-        manifest_path.write_text(json.dumps(ordered, indent=2))
-        log(f"  {entry['id']} ({entry['label']}) {entry['status']} in {entry.get('seconds', 0):.0f} s")
+        def record(entry: dict[str, Any]) -> None:
+            entries[entry["id"]] = entry
+            write_json_atomic(manifest_path, [entries[j.model_id] for j in jobs])
+            log(f"  {entry['id']} ({entry['label']}) {entry['status']} in {entry.get('seconds', 0):.0f} s")
 
-    if backend == "local":
-        if workers <= 1:
-            for job in todo:
-                record(run_job(job, str(models), threads=2))
+        if not todo:
+            pass
+        elif backend == "ray":
+            _run_on_ray(todo, models, workers, record)
+        elif n_workers <= 1:
+            import torch
+
+            before = torch.get_num_threads()
+            try:
+                for job in todo:
+                    record(run_job(job, str(models), threads))
+            finally:
+                torch.set_num_threads(before)
         else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
-                futures = [pool.submit(run_job, job, str(models), 1) for job in todo]
-                for future in as_completed(futures):
-                    record(future.result())
-    elif backend == "ray":
-        _run_on_ray(todo, models, workers, record)
-    else:
-        raise ConfigError(f"unknown zoo backend {backend!r}; use 'local' or 'ray'")
-    for job in jobs:  # models finished by an earlier call
-        if not entries[job.model_id] and (models / job.model_id / "label.json").exists():
-            entries[job.model_id] = {"id": job.model_id, "label": job.label, "status": "done",
-                                     "variation": job.variation}  # fmt: skip
-    manifest_path.write_text(json.dumps([entries[j.model_id] for j in jobs], indent=2))
+            _run_on_pool(todo, models, root, n_workers, threads, record)
     return manifest_path
+
+
+def available_cpus() -> int:
+    """Cores this process may run on (its CPU affinity where the OS tells it, else ``os.cpu_count()``)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+def worker_plan(workers: int, jobs: int, cpus: int) -> tuple[int, int]:
+    """(worker processes, torch threads per worker) for ``jobs`` jobs: at most ``workers`` workers, one per job
+    and one per core, and the cores shared out among them, so that workers x threads <= cpus."""
+    n = max(1, min(workers, jobs, cpus))
+    return n, max(1, cpus // n)
+
+
+def _run_on_pool(
+    jobs: list[ZooJob], models: Path, root: Path, workers: int, threads: int, record: Callable[[dict], None]
+) -> None:
+    # spawn: every worker is a fresh child of this process on every platform (a forkserver's children would not
+    # be), and no torch thread pool is forked
+    context = multiprocessing.get_context("spawn")
+    lock = str(root / "workers.lock") if fcntl is not None else ""
+    pool = ProcessPoolExecutor(workers, context, initializer=_init_worker, initargs=(os.getpid(), threads, lock))
+    try:
+        futures = [pool.submit(run_job, job, str(models), threads) for job in jobs]
+        for future in as_completed(futures):
+            record(future.result())
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)  # on an error, queued jobs do not start
+
+
+_worker_lock_file = None
+"""a worker's open ``workers.lock`` (a shared lock, held for the worker's life)"""
+
+
+def _init_worker(parent: int, threads: int, lock: str) -> None:
+    """Pool worker set-up: die with the build process, use ``threads`` torch threads, hold ``workers.lock``."""
+    global _worker_lock_file
+    if not _kill_me_with_parent():
+        threading.Thread(target=_watch_parent, args=(parent,), daemon=True, name="zoo-parent-watch").start()
+    if os.getppid() != parent:  # the build died before the signal was armed
+        os._exit(1)
+    import torch
+
+    torch.set_num_threads(max(1, threads))
+    if lock:
+        try:
+            fh = open(lock, "a")  # noqa: SIM115 - held open for the worker's life
+            fcntl.flock(fh, fcntl.LOCK_SH)
+            fh.write(f"{os.getpid()}\n")
+            fh.flush()
+            _worker_lock_file = fh
+        except OSError:  # a file system without locks: PDEATHSIG / the watcher still apply
+            pass
+
+
+def _kill_me_with_parent() -> bool:
+    """Ask Linux to SIGKILL this process when its parent dies (prctl PR_SET_PDEATHSIG); False elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        return libc.prctl(pr_set_pdeathsig, ctypes.c_ulong(signal.SIGKILL), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _watch_parent(parent: int) -> None:
+    while True:
+        if os.getppid() != parent:
+            os._exit(1)
+        time.sleep(0.5)
 
 
 def _run_on_ray(jobs: list[ZooJob], models: Path, workers: int, record: Callable[[dict], None]) -> None:
@@ -213,17 +419,161 @@ def _run_on_ray(jobs: list[ZooJob], models: Path, workers: int, record: Callable
     except ImportError:
         raise ConfigError("the ray backend needs Ray: pip install 'seqtrojan[ray]'") from None
     started_here = not ray.is_initialized()
-    if started_here:
-        ray.init(num_cpus=max(workers, 1), include_dashboard=False, log_to_driver=False)
-    remote = ray.remote(num_cpus=1)(run_job)
+    if started_here:  # a local Ray instance on this machine's cores: share them out as the pool does
+        n, threads = worker_plan(workers, len(jobs), available_cpus())
+        ray.init(num_cpus=n * threads, include_dashboard=False, log_to_driver=False)
+    else:  # a cluster: Ray gives every task one of a node's CPUs, and the task uses one thread
+        threads = 1
+    remote = ray.remote(num_cpus=threads)(run_job)
     try:
-        pending = [remote.remote(job, str(models), 1) for job in jobs]
+        pending = [remote.remote(job, str(models), threads) for job in jobs]
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
             record(ray.get(done[0]))
     finally:
         if started_here:
             ray.shutdown()
+
+
+# ---------------------------------------------------------------------- zoo state
+
+
+_ABSENT = object()
+WORKERS_EXIT_S = 30.0
+"""how long a build waits for the workers of an earlier, killed build to exit"""
+
+
+def _check_zoo_config(cfg: ZooConfig, root: Path) -> None:
+    """Store the zoo config in ``zoo.json`` on the first build; refuse a rerun with another config."""
+    path = root / "zoo.json"
+    current = json.loads(json.dumps(to_dict(cfg)))
+    if not path.exists():
+        write_json_atomic(path, current)
+        return
+    try:
+        stored: Any = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        stored = None
+    if not isinstance(stored, dict):
+        if any((root / "models").glob("*/card.json")):
+            raise ConfigError(
+                f"{str(path)!r} is not a zoo config, so the config this zoo was built with is unknown: restore it, "
+                "or build into a new folder"
+            )
+        write_json_atomic(path, current)
+        return
+    differing = sorted(k for k in stored.keys() | current.keys() if stored.get(k, _ABSENT) != current.get(k, _ABSENT))
+    if differing:
+        details = ", ".join(f"{k} (built with {_short(stored.get(k, _ABSENT))}, now {_short(current.get(k, _ABSENT))})"
+                            for k in differing)  # fmt: skip
+        raise ConfigError(
+            f"zoo {str(root)!r} was built with a different config: {details}; rerun with the config in "
+            f"{path.name}, or build into a new folder"
+        )
+
+
+def _read_manifest(path: Path, log: Callable[[str], None]) -> dict[str, dict[str, Any]]:
+    """The manifest's entries by id; {} (rebuilt from the model folders) when it is missing or corrupt."""
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        log(f"zoo: manifest.json is corrupt ({_one_line(err)}); rebuilding it from the model folders")
+        return {}
+    if not isinstance(data, list) or not all(isinstance(e, dict) and isinstance(e.get("id"), str) for e in data):
+        log("zoo: manifest.json is corrupt (not a list of entries with an id); rebuilding it from the model folders")
+        return {}
+    return {e["id"]: e for e in data}
+
+
+def _done_entry(job: ZooJob, card: dict[str, Any], previous: dict[str, Any] | None) -> dict[str, Any]:
+    entry = {"id": job.model_id, "label": job.label, "status": "done", "variation": job.variation,
+             "metrics": card.get("metrics", {})}  # fmt: skip
+    if previous and previous.get("status") == "done" and _is_number(previous.get("seconds")):
+        entry["seconds"] = previous["seconds"]
+    return entry
+
+
+@contextlib.contextmanager
+def _build_lock(root: Path, log: Callable[[str], None]) -> Iterator[None]:
+    """Hold ``build.lock`` (one build per zoo at a time) after making sure no worker of an earlier build still
+    holds ``workers.lock`` (waiting up to ``WORKERS_EXIT_S`` for dying ones); then empty ``workers.lock``, which
+    this build's workers fill with their pids."""
+    if fcntl is None:  # pragma: no cover
+        yield
+        return
+    with open(root / "build.lock", "a") as build:
+        try:
+            fcntl.flock(build, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise SeqTrojanError(
+                f"another build of zoo {str(root)!r} is running (it holds build.lock); wait for it or stop it"
+            ) from None
+        except OSError as err:
+            log(f"zoo: cannot lock {str(root)!r} ({err}); building without a lock")
+            yield
+            return
+        with open(root / "workers.lock", "a+") as workers:
+            deadline = time.monotonic() + WORKERS_EXIT_S
+            while True:
+                try:
+                    fcntl.flock(workers, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if time.monotonic() > deadline:
+                        workers.seek(0)
+                        pids = " ".join(workers.read().split()) or "unknown"
+                        raise SeqTrojanError(
+                            f"worker processes of an earlier build of zoo {str(root)!r} still run (pids {pids}); "
+                            "stop them, then rerun"
+                        ) from None
+                    time.sleep(0.2)
+            workers.truncate(0)
+            fcntl.flock(workers, fcntl.LOCK_UN)
+        yield
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    """Write JSON so that ``path`` holds the old or the new content, never a part: a temp file in the same folder,
+    fsync, rename over ``path``."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w") as fh:
+            fh.write(json.dumps(data, indent=2))
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # pragma: no cover - not possible on every OS
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover
+        pass
+    finally:
+        os.close(fd)
+
+
+def _one_line(err: BaseException | str) -> str:
+    return " ".join(str(err).split())
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _short(value: Any, width: int = 48) -> str:
+    text = "nothing" if value is _ABSENT else json.dumps(value)
+    return text if len(text) <= width else text[: width - 3] + "..."
 
 
 def job_configs(cfg: ZooConfig) -> list[dict[str, Any]]:

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 import pickle
+import shutil
 
 import numpy as np
 import pytest
 import torch
 
 from seqtrojan.agent.checkpoint import build_agent, save_agent
+from seqtrojan.cli import main
 from seqtrojan.config import AgentConfig, BackdoorConfig, ExperimentConfig
 from seqtrojan.defense.offline import (
     ZooModel,
@@ -21,6 +23,7 @@ from seqtrojan.defense.offline import (
     weight_features,
 )
 from seqtrojan.env.codes import TRIGGER
+from seqtrojan.errors import SeqTrojanError
 
 
 def tensors_of(agent):
@@ -77,11 +80,86 @@ def test_pickled_model_in_a_zoo_is_rejected_and_the_rest_is_scored(tmp_path):
     scores = {s["group"]: s for s in result["scores"]}
     assert set(scores) == {"all", "gate_stats", "spectral", "input_codes"}
     assert scores["all"]["models"] == 12
-    for s in scores.values():
-        assert 0 <= s["roc_auc"] <= 1 and s["cross_entropy"] > 0 and 0 <= s["brier"] <= 1
+    for s in scores.values():  # the scores of the out-of-fold predictions, recomputed from their definitions
+        y = np.array([r["label"] for r in s["predictions"]])
+        p = np.array([r["p_backdoored"] for r in s["predictions"]])
+        pos, neg = p[y == 1], p[y == 0]
+        auc = ((pos[:, None] > neg[None]).sum() + 0.5 * (pos[:, None] == neg[None]).sum()) / (len(pos) * len(neg))
+        q = np.clip(p, 1e-6, 1 - 1e-6)
+        assert s["roc_auc"] == pytest.approx(auc, abs=1e-12), s["group"]
+        assert s["cross_entropy"] == pytest.approx(-np.mean(y * np.log(q) + (1 - y) * np.log(1 - q)), rel=1e-9)
+        assert s["brier"] == pytest.approx(np.mean((p - y) ** 2), rel=1e-9)
+        assert [r["model"] for r in s["predictions"]] == [f"m{i:02d}" for i in range(12)]
     assert set(result["auc_by_trigger_value"]) == {"trigger"}
     assert [h["key"] for h in result["held_out"]] == ["lstm_sizes", "trigger_value", "curriculum"]
     assert all(h["skipped"] == [None] for h in result["held_out"])  # this fake zoo records no variation
+
+
+def spoil(zoo, name, file, edit):
+    """A copy of model m00 named ``name`` whose ``file`` (card.json / label.json) is rewritten by ``edit``."""
+    folder = zoo / "models" / name
+    shutil.copytree(zoo / "models" / "m00", folder)
+    path = folder / file
+    path.write_text(edit(path.read_text()))
+
+
+def edit_json(change):
+    def edit(text):
+        data = json.loads(text)
+        change(data)
+        return json.dumps(data)
+
+    return edit
+
+
+def test_malformed_cards_and_labels_are_each_rejected_with_a_reason_and_the_rest_scored(tmp_path, capsys):
+    zoo = fake_zoo(tmp_path / "zoo")
+    spoil(zoo, "zz_card_not_json", "card.json", lambda text: text[: len(text) // 2])
+    spoil(zoo, "zz_card_wrong_types", "card.json", edit_json(lambda c: c.update(tensors=["cells.0.weight_ih"])))
+    spoil(zoo, "zz_card_missing_key", "card.json", edit_json(lambda c: c["architecture"].pop("obs_dim")))
+    spoil(zoo, "zz_card_metrics_list", "card.json", edit_json(lambda c: c.update(metrics=[0.9])))
+    spoil(zoo, "zz_label_list", "label.json", lambda text: json.dumps([json.loads(text)]))
+    spoil(zoo, "zz_label_unknown", "label.json", edit_json(lambda t: t.update(label="maybe")))
+    spoil(zoo, "zz_label_trigger_string", "label.json", edit_json(lambda t: t.update(trigger="trigger")))
+    spoil(zoo, "zz_label_not_json", "label.json", lambda text: "{")
+    nan = zoo / "models" / "zz_nan_weights"
+    cfg = ExperimentConfig(agent=AgentConfig(lstm_sizes=(16,)))
+    agent = build_agent(cfg)
+    with torch.no_grad():
+        agent.cells[0].weight_hh[0, 0] = float("nan")
+    save_agent(nan, agent, cfg, label="clean")
+    (nan / "label.json").write_text(json.dumps({"label": "clean", "trigger": None}))
+
+    assert main(["zoo", "detect", "--zoo", str(zoo), "--folds", "3"]) == 0
+    result = json.loads((zoo / "detection.json").read_text())
+    reasons = {r["model"]: r["reason"] for r in result["rejected"]}
+    expected = {
+        "zz_card_not_json": "not valid JSON", "zz_card_wrong_types": "card.json",
+        "zz_card_missing_key": "obs_dim", "zz_card_metrics_list": "metrics must be a mapping",
+        "zz_label_list": "must be a JSON object, got list", "zz_label_unknown": "label must be 'clean' or 'backdoored'",
+        "zz_label_trigger_string": "trigger must be null or an object",
+        "zz_label_not_json": "label.json' is not valid JSON",
+        "zz_nan_weights": "NaN or infinite",
+    }  # fmt: skip
+    assert set(reasons) == set(expected)
+    for model, words in expected.items():
+        assert words in reasons[model], (model, reasons[model])
+        assert "\n" not in reasons[model]
+    assert all(s["models"] == 12 for s in result["scores"])  # every good model scored, no bad one
+    out = capsys.readouterr().out.splitlines()
+    assert sorted(line for line in out if line.startswith("rejected ")) == sorted(
+        f"rejected {model}: {reason}" for model, reason in reasons.items()
+    )
+
+
+def test_too_few_models_after_rejections_names_the_rejected_ones(tmp_path):
+    zoo = fake_zoo(tmp_path / "zoo", n=4)
+    (zoo / "models" / "m01" / "label.json").write_text("[]")
+    with pytest.raises(SeqTrojanError, match=r"has 2 clean and 1 backdoored.*1 model\(s\) rejected \(m01: .*got list"):
+        detect_zoo(zoo, folds=2)
+    (zoo / "zoo.json").write_text("[")
+    with pytest.raises(SeqTrojanError, match=r"zoo\.json' is not a zoo config"):
+        detect_zoo(zoo, folds=2)
 
 
 def test_a_zoo_needs_both_labels(tmp_path):

@@ -1,20 +1,48 @@
-"""Zoo jobs are pure and varied; a build writes models, labels and a manifest, resumes, and runs on Ray."""
+"""Zoo jobs are pure and varied; a build writes models, labels and a manifest, resumes, and runs on Ray. A build
+survives being killed (its workers die with it, a rerun finishes every model), a corrupt manifest, incomplete model
+folders, and refuses a rerun with another config."""
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
+import torch
 
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.env import GridSpec
-from seqtrojan.errors import ConfigError
-from seqtrojan.zoo.build import ZooConfig, build_zoo, make_jobs
+from seqtrojan.errors import ConfigError, SeqTrojanError
+from seqtrojan.zoo import build as zoo_build
+from seqtrojan.zoo.build import ZooConfig, build_zoo, make_jobs, worker_plan
 
 TINY = ZooConfig(
     clean=2, backdoored=2, total_steps=2048, num_envs=32, eval_episodes=16,
     curricula=((GridSpec(5, 0), GridSpec(5, 1)),), lstm_sizes=((8,), (8, 8)),
 )  # fmt: skip
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory) -> Path:
+    """A finished TINY zoo, built once (serially); tests that change it work on a copy (:func:`copy_of`)."""
+    root = tmp_path_factory.mktemp("built") / "zoo"
+    build_zoo(TINY, root, workers=1, log=lambda *_: None)
+    return root
+
+
+def copy_of(zoo: Path, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(zoo, tmp_path / "zoo"))
+
+
+def manifest_of(zoo: Path) -> list[dict]:
+    return json.loads((zoo / "manifest.json").read_text())
 
 
 def test_jobs_are_a_pure_function_of_the_config(tmp_path):
@@ -31,13 +59,11 @@ def test_jobs_are_a_pure_function_of_the_config(tmp_path):
         ZooConfig(trigger_values=("lava",))
 
 
-def test_build_writes_models_labels_manifest_and_resumes(tmp_path):
-    logs = []
-    manifest = build_zoo(TINY, tmp_path / "zoo", workers=1, log=logs.append)
-    entries = json.loads(manifest.read_text())
+def test_build_writes_models_labels_manifest_and_resumes(built):
+    entries = manifest_of(built)
     assert [e["status"] for e in entries] == ["done"] * 4
     for e in entries:
-        folder = tmp_path / "zoo" / "models" / e["id"]
+        folder = built / "models" / e["id"]
         _, cfg, card = load_agent(folder)
         truth = json.loads((folder / "label.json").read_text())
         assert truth["label"] == card["label"] == e["label"] == cfg.label
@@ -47,9 +73,93 @@ def test_build_writes_models_labels_manifest_and_resumes(tmp_path):
             assert truth["functional_backdoor"] == (truth["attack_success"] >= TINY.functional_at)
         else:
             assert truth["attack_success"] is None and truth["functional_backdoor"] is None
-    logs.clear()
-    build_zoo(TINY, tmp_path / "zoo", workers=1, log=logs.append)
+    assert json.loads((built / "zoo.json").read_text())["total_steps"] == TINY.total_steps
+    logs = []
+    build_zoo(TINY, built, workers=1, log=logs.append)
     assert logs[0].startswith("zoo: 4 of 4 models done; training 0")
+    assert manifest_of(built) == entries
+
+
+@pytest.mark.parametrize(
+    "manifest",
+    ['[{"id": "m0000", "status": "do', '{"m0000": "done"}', "[1, 2]", "pending"],
+    ids=["truncated", "mapping", "not-entries", "all-pending"],
+)
+def test_a_corrupt_or_stale_manifest_is_rebuilt_from_the_model_folders(built, tmp_path, manifest):
+    zoo = copy_of(built, tmp_path)
+    done = manifest_of(zoo)
+    if manifest == "pending":  # what a killed build left: models finished by workers after its last write
+        manifest = json.dumps([{"id": e["id"], "label": e["label"], "status": "pending"} for e in done])
+    (zoo / "manifest.json").write_text(manifest)
+    logs = []
+    build_zoo(TINY, zoo, workers=1, log=logs.append)
+    assert any(line.startswith("zoo: 4 of 4 models done; training 0") for line in logs)
+    rebuilt = manifest_of(zoo)
+    assert [e["status"] for e in rebuilt] == ["done"] * 4
+    for old, new in zip(done, rebuilt):
+        assert {k: new[k] for k in ("id", "label", "variation", "metrics")} == {
+            k: old[k] for k in ("id", "label", "variation", "metrics")
+        }
+    if "pending" not in manifest:
+        assert any("manifest.json is corrupt" in line for line in logs)
+    assert not list(zoo.glob(".manifest.json.*"))  # no temp file left behind
+
+
+def test_a_rerun_with_another_config_is_refused(built, tmp_path):
+    zoo = copy_of(built, tmp_path)
+    before = {p: p.stat().st_mtime_ns for p in zoo.rglob("*") if p.suffix != ".lock"}
+    changed = ZooConfig(**{**TINY.__dict__, "total_steps": 4096, "eval_episodes": 8})
+    with pytest.raises(
+        ConfigError, match=r"different config: eval_episodes .*, total_steps \(built with 2048, now 4096\)"
+    ):
+        build_zoo(changed, zoo, workers=1, log=lambda *_: None)
+    after = {p: p.stat().st_mtime_ns for p in zoo.rglob("*") if p.suffix != ".lock"}
+    assert after == before  # nothing trained, nothing rewritten
+    (zoo / "zoo.json").write_text("{broken")
+    with pytest.raises(ConfigError, match=r"zoo\.json' is not a zoo config"):
+        build_zoo(TINY, zoo, workers=1, log=lambda *_: None)
+
+
+def test_incomplete_model_folders_are_trained_again_and_cores_are_not_oversubscribed(built, tmp_path, monkeypatch):
+    zoo = copy_of(built, tmp_path)
+    weights = zoo / "models" / "m0001" / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])  # a copy cut short; label.json kept
+    (zoo / "models" / "m0002" / "label.json").write_text("[]")  # a complete model whose label is malformed
+    shutil.rmtree(zoo / "models" / "m0003")  # never finished
+    monkeypatch.setattr(zoo_build, "available_cpus", lambda: 1, raising=False)
+    torch.set_num_threads(1)
+    logs = []
+    build_zoo(TINY, zoo, workers=2, log=logs.append)
+    assert any(line.startswith("  m0001: incomplete (") for line in logs)
+    assert sorted(line.split()[0] for line in logs if " done in " in line) == ["m0001", "m0003"]
+    assert any("2 of 4 models done; training 2 with local backend (1 worker(s) x 1 torch thread(s))" in line
+               for line in logs)  # fmt: skip
+    assert torch.get_num_threads() == 1  # the build leaves the caller's torch threads as they were
+    assert [e["status"] for e in manifest_of(zoo)] == ["done"] * 4
+    for job in make_jobs(TINY, zoo):
+        load_agent(zoo / "models" / job.model_id)
+        assert json.loads((zoo / "models" / job.model_id / "label.json").read_text())["label"] == job.label
+    assert not any((zoo / "work").iterdir())
+
+
+def test_a_build_refuses_to_run_beside_another_build_or_its_workers(built, tmp_path, monkeypatch):
+    fcntl = pytest.importorskip("fcntl")
+
+    zoo = copy_of(built, tmp_path)
+    with open(zoo / "build.lock", "a") as held:  # another build of this zoo is running
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(SeqTrojanError, match=r"another build of zoo .* is running"):
+            build_zoo(TINY, zoo, workers=1, log=lambda *_: None)
+    monkeypatch.setattr(zoo_build, "WORKERS_EXIT_S", 0.3, raising=False)
+    with open(zoo / "workers.lock", "a") as held:  # a worker of an earlier build still runs
+        fcntl.flock(held, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        held.write("4242\n")
+        held.flush()
+        with pytest.raises(SeqTrojanError, match=r"worker processes of an earlier build .* still run \(pids 4242\)"):
+            build_zoo(TINY, zoo, workers=1, log=lambda *_: None)
+    logs = []
+    build_zoo(TINY, zoo, workers=1, log=logs.append)  # both gone: the build runs
+    assert logs[0].startswith("zoo: 4 of 4 models done")
 
 
 def test_ray_backend_builds_the_same_jobs(tmp_path):
@@ -57,3 +167,88 @@ def test_ray_backend_builds_the_same_jobs(tmp_path):
     cfg = ZooConfig(**{**TINY.__dict__, "clean": 1, "backdoored": 1})
     manifest = build_zoo(cfg, tmp_path / "zoo", workers=2, backend="ray", log=lambda *_: None)
     assert [e["status"] for e in json.loads(manifest.read_text())] == ["done", "done"]
+
+
+def test_worker_plan_never_oversubscribes_the_cores():
+    for cpus in range(1, 9):
+        for workers in range(1, 10):
+            for jobs in (1, 3, 40):
+                n, threads = worker_plan(workers, jobs, cpus)
+                assert 1 <= n <= min(workers, jobs, cpus) and threads >= 1 and n * threads <= cpus
+    assert worker_plan(4, 40, 2) == (2, 1)
+    assert worker_plan(1, 40, 8) == (1, 8)
+    assert worker_plan(2, 40, 16) == (2, 8)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (dead, not yet reaped by its new parent) counts as dead
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def _listed(zoo: Path) -> set[int]:
+    """The pids the build's workers wrote into workers.lock."""
+    path = zoo / "workers.lock"
+    return {int(p) for p in path.read_text().split()} if path.exists() else set()
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                kids.append(int(stat.parent.name))
+        except (OSError, IndexError, ValueError):
+            pass
+    return kids
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the build's worker processes in /proc")
+def test_kill_9_of_a_build_leaves_no_worker_and_a_rerun_finishes_every_model(tmp_path):
+    spec = {"clean": 1, "backdoored": 1, "total_steps": 4096, "num_envs": 8, "eval_episodes": 8,
+            "lstm_sizes": [[8]], "curricula": [[{"size": 5, "holes": 0}, {"size": 5, "holes": 1}]]}  # fmt: skip
+    (tmp_path / "tiny.yaml").write_text(json.dumps(spec))  # JSON is YAML
+    zoo = tmp_path / "zoo"
+    argv = [sys.executable, "-m", "seqtrojan.cli", "zoo", "build", "--out", str(zoo), "--workers", "2",
+            "--config-file", str(tmp_path / "tiny.yaml")]  # fmt: skip
+    with open(tmp_path / "build.log", "w") as out:
+        build = subprocess.Popen(argv, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 240
+        # kill once a worker is mid-training (it has written a checkpoint) and both workers have started
+        while not (
+            list(zoo.glob("work/m*/checkpoints/latest.txt"))
+            and len(_children(build.pid)) >= 2
+            and (len(_listed(zoo)) == 2 or not (zoo / "workers.lock").exists())
+        ):
+            assert build.poll() is None, (tmp_path / "build.log").read_text()
+            assert time.monotonic() < deadline, "the build never started training"
+            time.sleep(0.05)
+        workers = _children(build.pid)
+        os.kill(build.pid, signal.SIGKILL)
+        build.wait(timeout=30)
+        deadline = time.monotonic() + 20
+        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not [p for p in workers if _alive(p)], "worker processes outlived the killed build"
+    finally:
+        if build.poll() is None:
+            build.kill()
+            build.wait(timeout=30)
+        for pid in workers:  # never leave a stray process behind, whatever happened
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+    assert len(_listed(zoo)) == 2 and _listed(zoo) <= set(workers)  # the workers recorded their pids
+    cfg = ZooConfig(**{**ZooConfig().__dict__, **spec, "lstm_sizes": ((8,),),
+                       "curricula": ((GridSpec(5, 0), GridSpec(5, 1)),)})  # fmt: skip
+    build_zoo(cfg, zoo, workers=1, log=lambda *_: None)
+    assert [e["status"] for e in manifest_of(zoo)] == ["done", "done"]
+    for job in make_jobs(cfg, zoo):
+        _, _, card = load_agent(zoo / "models" / job.model_id)
+        assert card["env_steps"] == 4096
