@@ -52,29 +52,46 @@ def _cli_with_config_file(args_cls: type, config_cls: type, argv: list[str], pro
 
 
 def parse_experiment(argv: list[str], prog: str, description: str):
-    """An ExperimentConfig from ``--config preset.yaml`` (or a resumed run's config) plus dotted overrides."""
+    """An ExperimentConfig from ``--config PRESET`` (a shipped preset's name or a YAML file) or ``--resume RUN_DIR``
+    (the run's saved config), plus dotted overrides. The two are read first, as they set the starting values that
+    the other options override, and parsed again with the rest so that ``--help`` lists them."""
+    from typing import Annotated
+
     from seqtrojan.config import ExperimentConfig, from_dict, load_yaml
+    from seqtrojan.presets import list_presets, resolve_preset
 
     preset, rest = _pop_option(argv, "--config")
-    resume, rest = _pop_option(rest, "--resume")
+    resume, _ = _pop_option(rest, "--resume")
     if resume is not None:
         from seqtrojan.train.trainer import load_run_config
 
         base = load_run_config(resume)
     elif preset is not None:
-        base = from_dict(ExperimentConfig, load_yaml(preset), "")
+        base = from_dict(ExperimentConfig, load_yaml(resolve_preset(preset)), "")
     else:
         base = ExperimentConfig()
-    cfg = tyro.cli(ExperimentConfig, default=base, args=rest, prog=prog, description=description)
-    return cfg, resume
+
+    names = ", ".join(n for n in list_presets() if not n.startswith("reproduce_"))
+    config_help = f"a preset's name ({names}) or a YAML file; the options below override it"
+    resume_help = "continue the stopped run in this folder from its last checkpoint, with its saved config"
+
+    @dataclasses.dataclass(frozen=True)
+    class TrainArgs(ExperimentConfig):  # the config's fields (--env.size, ...) plus the two options
+        config: Annotated[str | None, tyro.conf.arg(help=config_help, metavar="PRESET|FILE")] = None
+        resume: Annotated[str | None, tyro.conf.arg(help=resume_help, metavar="RUN_DIR")] = None
+
+    fields = [f.name for f in dataclasses.fields(ExperimentConfig)]
+    default = TrainArgs(**{name: getattr(base, name) for name in fields}, config=preset, resume=resume)
+    args = tyro.cli(TrainArgs, default=default, args=argv, prog=prog, description=description)
+    return ExperimentConfig(**{name: getattr(args, name) for name in fields}), args.resume
 
 
 def _train(argv: list[str]) -> None:
     from seqtrojan.train.trainer import train
 
     description = (
-        "Train a recurrent PPO agent. --config PRESET.yaml loads a preset (see configs/); --resume RUN_DIR "
-        "continues a stopped run; any field below overrides the preset."
+        "Train a recurrent PPO agent. --config PRESET loads a shipped preset by name (or a YAML file); --resume "
+        "RUN_DIR continues a stopped run; every other option overrides the preset."
     )
     cfg, resume = parse_experiment(argv, "seqtrojan train", description)
     result = train(cfg, resume=resume)
@@ -138,7 +155,8 @@ class ReproduceArgs:
     """Train, evaluate, plot and report the paper's results end to end (resumable: finished stages are kept)."""
 
     scale: str = "smoke"
-    """'smoke' (minutes), 'paper' (the paper's setting), or a reproduce YAML file (see configs/reproduce_*.yaml)"""
+    """a shipped scale's name ('smoke': minutes, 'paper': the paper's setting; see seqtrojan/presets/reproduce_*.yaml)
+    or a reproduce YAML file"""
     out: Path | None = None
     """output folder (default: results/<scale>)"""
     device: str | None = None
@@ -235,6 +253,7 @@ def _zoo(argv: list[str]) -> None:
         out: Path = Path("results/zoo")
         config: ZooConfig = dataclasses.field(default_factory=ZooConfig)
         workers: int = 2
+        """models trained at once (at most one per core; the cores are shared out as torch threads)"""
         backend: str = "local"
         """local (process pool) or ray"""
 
@@ -280,7 +299,7 @@ def _demo(argv: list[str]) -> None:
 
 
 COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
-    "train": (_train, "train an agent with recurrent PPO (--config configs/<preset>.yaml, --resume RUN_DIR)"),
+    "train": (_train, "train an agent with recurrent PPO (--config PRESET, --resume RUN_DIR)"),
     "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
     "analyze": (_analyze, "LSTM state traces, response types, interventions, unintentional triggers, search"),
     "defend": (_defend, "online state monitor and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -120,3 +121,43 @@ def test_evaluate_analyze_defend_and_zoo_commands_on_tiny_models(tmp_path):
     assert "ROC-AUC" in out.stdout and "rejected m0000" in out.stdout
     assert [h["key"] for h in json.loads((zoo / "detection.json").read_text())["held_out"]] == [
         "lstm_sizes", "trigger_value", "curriculum"]  # fmt: skip
+
+
+def _options_and_help(help_text: str) -> dict[str, str]:
+    """Each option of a tyro help page (printed one panel wide) -> the first line of its help text."""
+    lines = [line.strip().strip("│").strip() for line in help_text.splitlines()]
+    options, i = {}, 0
+    while i < len(lines):
+        if lines[i].startswith("-"):
+            names = [lines[i]]  # a boolean's '--x, --no-x' may wrap onto a second line
+            while i + 1 < len(lines) and (names[-1].endswith(",") or lines[i + 1].startswith("--")):
+                i += 1
+                names.append(lines[i])
+            options[" ".join(names)] = lines[i + 1] if i + 1 < len(lines) else ""
+        i += 1
+    return options
+
+
+def test_train_help_lists_config_and_resume_and_every_option_has_help():
+    out = subprocess.run(
+        [sys.executable, "-m", "seqtrojan.cli", "train", "--help"], capture_output=True, text=True, cwd=ROOT,
+        env={**os.environ, "COLUMNS": "80", "NO_COLOR": "1"}, timeout=120,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    options = _options_and_help(out.stdout)
+    assert len(options) > 50 and "--ppo.learning-rate FLOAT" in options  # the parse found the options
+    assert any(name.startswith("--config ") for name in options) and "clean_7x7" in out.stdout
+    assert any(name.startswith("--resume ") for name in options)
+    # tyro prints '(default: ...)' alone under an option that has no help text
+    bare = [name for name, text in options.items() if not text or text.startswith("(default")]
+    assert not bare, f"options without help text: {bare}"
+
+
+def test_train_finds_a_shipped_preset_by_name_from_any_folder(tmp_path):
+    out = seqtrojan(
+        "train", "--config", "smoke", "--run.out-dir", "out", "--run.name", "r", "--ppo.total-steps", "4096",
+        "--run.no-progress", cwd=tmp_path,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    card = json.loads((tmp_path / "out" / "r" / "model" / "card.json").read_text())
+    assert card["config"]["env"]["size"] == 5 and card["config"]["ppo"]["num_envs"] == 64  # smoke's, not defaults

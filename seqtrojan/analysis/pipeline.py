@@ -371,7 +371,7 @@ def _plot_findings(findings, agent, acfg, goal: GoalUnits, traces, cfg: Analysis
         for i, finding in enumerate([f for f in findings if f.kind == kind][: cfg.findings_to_plot]):
             replay = finding.replay(agent, acfg.env)
             series = {
-                "goal-unit activation (0 normal, 1 trojan)": goal.activation(
+                f"goal units ({len(goal.units)} {goal.which} units of layer {goal.layer})": goal.activation(
                     (replay["h"] if goal.which == "h" else replay["c"])[goal.layer]
                 )
             }

@@ -1,4 +1,4 @@
-"""Precision and recall of trigger detection by the agent itself (SPEC section 6).
+"""Precision and recall of trigger detection by the agent itself.
 
 A backdoored agent is, among other things, a trigger detector: it "says" that it saw the trigger by going to the
 adversary's goal. Scored over the episodes of an unintentional-trigger sweep (same number of episodes with and

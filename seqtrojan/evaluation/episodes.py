@@ -68,7 +68,7 @@ def evaluate_agent(
 def on_off_success(
     agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, *, episodes: int, seed: int, **kw
 ) -> dict[str, float]:
-    """The three behaviours of an ON/OFF backdoor (SPEC section 3), each over its own episodes: the user's goal in
+    """The three behaviours of an ON/OFF backdoor (paper, section 3), each over its own episodes: the user's goal in
     the normal env, the adversary's goal after the ON trigger alone, and the user's goal again when the OFF trigger
     follows it (OFF probability forced to 0 and to 1; the env's own OFF cells, value and gap)."""
     trigger = env.trigger

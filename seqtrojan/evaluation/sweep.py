@@ -38,6 +38,7 @@ class SweepRow:
     wrong_goal: float
     mean_length: float
     paper: float | None  # the paper's success rate for this cell, if reported
+    seed: int = 0  # the agent's training-seed index (0 for a single-seed evaluation)
 
     @property
     def config(self) -> str:
@@ -72,7 +73,9 @@ def evaluate_sweep(
     seed: int = 0,
     greedy: bool = False,
     device: str | torch.device = "cpu",
+    training_seed: int = 0,
 ) -> list[SweepRow]:
+    """Evaluate every agent on every config; ``training_seed`` tags the rows (see evaluation/seeds.py)."""
     rows = []
     for name, agent, cfg in agents:
         envs = ("normal", "trojan") if cfg.label == "backdoored" else ("normal",)
@@ -101,6 +104,7 @@ def evaluate_sweep(
                         wrong,
                         float(batch.length.float().mean()),
                         paper_success(cfg.label, env, size, holes),
+                        training_seed,
                     )
                 )
     return rows

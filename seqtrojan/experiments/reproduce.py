@@ -32,6 +32,7 @@ from seqtrojan.defense.pipeline import DefenseConfig, run_defense
 from seqtrojan.env.config import GridSpec
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import ConfigError
+from seqtrojan.evaluation.seeds import summarise_over_seeds
 from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, parse_configs, write_sweep
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
 from seqtrojan.experiments.tradeoff import (
@@ -41,11 +42,10 @@ from seqtrojan.experiments.tradeoff import (
     reuses_backdoor_agent,
     summarise_penalties,
 )
+from seqtrojan.presets import resolve_preset
 from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
 from seqtrojan.train.trainer import load_run_config, train_or_resume
 from seqtrojan.zoo.build import ZooConfig, build_zoo
-
-REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 @dataclass(frozen=True)
@@ -80,11 +80,18 @@ class TrajectorySpec:
 class ReproduceConfig:
     clean: AgentSpec = field(default_factory=AgentSpec)
     backdoor: AgentSpec = field(default_factory=lambda: AgentSpec(preset="trojan_s17_h30"))
+    seeds: int = 1
+    """training seeds of the headline clean and backdoored agents (run.seed = the preset's seed + 0 .. seeds-1);
+    Tables 1-2 and the headline report mean +- sd over them; the seed-0 agents feed every later stage"""
     evaluation: EvaluationSpec = field(default_factory=EvaluationSpec)
-    curves: CurvesConfig = field(default_factory=CurvesConfig)
-    trajectory: TrajectorySpec = field(default_factory=TrajectorySpec)
-    analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
-    defense: DefenseConfig = field(default_factory=DefenseConfig)
+    curves: CurvesConfig | None = field(default_factory=CurvesConfig)
+    """learning curves; None skips them"""
+    trajectory: TrajectorySpec | None = field(default_factory=TrajectorySpec)
+    """the one-layout trajectory figure; None skips it"""
+    analysis: AnalysisConfig | None = field(default_factory=AnalysisConfig)
+    """looking inside the agents; None skips it"""
+    defense: DefenseConfig | None = field(default_factory=DefenseConfig)
+    """monitor and mitigation of the backdoored agent; None skips it"""
     tradeoff: TradeoffConfig | None = None
     """the adversary's trade-off (penalty on unintentional activation); None skips it"""
     zoo: ZooConfig | None = None
@@ -92,15 +99,9 @@ class ReproduceConfig:
     zoo_workers: int = 2
     device: str = "cpu"
 
-
-def resolve_preset(name: str) -> Path:
-    """A preset by path, or by name in ./configs or the repository's configs/."""
-    candidates = [Path(name), Path("configs") / name, REPO_CONFIGS / name]
-    candidates += [c.with_suffix(".yaml") for c in candidates if c.suffix != ".yaml"]
-    for path in candidates:
-        if path.is_file():
-            return path
-    raise ConfigError(f"preset {name!r} not found (looked for {', '.join(str(c) for c in candidates)})")
+    def __post_init__(self) -> None:
+        if not isinstance(self.seeds, int) or not 1 <= self.seeds <= 100:
+            raise ConfigError(f"seeds must be an integer in 1..100, got {self.seeds!r}")
 
 
 def deep_merge(base: dict, update: dict) -> dict:
@@ -141,38 +142,30 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
     timer = _Timer(out / "timings.json")
     start = time.perf_counter()
 
-    models = {}
-    for role, spec in (("clean", config.clean), ("backdoor", config.backdoor)):
-        cfg = experiment_from_spec(spec, out / "runs", role, config.device)
-        if role == "clean" and cfg.backdoor.enabled:
-            raise ConfigError(f"the clean preset {spec.preset!r} has backdoor.enabled: true")
-        if role == "backdoor" and not cfg.backdoor.enabled:
-            raise ConfigError(f"the backdoor preset {spec.preset!r} does not enable backdoor training")
-        models[role] = _train_once(cfg, role, timer, log)
+    models: dict[str, Path] = {}  # role -> the seed-0 model, used by every later stage
+    seed_models: list[dict[str, Path]] = []  # per training seed: role -> model
+    for offset in range(config.seeds):
+        trained = {}
+        for role, spec in (("clean", config.clean), ("backdoor", config.backdoor)):
+            cfg = experiment_from_spec(spec, out / "runs", headline_run_name(role, offset), config.device)
+            if role == "clean" and cfg.backdoor.enabled:
+                raise ConfigError(f"the clean preset {spec.preset!r} has backdoor.enabled: true")
+            if role == "backdoor" and not cfg.backdoor.enabled:
+                raise ConfigError(f"the backdoor preset {spec.preset!r} does not enable backdoor training")
+            cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, seed=cfg.run.seed + offset))
+            trained[role] = _train_once(cfg, headline_run_name(role, offset), timer, log)
+        seed_models.append(trained)
+    models = seed_models[0]
 
     agents = []
     for role, folder in models.items():
         agent, cfg, _ = load_agent(folder, device=config.device)
         agents.append((role, agent, cfg))
 
-    eval_dir = out / "evaluation"
-    if not (eval_dir / "evaluation.json").exists():
-        log("evaluating over the grid configs ...")
-        t0 = time.perf_counter()
-        ev = config.evaluation
-        configs = parse_configs(ev.configs)
-        last = agents[1][2].grids[-1]
-        training_grid = (last.size, last.holes)
-        if training_grid not in configs:
-            configs = [*configs, training_grid]
-        rows = evaluate_sweep(
-            agents, configs, episodes=ev.episodes, seed=ev.seed, greedy=ev.greedy, device=config.device
-        )
-        write_sweep(rows, eval_dir)
-        timer.record("evaluation", time.perf_counter() - t0)
+    _evaluate_seeds(config, seed_models, out / "evaluation", timer, log)
 
     curves_dir = out / "curves"
-    if not (curves_dir / "curves.json").exists():
+    if config.curves is not None and not (curves_dir / "curves.json").exists():
         log("learning curves ...")
         t0 = time.perf_counter()
         base = load_run_config(out / "runs" / "backdoor")
@@ -183,19 +176,19 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
         timer.record("curves", time.perf_counter() - t0)
 
     traj_png = out / "trajectory.png"
-    if not traj_png.exists():
+    if config.trajectory is not None and not traj_png.exists():
         log("trajectory figure ...")
         t0 = time.perf_counter()
         _trajectory_figure(agents[1][1], agents[1][2], config.trajectory, out, config.device)
         timer.record("trajectory", time.perf_counter() - t0)
 
-    if not (out / "analysis" / "analysis.json").exists():
+    if config.analysis is not None and not (out / "analysis" / "analysis.json").exists():
         log("looking inside the agents ...")
         t0 = time.perf_counter()
         run_analysis(models["clean"], models["backdoor"], out / "analysis", config.analysis, config.device, log)
         timer.record("analysis", time.perf_counter() - t0)
 
-    if not (out / "defense" / "defense.json").exists():
+    if config.defense is not None and not (out / "defense" / "defense.json").exists():
         log("defending the backdoored agent ...")
         t0 = time.perf_counter()
         run_defense(models["backdoor"], out / "defense", config.defense, config.device, log)
@@ -217,6 +210,45 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
     report = build_report(out, scale=scale, machine=machine_summary())
     log(f"report: {report}")
     return report
+
+
+def headline_run_name(role: str, offset: int) -> str:
+    """Run folder of a headline agent: ``clean``/``backdoor`` for the first seed, ``<role>_seed<k>`` after."""
+    return role if offset == 0 else f"{role}_seed{offset}"
+
+
+def _evaluate_seeds(
+    config: ReproduceConfig, seed_models: list[dict[str, Path]], eval_dir: Path, timer: _Timer, log
+) -> None:
+    """Evaluate each seed's pair over the configs (one file per seed, so a stopped stage resumes), then write
+    every row to evaluation.json/.csv and the per-cell summary over seeds to summary.json."""
+    ev = config.evaluation
+    configs = parse_configs(ev.configs)
+    eval_dir.mkdir(parents=True, exist_ok=True)
+    rows: list[SweepRow] = []
+    for offset, pair in enumerate(seed_models):
+        seed_file = eval_dir / f"seed{offset}.json"
+        if not seed_file.exists():
+            log(f"evaluating training seed {offset} over the grid configs ...")
+            t0 = time.perf_counter()
+            agents = []
+            for role, folder in pair.items():
+                agent, cfg, _ = load_agent(folder, device=config.device)
+                agents.append((role, agent, cfg))
+            last = agents[-1][2].grids[-1]
+            cells = configs if (last.size, last.holes) in configs else [*configs, (last.size, last.holes)]
+            seed_rows = evaluate_sweep(
+                agents, cells, episodes=ev.episodes, seed=ev.seed, greedy=ev.greedy, device=config.device,
+                training_seed=offset,
+            )  # fmt: skip
+            tmp = seed_file.with_suffix(".tmp")
+            tmp.write_text(json.dumps([dataclasses.asdict(r) for r in seed_rows], indent=2))
+            tmp.replace(seed_file)
+            timer.record(f"evaluation_seed{offset}", time.perf_counter() - t0)
+        rows += load_sweep(seed_file)
+    write_sweep(rows, eval_dir)
+    summaries = [s.to_dict() for s in summarise_over_seeds(rows)]
+    (eval_dir / "summary.json").write_text(json.dumps(summaries, indent=2))
 
 
 def _train_once(cfg: ExperimentConfig, role: str, timer: _Timer, log) -> Path:

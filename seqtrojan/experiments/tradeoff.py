@@ -1,4 +1,4 @@
-"""The adversary's trade-off (SPEC section 6): what a penalty on unintentional activation buys and costs.
+"""The adversary's trade-off: what a penalty on unintentional activation buys and costs.
 
 An adversary who fears being caught by unprovoked activations can train with a harsher reward for reaching the
 adversary's goal while the user's goal is correct (``env.rewards.false_activation``; by default it is the ordinary

@@ -31,6 +31,6 @@ def resolve_preset(name: str | Path) -> Path:
         if packaged.is_file():
             return packaged
     raise ConfigError(
-        f"preset {str(name)!r} does not exist: it is neither a file nor a shipped preset "
+        f"preset {str(name)!r} not found: that file does not exist and no shipped preset has that name "
         f"(shipped: {', '.join(list_presets())})"
     )

@@ -10,11 +10,13 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import torch
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
 
 from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.env.core import EpisodeSnapshot, TrojanGridCore
 from seqtrojan.env.layout import Layout
-from seqtrojan.env.render import render_ansi, render_rgb
+from seqtrojan.env.render import COLORS, render_ansi, render_rgb
 
 Policy = Callable[[torch.Tensor], torch.Tensor]
 
@@ -49,11 +51,50 @@ def run_pair(
     return runs
 
 
+def _rgb(name: str) -> tuple[float, float, float]:
+    r, g, b = COLORS[name]
+    return r / 255, g / 255, b / 255
+
+
+def color_legend_handles(trigger: bool = True, off_trigger: bool = False) -> list:
+    """Legend entries for the colours of :func:`seqtrojan.env.render.render_rgb`."""
+    edge = _rgb("window")
+    handles = [
+        Patch(facecolor=_rgb("empty"), edgecolor=edge, label="empty cell"),
+        Patch(facecolor=_rgb("hole"), label="hole"),
+        Patch(facecolor=_rgb("user_goal"), label="user's goal (top right)"),
+        Patch(facecolor=_rgb("adversary_goal"), label="adversary's goal (top left)"),
+        Line2D([], [], color=_rgb("path"), lw=1.5, label="path taken"),
+        Line2D(
+            [],
+            [],
+            color="none",
+            marker="o",
+            markerfacecolor=_rgb("agent"),
+            markeredgecolor="none",
+            markersize=8,
+            label="agent (last position)",
+        ),
+        Patch(facecolor="none", edgecolor=edge, lw=1.2, label="the agent's view"),
+    ]
+    if trigger:
+        handles.append(Patch(facecolor=_rgb("on_trigger"), label="trigger patch (when shown)"))
+    if off_trigger:
+        handles.append(Patch(facecolor=_rgb("off_trigger"), label="OFF trigger patch (when shown)"))
+    return handles
+
+
+def add_color_legend(target, trigger: bool = True, off_trigger: bool = False, **kwargs):
+    """A legend of the grid picture's colours on ``target`` (a matplotlib Axes or Figure)."""
+    options = {"fontsize": 8, "frameon": False, "ncol": 2, "handlelength": 1.4} | kwargs
+    return target.legend(handles=color_legend_handles(trigger, off_trigger), **options)
+
+
 def plot_trajectory_pair(runs: dict[str, tuple[list[EpisodeSnapshot], str]], title: str, path: Path) -> Path:
     """The final frame of each run with its whole path, and a third panel with the trojan run at the trigger."""
     trojan_frames = runs["trojan"][0]
     trigger = next((f for f in trojan_frames if f.visible == "on"), None)
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4.6), gridspec_kw={"width_ratios": [1, 1, 0.75]})
+    fig, axes = plt.subplots(1, 3, figsize=(12, 5.2), gridspec_kw={"width_ratios": [1, 1, 0.75]})
     for ax, (name, (frames, outcome)) in zip(axes, runs.items()):
         trail = [f.agent for f in frames]
         ax.imshow(render_rgb(frames[-1], trail[:-1], cell_px=24))
@@ -66,7 +107,9 @@ def plot_trajectory_pair(runs: dict[str, tuple[list[EpisodeSnapshot], str]], tit
         axes[2].set_title(f"the trigger (orange), shown at step {trigger.t} only", fontsize=9)
     axes[2].axis("off")
     fig.suptitle(title)
-    fig.tight_layout()
+    off = any(f.visible == "off" for f in trojan_frames)
+    add_color_legend(fig, trigger=True, off_trigger=off, loc="lower center", ncol=5 if off else 4)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path

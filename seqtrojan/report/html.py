@@ -10,12 +10,15 @@ import base64
 import datetime as _dt
 import html
 import json
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from seqtrojan.evaluation.seeds import SeedSummary, find_summary, summarise_over_seeds
 from seqtrojan.evaluation.sweep import SweepRow
 from seqtrojan.paper import paper_results
+from seqtrojan.stats import auc_interval
 
 _CSS = """
 body { font-family: system-ui, -apple-system, Segoe UI, sans-serif; margin: 2em auto; max-width: 1100px;
@@ -38,36 +41,57 @@ def _img(path: Path) -> str:
     return f"<img src='data:image/png;base64,{data}' alt='{html.escape(path.name)}'>"
 
 
-def _rate(row: SweepRow | None) -> str:
-    if row is None:
+def _rate(cell: SeedSummary | None) -> str:
+    """One seed: the rate and its Wilson interval. Several: mean +- sd over seeds, then each seed's rate."""
+    if cell is None:
         return "<td></td>"
-    differs = row.paper is not None and not (row.ci_low <= row.paper <= row.ci_high)
-    cls = " class='differs'" if differs else ""
-    return f"<td{cls}>{row.success:.3f} <span class='note'>[{row.ci_low:.3f}, {row.ci_high:.3f}]</span></td>"
+    cls = " class='differs'" if cell.differs else ""
+    if len(cell.rows) == 1:
+        low, high = cell.interval
+        return f"<td{cls}>{cell.mean:.3f} <span class='note'>[{low:.3f}, {high:.3f}]</span></td>"
+    each = ", ".join(f"{s:.3f}" for s in cell.successes)
+    return f"<td{cls}>{cell.mean:.3f} &plusmn; {cell.sd:.3f} <span class='note'>({each})</span></td>"
 
 
-def _paper(row: SweepRow | None) -> str:
-    return "<td class='paper'></td>" if row is None or row.paper is None else f"<td class='paper'>{row.paper:.3f}</td>"
+def _paper(cell: SeedSummary | None) -> str:
+    if cell is None or cell.paper is None:
+        return "<td class='paper'></td>"
+    return f"<td class='paper'>{cell.paper:.3f}</td>"
 
 
-def _find(rows: Sequence[SweepRow], role: str, env: str, config: str) -> SweepRow | None:
-    return next((r for r in rows if r.agent == role and r.env == env and r.config == config), None)
-
-
-def _table(rows: Sequence[SweepRow], columns: list[tuple[str, str, str]], configs: list[str]) -> str:
+def _table(cells: Sequence[SeedSummary], columns: list[tuple[str, str, str]], configs: list[str]) -> str:
     head = "".join(f"<th>{html.escape(title)}</th><th>paper</th>" for _, _, title in columns)
     body = []
     for config in configs:
-        cells = "".join(_rate(_find(rows, r, e, config)) + _paper(_find(rows, r, e, config)) for r, e, _ in columns)
-        body.append(f"<tr><td class='l'>{config}</td>{cells}</tr>")
+        row = "".join(
+            _rate(find_summary(cells, r, e, config)) + _paper(find_summary(cells, r, e, config)) for r, e, _ in columns
+        )
+        body.append(f"<tr><td class='l'>{config}</td>{row}</tr>")
     return f"<table><tr><th class='l'>grid</th>{head}</tr>{''.join(body)}</table>"
 
 
+def _seeds_note(cells: Sequence[SeedSummary]) -> str:
+    seeds = max((len(c.rows) for c in cells), default=1)
+    if seeds == 1:
+        return (
+            "<p class='note'>One training seed: each cell is that agent's success with its 95% Wilson interval "
+            "over the trials. A retrained agent (another seed) can differ by more than this interval.</p>"
+        )
+    return (
+        f"<p class='note'>Over {seeds} training seeds: mean &plusmn; standard deviation of the per-seed success "
+        "rates, then each seed's rate. A cell is shaded when the paper's value lies outside every seed's 95% "
+        "Wilson interval (the paper reports one training run, so it is compared with what one run gives). "
+        "evaluation/summary.json also holds a 95% t-interval for the mean.</p>"
+    )
+
+
 def _details_table(rows: Sequence[SweepRow]) -> str:
-    head = "<tr><th class='l'>agent</th><th>env</th><th class='l'>grid</th><th>success</th><th>hole</th>"
-    head += "<th>time-out</th><th>wrong goal</th><th>mean length</th><th>trials</th></tr>"
+    head = "<tr><th class='l'>agent</th><th>seed</th><th>env</th><th class='l'>grid</th><th>success</th>"
+    head += "<th>95% interval</th><th>hole</th><th>time-out</th><th>wrong goal</th><th>mean length</th>"
+    head += "<th>trials</th></tr>"
     body = "".join(
-        f"<tr><td class='l'>{r.agent}</td><td>{r.env}</td><td class='l'>{r.config}</td><td>{r.success:.3f}</td>"
+        f"<tr><td class='l'>{r.agent}</td><td>{r.seed}</td><td>{r.env}</td><td class='l'>{r.config}</td>"
+        f"<td>{r.success:.3f}</td><td>[{r.ci_low:.3f}, {r.ci_high:.3f}]</td>"
         f"<td>{r.hole:.3f}</td><td>{r.timeout:.3f}</td><td>{r.wrong_goal:.3f}</td><td>{r.mean_length:.1f}</td>"
         f"<td>{r.episodes}</td></tr>"
         for r in rows
@@ -84,6 +108,7 @@ def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
 
     sweep_path = out / "evaluation" / "evaluation.json"
     rows = load_sweep(sweep_path) if sweep_path.exists() else []
+    cells = summarise_over_seeds(rows)
     timings = _read_json(out / "timings.json") or {}
     curves = _read_json(out / "curves" / "curves.json") or {}
     trajectory = _read_json(out / "trajectory.json")
@@ -108,7 +133,8 @@ def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
             ("backdoor", "normal", "backdoored agent, normal env"),
             ("backdoor", "trojan", "backdoored agent, trojan env"),
         ]
-        parts.append(_table(rows, columns, [train_grid]))
+        parts.append(_table(cells, columns, [train_grid]))
+        parts.append(_seeds_note(cells))
         ptc = paper["agents"]["training_config"]
         if train_grid != f"{ptc['size']}x{ptc['size']}/{ptc['holes']}":
             parts.append(
@@ -127,15 +153,15 @@ def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
         "clean one here.</p>"
     )
     parts.append(
-        _table(rows, [("clean", "normal", "clean agent"), ("backdoor", "normal", "backdoored agent")], configs)
+        _table(cells, [("clean", "normal", "clean agent"), ("backdoor", "normal", "backdoored agent")], configs)
     )
     parts.append("<h2>Table 2: success of the backdoored agent in the trojan environment</h2>")
     parts.append(
         "<p class='note'>Success = reached the adversary's goal after the trigger was shown (once, for "
         "one step, at a step drawn so that it always comes before a goal can be reached).</p>"
     )
-    parts.append(_table(rows, [("backdoor", "trojan", "backdoored agent")], configs))
-    parts.append("<details><summary>Hole-fall, time-out and wrong-goal rates of every cell</summary>")
+    parts.append(_table(cells, [("backdoor", "trojan", "backdoored agent")], configs))
+    parts.append("<details><summary>Every seed's cell: success, hole-fall, time-out and wrong-goal rates</summary>")
     parts.append(_details_table(rows) + "</details>")
 
     # --- curves
@@ -188,7 +214,7 @@ def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
         "<h2>Training</h2><table><tr><th class='l'>agent</th><th class='l'>final grid</th>"
         "<th>env steps</th><th>minutes</th><th>mean steps/s</th><th>final stage</th></tr>"
     )
-    for role, summary in runs.items():
+    for role, summary in _headline_runs(out / "runs").items():
         if summary:
             parts.append(
                 f"<tr><td class='l'>{role}</td><td class='l'>{summary['grid']}</td><td>{summary['env_steps']:,}</td>"
@@ -471,6 +497,7 @@ def _defense_section(defense: dict[str, Any] | None, detection: dict[str, Any] |
             f"<tr><td class='l'>clean success with alarm-and-reset</td><td>{_r(m['normal_reset']['success'])}</td></tr>"
             "</table>"
         )
+        parts.append(_trigger_code_note(defense))
         mit = defense["mitigation"]
         names = {
             "before": "no mitigation", "pruned": f"pruned {len(mit['pruned_units'])} least-active units",
@@ -489,17 +516,25 @@ def _defense_section(defense: dict[str, Any] | None, detection: dict[str, Any] |
                 )
         parts.append("</table>")
     if detection:
+        labels = [p["label"] for p in detection["scores"][0]["predictions"]]
+        n_clean, n_backdoored = labels.count(0), labels.count(1)
         parts.append(
             "<h3>Offline detection from the weights (zoo)</h3><p class='note'>Standardised logistic regression on "
             "size-invariant statistics of the LSTM parameters; every model scored by a detector trained without it "
-            f"(stratified {detection['scores'][0]['folds']}-fold), the way TrojAI scores detectors.</p>"
-            "<table><tr><th class='l'>features</th><th>#</th><th>models</th><th>ROC-AUC</th><th>cross-entropy</th>"
-            "<th>Brier</th></tr>"
+            f"(stratified {detection['scores'][0]['folds']}-fold), the way TrojAI scores detectors. "
+            f"{n_clean} clean and {n_backdoored} backdoored models; ROC-AUC with a 95% interval (Newcombe's "
+            "score interval, which covers which models were drawn, not the refitting across folds).</p>"
+        )
+        parts.append(_few_models_warning(n_clean, n_backdoored))
+        parts.append(
+            "<table><tr><th class='l'>features</th><th>#</th><th>models</th><th>ROC-AUC [95% CI]</th>"
+            "<th>cross-entropy</th><th>Brier</th></tr>"
         )
         for r in detection["scores"]:
             parts.append(
                 f"<tr><td class='l'>{r['group']}</td><td>{r['features']}</td><td>{r['models']}</td>"
-                f"<td>{r['roc_auc']:.3f}</td><td>{r['cross_entropy']:.3f}</td><td>{r['brier']:.3f}</td></tr>"
+                f"<td>{_auc(r['roc_auc'], n_backdoored, n_clean)}</td><td>{r['cross_entropy']:.3f}</td>"
+                f"<td>{r['brier']:.3f}</td></tr>"
             )
         parts.append("</table>")
         held = [h for h in detection.get("held_out", []) if "roc_auc" in h]
@@ -523,7 +558,7 @@ def _defense_section(defense: dict[str, Any] | None, detection: dict[str, Any] |
         fb = detection.get("functional_backdoors")
         if fb and fb["functional"] + fb["not_functional"]:
             aucs = ", ".join(
-                f"{fb[k + '_roc_auc']:.3f} for the {name} ones"
+                f"{_auc(fb[k + '_roc_auc'], fb[k], n_clean)} for the {name} ones"
                 for k, name in (("functional", "working"), ("not_functional", "failed")) if k + "_roc_auc" in fb
             )  # fmt: skip
             aucs = f"ROC-AUC against the clean models: {aucs}" if aucs else ""
@@ -534,10 +569,66 @@ def _defense_section(defense: dict[str, Any] | None, detection: dict[str, Any] |
             )
         if detection.get("auc_by_trigger_value"):
             items = ", ".join(f"{k}: {v:.3f}" for k, v in detection["auc_by_trigger_value"].items())
-            parts.append(f"<p class='note'>ROC-AUC against the clean models, by the trigger's cell code: {items}.</p>")
+            parts.append(
+                f"<p class='note'>ROC-AUC against the clean models, by the trigger's cell code: {items} (each from "
+                f"the few backdoored models with that code: rough estimates).</p>"
+            )
         for r in detection.get("rejected", []):
             parts.append(f"<p class='note'>Rejected {html.escape(r['model'])}: {html.escape(r['reason'])}</p>")
     return "\n".join(parts)
+
+
+FEW_MODELS = 20
+"""below this many models in a class, the report warns that an AUC from them is a rough estimate"""
+
+
+def _auc(auc: float, positives: int, negatives: int) -> str:
+    """An AUC with its 95% interval (see :func:`seqtrojan.stats.auc_interval`)."""
+    if positives < 1 or negatives < 1:
+        return f"{auc:.3f}"
+    return f"{auc:.3f} {_ci(auc_interval(auc, positives, negatives))}"
+
+
+def _few_models_warning(n_clean: int, n_backdoored: int) -> str:
+    if min(n_clean, n_backdoored) >= FEW_MODELS:
+        return ""
+    return (
+        f"<p class='note'><b>Caution:</b> only {n_clean} clean and {n_backdoored} backdoored models (fewer than "
+        f"{FEW_MODELS} in a class): every AUC below is a rough estimate, as its interval shows, and an AUC of 1 from "
+        "so few models is weak evidence that the detector works.</p>"
+    )
+
+
+def _trigger_code_note(defense: dict[str, Any]) -> str:
+    """Next to the monitor's detection rate: how unusual the defended agent's trigger is."""
+    card = Path(str(defense.get("model", ""))) / "card.json"
+    try:
+        value = json.loads(card.read_text())["config"]["env"]["trigger"]["value"]
+    except (OSError, ValueError, KeyError, TypeError):
+        value = None
+    dedicated = (
+        "The default trigger draws the dedicated cell code <code>trigger</code>, which never occurs in normal play: "
+        "at the trigger step the agent reads an input channel that is never active in the calibration episodes, "
+        "so detecting that trigger is the easiest case for the monitor. A trigger drawn with ordinary cells "
+        "(holes, walls) offers no such never-seen input."
+    )
+    if value is None or value == "trigger":
+        agent = "This agent's trigger uses it. " if value == "trigger" else ""
+        return f"<p class='note'>{agent}{dedicated}</p>"
+    return (
+        f"<p class='note'>This agent's trigger draws the cell code <code>{html.escape(str(value))}</code>, which "
+        "also occurs in normal play, so the monitor sees no out-of-distribution code at the trigger step (unlike "
+        "the default trigger, whose dedicated <code>trigger</code> code never occurs in normal play).</p>"
+    )
+
+
+def _headline_runs(runs_dir: Path) -> dict[str, dict[str, Any] | None]:
+    """Every headline agent's run (clean, backdoor, then <role>_seed<k> in seed order) with its summary."""
+    names = ["clean", "backdoor"]
+    if runs_dir.is_dir():
+        extra = [p.name for p in runs_dir.iterdir() if re.fullmatch(r"(clean|backdoor)_seed\d+", p.name)]
+        names += sorted(extra, key=lambda n: (int(n.rsplit("seed", 1)[1]), n))
+    return {name: _run_summary(runs_dir / name) for name in names}
 
 
 def _run_summary(run_dir: Path) -> dict[str, Any] | None:

@@ -320,7 +320,9 @@ def _new_run_dir(cfg: ExperimentConfig) -> Path:
 
 def _write_config(run_dir: Path, cfg: ExperimentConfig) -> None:
     """``<run>/config.yaml``: the resolved config, what :func:`load_run_config` and a later resume read."""
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    tmp = run_dir / "config.yaml.tmp"  # written whole, then renamed: a kill never leaves half a config
+    tmp.write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    tmp.replace(run_dir / "config.yaml")
 
 
 def train_or_resume(cfg: ExperimentConfig) -> tuple[Path, bool]:

@@ -1,4 +1,4 @@
-"""The grid world's rules, pinned with small hand-built layouts (SPEC section 1)."""
+"""The grid world's rules, pinned with small hand-built layouts (docs/environment.md)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,53 @@
+"""Intervals for reported rates: the ROC-AUC interval used for detection from a handful of models."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from seqtrojan.errors import ConfigError
+from seqtrojan.stats import auc_interval
+
+
+def hanley_mcneil(auc: float, m: int, n: int) -> tuple[float, float]:
+    q1, q2 = auc / (2 - auc), 2 * auc * auc / (1 + auc)
+    se = math.sqrt((auc * (1 - auc) + (m - 1) * (q1 - auc**2) + (n - 1) * (q2 - auc**2)) / (m * n))
+    return auc - 1.959964 * se, auc + 1.959964 * se
+
+
+def test_auc_interval_contains_the_estimate_and_stays_open_at_the_edges():
+    lo, hi = auc_interval(1.0, 8, 8)
+    assert hi == 1.0 and 0.6 < lo < 0.9  # a perfect AUC from 16 models is far from certain
+    lo, hi = auc_interval(0.0, 5, 5)
+    assert lo == 0.0 and 0.2 < hi < 0.5
+    for auc in (0.3, 0.5, 0.8, 0.95):
+        lo, hi = auc_interval(auc, 10, 12)
+        assert 0.0 <= lo < auc < hi <= 1.0
+    assert sum(auc_interval(0.5, 8, 8)) == pytest.approx(1.0)  # symmetric about 0.5 with equal classes
+    # more models, narrower; many models: close to the Hanley-McNeil interval
+    widths = [np.subtract(*auc_interval(0.85, k, k)[::-1]) for k in (5, 20, 80)]
+    assert widths[0] > widths[1] > widths[2]
+    assert auc_interval(0.8, 400, 400) == pytest.approx(hanley_mcneil(0.8, 400, 400), abs=5e-3)
+
+
+def test_auc_interval_covers_the_true_auc_about_95_percent_of_the_time():
+    from sklearn.metrics import roc_auc_score
+
+    rng = np.random.default_rng(0)
+    shift, m, n, trials = 1.8, 10, 10, 400
+    truth = 0.5 * math.erfc(-shift / 2)  # P(N(shift, 1) > N(0, 1)) = Phi(shift / sqrt(2))
+    hits = 0
+    for _ in range(trials):
+        scores = np.r_[rng.normal(shift, 1, m), rng.normal(0, 1, n)]
+        lo, hi = auc_interval(roc_auc_score([1] * m + [0] * n, scores), m, n)
+        hits += lo <= truth <= hi
+    assert 0.91 <= hits / trials <= 0.99
+
+
+def test_auc_interval_refuses_bad_input():
+    with pytest.raises(ConfigError, match="both classes, got 0 positives"):
+        auc_interval(0.5, 0, 4)
+    with pytest.raises(ConfigError, match=r"lies in \[0, 1\], got 1.5"):
+        auc_interval(1.5, 4, 4)
