@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -14,6 +16,7 @@ from seqtrojan.analysis.search import (
     SequenceSearchConfig,
     _mutate,
     evolve_layouts,
+    final_goal_activation,
     flip_rates,
     search_sequences,
 )
@@ -21,7 +24,9 @@ from seqtrojan.analysis.traces import StateTrace, record_traces, replay_states
 from seqtrojan.analysis.unintentional import GoalUnits, load_findings, save_findings, sweep_unintentional
 from seqtrojan.config import AgentConfig, ExperimentConfig
 from seqtrojan.env import GridSpec, Layout
-from seqtrojan.env.codes import HOLE, OUTCOME_NAMES, TRIGGER
+from seqtrojan.env.codes import HOLE, NUM_CHANNELS, OUTCOME_NAMES, TRIGGER
+from seqtrojan.evaluation.episodes import evaluate_agent
+from seqtrojan.stats import wilson_interval
 
 CFG = ExperimentConfig(agent=AgentConfig(lstm_sizes=(16, 8)))
 
@@ -100,8 +105,16 @@ def test_switch_experiment_reports_every_arm(agent, traces):
     )  # fmt: skip
     arms = [(r.direction, r.units) for r in results]
     assert arms == [(d, u) for d in ("activate", "deactivate") for u in ("none", "step-units", "random-units")]
-    for r in results:
-        assert 0 <= r.switch_rate <= 1 and r.switch_ci[0] <= r.switch_rate <= r.switch_ci[1] and r.episodes == 32
+    for r in results:  # counts of the 32 episodes, with those counts' Wilson intervals
+        k, holes = round(r.switch_rate * 32), round(r.hole_rate * 32)
+        assert r.episodes == 32 and r.switch_rate == k / 32 and r.switch_ci == wilson_interval(k, 32)
+        assert r.hole_rate == holes / 32 and r.hole_ci == wilson_interval(holes, 32)
+    # the unedited arms are the plain agent with the trigger at step 3: evaluated directly they give the same rates
+    env = dataclasses.replace(CFG.env, trigger=dataclasses.replace(CFG.env.trigger, eval_steps=(3, 3)))
+    for r, trojan, goal in ((results[0], False, "adversary_goal"), (results[3], True, "user_goal")):
+        batch = evaluate_agent(agent, env, GridSpec(9, 5), trojan=trojan, episodes=32, seed=0)
+        assert r.units == "none" and r.switch_rate == batch.rate(goal) and r.hole_rate == batch.rate("hole")
+        assert r.timeout_rate == batch.rate("timeout")
 
 
 def test_unintentional_sweep_keeps_replayable_findings(tmp_path, agent):
@@ -139,9 +152,19 @@ def test_searches_run_and_never_use_the_trigger(agent, traces):
     goal = GoalUnits.from_traces(normal, trojan, 1, "c", [0, 1, 2], trigger_step=3)
     layouts = evolve_layouts(agent, CFG.env, goal, LayoutSearchConfig(size=7, holes=3, population=4, rollouts=4,
                                                                      generations=2, elite=2, restarts=2))  # fmt: skip
-    assert len(layouts) == 2 and all(r.episodes in (16, 32) and 0 <= r.best_rate <= 1 for r in layouts)
+    assert len(layouts) == 2
+    for r in layouts:  # 4 layouts x 4 rollouts per generation; a rate over one layout's 4 rollouts
+        assert r.episodes == 16 * r.generations and (r.found or r.generations == 2)  # stops early only on a find
+        assert (r.best_rate * 4).is_integer() and r.found == (r.best_rate >= 0.5)
+        best = np.array(r.best_layout, dtype=np.int8)
+        assert (best == HOLE).sum() == 3 and Layout(best).is_solvable()
     result, codes = search_sequences(agent, goal, SequenceSearchConfig(length=6, restarts=5, steps=20))
     assert codes.shape == (5, 6, 9) and not (codes == TRIGGER).any()
-    assert result.restarts == 5 and 0 <= result.found <= 5 and len(result.rounded_activation) == 5
-    after, before = flip_rates(agent, CFG.env, codes[:2], size=7, holes=3, episodes=16, seed=0)
-    assert 0 <= after <= 1 and 0 <= before <= 1
+    assert result.restarts == 5 and len(result.rounded_activation) == 5
+    assert result.found == sum(a >= 0.5 for a in result.rounded_activation)
+    onehot = torch.nn.functional.one_hot(torch.as_tensor(codes).transpose(0, 1), NUM_CHANNELS).float()
+    again = final_goal_activation(agent, goal, onehot.reshape(6, 5, -1))  # the returned codes give the activations
+    np.testing.assert_allclose(again.detach().numpy(), result.rounded_activation, rtol=1e-5, atol=1e-6)
+    after, before = flip_rates(agent, CFG.env, codes[:2], size=5, holes=1, episodes=16, seed=0)
+    assert (after * 16).is_integer() and (before * 16).is_integer()  # 2 sequences x 8 episodes each
+    assert flip_rates(agent, CFG.env, codes[2:4], size=5, holes=1, episodes=16, seed=0)[1] == before == 1 / 16

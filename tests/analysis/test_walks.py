@@ -72,6 +72,7 @@ def test_random_walks_start_at_the_start_move_one_cell_and_stay_below_the_top_ro
     assert (walks[:, 0] == (8, 4)).all()
     assert (np.abs(np.diff(walks, axis=1)).sum(-1) == 1).all()
     assert (walks[..., 0] >= 1).all() and (walks[..., 1] >= 0).all() and (walks[..., 1] < 9).all()
+    assert (np.diff(walks[..., 0], axis=1) <= 0).all()  # never a step down
 
 
 def test_walk_search_gives_walkable_views_of_its_own_grids():
@@ -83,9 +84,24 @@ def test_walk_search_gives_walkable_views_of_its_own_grids():
     result, codes, grids = search_walks(agent, goal, search)
     assert codes.shape == (6, 10, 9) and grids.shape == (6, 9, 9)
     assert result.walkable == 6 and all(is_walkable(c) for c in codes)
-    assert 0 <= result.solvable <= result.found <= 6 and len(result.rounded_activation) == 6
-    assert all(0.0 <= d <= 1.0 for d in result.revealed_density)
+    found = [a >= search.success_at for a in result.rounded_activation]
+    assert len(found) == 6 and result.found == sum(found)
+    assert result.solvable == sum(Layout(g.astype(np.int8)).is_solvable() for g, f in zip(grids, found) if f)
     assert result.target_density == pytest.approx(6 / 78)
+    # Revealed density, recomputed from the rounded grids; a search started at density 0.5 with no penalty keeps
+    # holes in the revealed cells (the penalised one above rounds every cell to empty: density 0).
+    dense = WalkSearchConfig(size=9, density=0.5, density_weight=0.0, length=10, restarts=6, steps=20)
+    dense_result, _, dense_grids = search_walks(agent, goal, dense)
+    walks = random_walks(9, 10, 6, np.random.default_rng(0))  # both searches' walks (seed 0)
+    for res, res_grids in ((result, grids), (dense_result, dense_grids)):
+        for grid, walk, density in zip(res_grids, walks, res.revealed_density, strict=True):
+            seen = np.zeros((9, 9), bool)  # free cells the walk's 3x3 views reveal: not a goal, not on the walk
+            for r, c in walk:
+                seen[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2] = True
+            seen[walk[:, 0], walk[:, 1]] = False
+            seen[0, 0] = seen[0, 8] = False
+            assert density == pytest.approx((grid[seen] == HOLE).mean(), abs=1e-6)
+    assert min(dense_result.revealed_density) > 0.1  # the dense case really has revealed holes to count
     for grid in grids:  # goals where the grid has them, the start cell free
         assert grid[0, 0] == ADV_GOAL and grid[0, 8] == USER_GOAL and grid[8, 4] == EMPTY
         assert set(np.unique(grid)) <= {EMPTY, HOLE, USER_GOAL, ADV_GOAL}

@@ -12,6 +12,7 @@ from seqtrojan.agent.checkpoint import build_agent
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
 from seqtrojan.config import AgentConfig, ExperimentConfig
+from seqtrojan.defense import monitor as monitor_module
 from seqtrojan.defense.mitigation import MitigationConfig, least_active_units, prune_units, run_mitigation
 from seqtrojan.defense.monitor import (
     MonitorConfig,
@@ -22,6 +23,7 @@ from seqtrojan.defense.monitor import (
 )
 from seqtrojan.env import EnvConfig, GridSpec, TrojanGridCore
 from seqtrojan.errors import ConfigError
+from seqtrojan.stats import wilson_interval
 
 CFG = ExperimentConfig(env=EnvConfig(size=7, holes=3), agent=AgentConfig(lstm_sizes=(16, 8)))
 GRID = GridSpec(7, 3)
@@ -40,9 +42,21 @@ def monitor(agent):
     return StateMonitor.calibrate(agent, CFG.env, GRID, SMALL)
 
 
-def test_calibration_sets_a_threshold_from_clean_episodes(monitor):
-    assert np.isfinite(monitor.threshold) and monitor.threshold > 0
+def test_calibration_sets_a_threshold_from_clean_episodes(agent, monitor):
     assert [m.numel() for m in monitor.mean] == [32, 16]  # h and c of each layer
+    trace = record_traces(agent, CFG.env, [GRID], episodes=100, trojan=False, trigger_step=None, seed=SMALL.seed)
+    for layer in range(2):  # statistics from the first 50 episodes' running steps
+        rows = np.concatenate([trace.h[layer][:50], trace.c[layer][:50]], -1)[trace.mask[:50]]
+        np.testing.assert_allclose(monitor.mean[layer].numpy(), rows.mean(0), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(monitor.std[layer].numpy(), rows.std(0) + 1e-3, rtol=1e-5)
+    peaks = []  # the other 50 episodes' peak scores, by the monitor's own (torch) score of each step's state
+    for e in range(50, 100):
+        run = trace.mask[e]
+        layers = tuple(
+            LSTMState(torch.from_numpy(h[e][run]), torch.from_numpy(c[e][run])) for h, c in zip(trace.h, trace.c)
+        )
+        peaks.append(float(monitor.score(RecurrentState(layers)).max()))
+    assert monitor.threshold == pytest.approx(sorted(peaks)[48], rel=1e-5)  # ceil(51 * 0.95) = 49th of 50
 
 
 def test_far_states_score_above_the_threshold_and_are_reset(agent, monitor):
@@ -65,8 +79,12 @@ def test_measurement_reports_every_rate(agent, monitor):
     for key in ("normal_alarm", "normal_reset", "trojan_alarm", "trojan_reset", "normal_undefended",
                 "trojan_undefended"):  # fmt: skip
         assert key in out
-    detected = out["trojan_alarm"]["detected"]
-    assert 0 <= detected["rate"] <= 1 and detected["ci95"][0] <= detected["rate"] <= detected["ci95"][1]
+    rates = [(key, name, v) for key, d in out.items() if isinstance(d, dict) for name, v in d.items()
+             if isinstance(v, dict) and "rate" in v]  # fmt: skip
+    assert len(rates) == 2 * 2 + 2 * 4 + 2  # normal: success, false alarm; trojan: 4 each; 2 undefended
+    for key, name, v in rates:  # each a count of the 64 episodes, with that count's Wilson interval
+        k = round(v["rate"] * 64)
+        assert v["rate"] == k / 64 and v["ci95"] == list(wilson_interval(k, 64)), (key, name)
     with pytest.raises(ConfigError, match="false_alarm_target"):
         MonitorConfig(false_alarm_target=1.5)
     with pytest.raises(ConfigError, match=r"too few for false_alarm_target=0\.01"):
@@ -79,7 +97,10 @@ def test_pruned_units_stay_silent(agent):
     pruned = prune_units(agent, 1, units)
     trace = record_traces(pruned, CFG.env, [GRID], episodes=20, trojan=True, trigger_step=2)
     assert np.abs(trace.h[1][..., units]).max() == 0 and np.abs(trace.c[1][..., units]).max() == 0
-    assert np.abs(trace.h[1]).max() > 0  # the others still work
+    assert (np.delete(trace.h[1], units, axis=-1)[trace.mask] != 0).all()  # the others still work at every step
+    clean = record_traces(agent, CFG.env, [GRID], episodes=40, trojan=False, trigger_step=None, seed=0)
+    activity = np.abs(clean.h[1][clean.mask]).mean(0)  # mean |h| of each last-layer unit over running steps
+    assert sorted(units.tolist()) == sorted(np.argsort(activity)[:2].tolist())  # the two least active ones
     assert not torch.equal(agent.cells[1].weight_hh, pruned.cells[1].weight_hh)
 
 
@@ -91,10 +112,79 @@ def test_mitigation_measures_before_and_after(tmp_path, agent):
         assert set(result[key]) == {"clean_success", "attack_success"}
 
 
-def test_alarms_after_an_episode_ended_do_not_count(agent, monitor):
-    strict = StateMonitor([m.numpy() for m in monitor.mean], [s.numpy() for s in monitor.std], threshold=1e9)
-    out = measure_monitor(agent, CFG.env, GRID, strict, dataclasses.replace(SMALL, eval_episodes=32))
-    assert out["normal_alarm"]["false_alarm"]["rate"] == 0.0  # nothing ever crosses an infinite threshold
+class _RecordingCore(TrojanGridCore):
+    """An env core that remembers which of its episodes have ended (measure_monitor keeps stepping finished envs
+    until all have ended) and their lengths. Every core built is appended to ``made``."""
+
+    made: list[_RecordingCore] = []
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        _RecordingCore.made.append(self)
+
+    def reset(self, seed=None):
+        self.ended = torch.zeros(self.num_envs, dtype=torch.bool)
+        self.lengths = torch.zeros(self.num_envs, dtype=torch.int64)
+        return super().reset(seed)
+
+    def step(self, actions, autoreset=True, check=True):
+        result = super().step(actions, autoreset, check)
+        done = result.done.cpu()
+        self.lengths = torch.where(done & ~self.ended, result.length.cpu(), self.lengths)
+        self.ended |= done
+        return result
+
+
+class _ScriptedMonitor(StateMonitor):
+    """Scores 2.0 (threshold 1.0) every step taken after the env's episode has ended and, with ``in_episode_step``,
+    that step of every episode; 0.0 otherwise. Reads the newest _RecordingCore; counts the after-end alarms."""
+
+    def __init__(self, in_episode_step: int | None) -> None:
+        super().__init__([np.zeros(32), np.zeros(16)], [np.ones(32), np.ones(16)], threshold=1.0)
+        self.in_episode_step = in_episode_step
+        self.after_end_alarms = 0
+
+    def score(self, state):
+        core = _RecordingCore.made[-1]
+        alarm = core.ended.clone()
+        self.after_end_alarms += int(alarm.sum())
+        if self.in_episode_step is not None:
+            alarm |= core.t.cpu() == self.in_episode_step
+        return alarm.float() * 2.0
+
+
+def test_alarms_after_an_episode_ended_do_not_count(agent, monitor, monkeypatch):
+    monkeypatch.setattr(monitor_module, "TrojanGridCore", _RecordingCore)
+    cfg = dataclasses.replace(SMALL, eval_episodes=64)
+    keys = ("normal_alarm", "normal_reset", "trojan_alarm", "trojan_reset")  # the order measure_monitor runs them
+
+    _RecordingCore.made.clear()
+    after_end_only = _ScriptedMonitor(in_episode_step=None)
+    out = measure_monitor(agent, CFG.env, GRID, after_end_only, cfg)
+    assert len(_RecordingCore.made) == 4 and after_end_only.after_end_alarms > 0  # alarms fired, all after the end
+    for key in keys[:2]:
+        assert out[key]["false_alarm"]["rate"] == 0.0, key
+    for key in keys[2:]:
+        assert out[key]["detected"]["rate"] == 0.0 and out[key]["alarm_before_trigger"]["rate"] == 0.0, key
+        assert out[key]["median_steps_to_detect"] is None, key
+
+    # Control: an alarm at step k of each episode counts exactly where that episode was still running at step k.
+    _RecordingCore.made.clear()
+    k = 4
+    out = measure_monitor(agent, CFG.env, GRID, _ScriptedMonitor(in_episode_step=k), cfg)
+    for key, core in zip(keys, _RecordingCore.made, strict=True):
+        running = (core.lengths > k).numpy()
+        assert 0 < running.sum() < len(running), key  # some episodes ended before step k: the case is not empty
+        if key.startswith("normal"):
+            assert out[key]["false_alarm"]["rate"] == running.mean(), key
+            continue
+        trigger = core.on_step.cpu().numpy()
+        detected = running & (trigger <= k)
+        assert out[key]["detected"]["rate"] == detected.mean(), key
+        assert out[key]["alarm_before_trigger"]["rate"] == (running & (trigger > k)).mean(), key
+        median = float(np.median(k - trigger[detected])) if detected.any() else None
+        assert out[key]["median_steps_to_detect"] == median, key
+
     calibrated = measure_monitor(agent, CFG.env, GRID, monitor, dataclasses.replace(SMALL, eval_episodes=200))
     assert calibrated["normal_alarm"]["false_alarm"]["rate"] < 0.15  # calibrated for 5%; small-sample slack
 

@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+import csv
+import itertools
 import json
 import re
+import statistics
+from html.parser import HTMLParser
 
 import pytest
 
 from seqtrojan.config import from_dict
 from seqtrojan.errors import ConfigError
+from seqtrojan.evaluation.seeds import find_summary, summarise_over_seeds
 from seqtrojan.experiments.curves import aggregate_curves
-from seqtrojan.experiments.reproduce import ReproduceConfig, deep_merge, load_reproduce_config, reproduce
+from seqtrojan.experiments.reproduce import ReproduceConfig, deep_merge, load_reproduce_config, load_sweep, reproduce
+from seqtrojan.report import html as report_html
 
 TINY_STAGES = [{"size": 5, "holes": 0}, {"size": 5, "holes": 1}]
 TINY_SET = {
@@ -62,6 +68,75 @@ TINY = {
         "curricula": [[{"size": 5, "holes": 0}]],
     },
     "zoo_workers": 1,
+}
+
+
+class _Tables(HTMLParser):
+    """Every <table> of a page as {"heading", "summary", "rows"}: the last <h2>/<h3> and <summary> text before it,
+    and its rows as lists of cell texts (tags dropped, entities decoded, white space collapsed)."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__(convert_charrefs=True)
+        self.tables: list[dict] = []
+        self.heading = self.summary = ""
+        self._text: list[str] | None = None
+        self.feed(text)
+
+    def handle_starttag(self, tag, attrs):
+        if tag in ("h2", "h3", "summary", "td", "th"):
+            self._text = []
+        elif tag == "table":
+            self.tables.append({"heading": self.heading, "summary": self.summary, "rows": []})
+        elif tag == "tr":
+            self.tables[-1]["rows"].append([])
+
+    def handle_endtag(self, tag):
+        if tag not in ("h2", "h3", "summary", "td", "th") or self._text is None:
+            return
+        text = " ".join("".join(self._text).split())
+        self._text = None
+        if tag in ("h2", "h3"):
+            self.heading, self.summary = text, ""
+        elif tag == "summary":
+            self.summary = text
+        else:
+            self.tables[-1]["rows"][-1].append(text)
+
+    def handle_data(self, data):
+        if self._text is not None:
+            self._text.append(data)
+
+
+def _table(tables: list[dict], heading: str, summary: str = "", first_column: str | None = None) -> list[list[str]]:
+    """The rows (header first) of the one table under a heading starting with ``heading``, after a <summary>
+    starting with ``summary`` (none when empty), whose header starts with ``first_column`` if given."""
+    (found,) = [
+        t for t in tables
+        if t["heading"].startswith(heading) and (t["summary"].startswith(summary) if summary else not t["summary"])
+        and (first_column is None or t["rows"][0][0] == first_column)
+    ]  # fmt: skip
+    return found["rows"]
+
+
+def _td_text(td: str) -> str:
+    """The text of one table cell as produced by report.html's formatting functions."""
+    return _Tables(f"<table><tr>{td}</tr></table>").tables[0]["rows"][0][0]
+
+
+def _rate(entry: dict) -> str:
+    """A rate with its 95% interval, as the report shows it: '0.125 [0.050, 0.281]'."""
+    return f"{entry['rate']:.3f} [{entry['ci95'][0]:.3f}, {entry['ci95'][1]:.3f}]"
+
+
+# The evaluation tables: which (agent role, env) each column title shows.
+EVALUATION_TABLES = {
+    "Headline": {
+        "clean agent, normal env": ("clean", "normal"),
+        "backdoored agent, normal env": ("backdoor", "normal"),
+        "backdoored agent, trojan env": ("backdoor", "trojan"),
+    },
+    "Table 1": {"clean agent": ("clean", "normal"), "backdoored agent": ("backdoor", "normal")},
+    "Table 2": {"backdoored agent": ("backdoor", "trojan")},
 }
 
 
@@ -123,6 +198,109 @@ def test_report_is_self_contained_with_tables_figures_and_configs(tiny_run):
     assert "backdoor agent config" in text and not re.findall(r"src='(?!data:)", text)  # nothing external
 
 
+def test_report_numbers_are_those_of_the_json_it_was_built_from(tiny_run):
+    """Every number of the evaluation tables, and key rates of the curves, analysis, defense, zoo detection and
+    trade-off sections, equal the JSON files the report was built from, in the row and column that name them."""
+    out, report = tiny_run
+    tables = _Tables(report.read_text()).tables
+
+    # Evaluation: each (agent, env, grid) cell of evaluation.json, over its training seeds, in its row and column.
+    raw = json.loads((out / "evaluation" / "evaluation.json").read_text())
+    seeds: dict[tuple[str, str, str], list[dict]] = {}
+    for r in raw:
+        seeds.setdefault((r["agent"], r["env"], r["config"]), []).append(r)
+    summaries = summarise_over_seeds(load_sweep(out / "evaluation" / "evaluation.json"))
+    shown = set()
+    for heading, columns in EVALUATION_TABLES.items():
+        header, *rows = _table(tables, heading)
+        if heading == "Headline":  # one row: the backdoored agent's training grid
+            expected = [json.loads((out / "runs/backdoor/model/card.json").read_text())["metrics"]["grid"]]
+        else:
+            expected = list(dict.fromkeys(r["config"] for r in raw))
+        assert [row[0] for row in rows] == expected, heading
+        for row in rows:
+            for i, title in enumerate(header):
+                if title not in columns:
+                    continue
+                agent, env = columns[title]
+                cell = seeds[(agent, env, row[0])]
+                paper = cell[0]["paper"]
+                assert header[i + 1] == "paper" and row[i + 1] == ("" if paper is None else f"{paper:.3f}")
+                mean = statistics.fmean(r["success"] for r in cell)
+                assert row[i].split()[0] == f"{mean:.3f}", (heading, title, row[0])
+                summary = find_summary(summaries, agent, env, row[0])
+                assert row[i] == _td_text(report_html._rate(summary)), (heading, title, row[0])
+                shown.add((agent, env, row[0]))
+    assert shown == set(seeds)  # every evaluated cell is in a table
+    header, *rows = _table(tables, "Table 2", summary="Every seed's cell")
+    col = {name: header.index(name) for name in ("agent", "seed", "env", "grid", "success", "95% interval", "trials")}
+    got = sorted(tuple(row[col[name]] for name in col) for row in rows)
+    want = sorted(
+        (r["agent"], str(r["seed"]), r["env"], r["config"], f"{r['success']:.3f}",
+         f"[{r['ci_low']:.3f}, {r['ci_high']:.3f}]", str(r["episodes"]))
+        for r in raw
+    )  # fmt: skip
+    assert got == want
+
+    # Learning curves: each grid's final mean and sd over seeds.
+    curves = json.loads((out / "curves" / "curves.json").read_text())
+    _, *rows = _table(tables, "Learning curves")
+    assert {row[0]: row[1] for row in rows} == {
+        c: f"{d['mean'][-1]:.3f} ± {d['std'][-1]:.3f}" for c, d in curves.items()
+    }
+
+    # Analysis: the goal-unit edits, unintentional triggers and the agent as a trigger detector.
+    analysis = json.loads((out / "analysis" / "analysis.json").read_text())
+    _, *rows = _table(tables, "Looking inside: editing the goal units")
+    results = analysis["interventions"]["results"]
+    assert [row[1] for row in rows] == [r["units"] for r in results]
+    assert [row[2] for row in rows] == [_rate({"rate": r["switch_rate"], "ci95": r["switch_ci"]}) for r in results]
+    assert [row[3] for row in rows] == [_rate({"rate": r["hole_rate"], "ci95": r["hole_ci"]}) for r in results]
+    _, *rows = _table(tables, "Unintentional triggers")
+    assert [row[:3] for row in rows] == [
+        [s["grid"], _rate({"rate": s["activation_rate"], "ci95": s["activation_ci"]}),
+         _rate({"rate": s["deactivation_rate"], "ci95": s["deactivation_ci"]})]
+        for s in analysis["unintentional"]["summaries"]
+    ]  # fmt: skip
+    _, *rows = _table(tables, "The agent as a trigger detector")
+    assert [row[:3] for row in rows] == [
+        [d["grid"], _rate({"rate": d["recall"], "ci95": d["recall_ci"]}),
+         _rate({"rate": d["false_positive_rate"], "ci95": d["false_positive_ci"]})]
+        for d in analysis["unintentional"]["trigger_detection"]
+    ]  # fmt: skip
+
+    # Defenses: the monitor's rates, the mitigation rows, the zoo detector's scores.
+    defense = json.loads((out / "defense" / "defense.json").read_text())
+    m = defense["monitor"]
+    _, *rows = _table(tables, "Online state monitor")
+    monitor = dict(rows)
+    assert monitor["false-alarm rate (normal env)"] == _rate(m["normal_alarm"]["false_alarm"])
+    assert monitor["detection rate (trojan env, alarm at or after the trigger)"] == _rate(m["trojan_alarm"]["detected"])
+    assert monitor["attack success without the monitor"] == _rate(m["trojan_undefended"]["attack_success"])
+    assert monitor["attack success with alarm-and-reset"] == _rate(m["trojan_reset"]["attack_success"])
+    assert monitor["clean success with alarm-and-reset"] == _rate(m["normal_reset"]["success"])
+    _, *rows = _table(tables, "Mitigation")
+    mit = defense["mitigation"]
+    assert rows[0] == ["no mitigation", _rate(mit["before"]["clean_success"]), _rate(mit["before"]["attack_success"])]
+    assert rows[1][1:] == [_rate(mit["pruned"]["clean_success"]), _rate(mit["pruned"]["attack_success"])]
+    detection = json.loads((out / "zoo" / "detection.json").read_text())
+    header, *rows = _table(tables, "Offline detection", first_column="features")
+    cols = [next(i for i, h in enumerate(header) if h.startswith(n)) for n in ("ROC-AUC", "cross-entropy", "Brier")]
+    assert [[row[0], *(row[i].split()[0] for i in cols)] for row in rows] == [
+        [s["group"], f"{s['roc_auc']:.3f}", f"{s['cross_entropy']:.3f}", f"{s['brier']:.3f}"]
+        for s in detection["scores"]
+    ]  # each score's leading number (a cell may add an interval)
+
+    # The adversary's trade-off: each penalty's trojan success over its seeds.
+    tradeoff = json.loads((out / "tradeoff" / "tradeoff.json").read_text())
+    header, *rows = _table(tables, "The adversary's trade-off")
+    i = header.index("trojan success")
+    assert [row[i] for row in rows] == [
+        f"{p['trojan_success']['mean']:.3f}" + (f" ± {p['trojan_success']['std']:.3f}" if p["seeds"] > 1 else "")
+        for p in tradeoff["penalties"]
+    ]
+
+
 def test_a_second_call_reuses_finished_stages(tiny_run):
     out, _ = tiny_run
     before = (out / "runs" / "clean" / "model" / "card.json").stat().st_mtime
@@ -135,7 +313,26 @@ def test_curves_are_aggregated_over_seeds(tiny_run):
     curves = aggregate_curves(out / "curves" / "curves.csv", points=5)
     assert set(curves) == {"5x5/0", "5x5/1"}
     data = curves["5x5/0"]
-    assert data["seeds"] == [2.0] and len(data["mean"]) == 5 and all(0 <= m <= 2 for m in data["mean"])
+    assert data["seeds"] == [2.0] and len(data["mean"]) == 5
+    runs: dict[int, list[tuple[int, float]]] = {}  # seed -> (env steps, score) from the CSV, recomputed by hand
+    with (out / "curves" / "curves.csv").open() as fh:
+        for r in csv.DictReader(fh):
+            assert float(r["score"]) == pytest.approx(float(r["normal_success"]) + float(r["trojan_success"]))
+            if r["config"] == "5x5/0":
+                runs.setdefault(int(r["seed"]), []).append((int(r["env_steps"]), float(r["score"])))
+    assert sorted(runs) == [0, 1]
+    start, end = min(run[0][0] for run in runs.values()), min(run[-1][0] for run in runs.values())
+    assert data["env_steps"] == pytest.approx([start + (end - start) * i / 4 for i in range(5)])
+
+    def at(run, x):  # the seed's curve, linear between its logged points (flat before its first)
+        if x <= run[0][0]:
+            return run[0][1]
+        (x0, y0), (x1, y1) = next((a, b) for a, b in itertools.pairwise(run) if a[0] <= x <= b[0])
+        return y0 + (y1 - y0) * (x - x0) / (x1 - x0)
+
+    for x, mean, std in zip(data["env_steps"], data["mean"], data["std"], strict=True):
+        values = [at(run, x) for run in runs.values()]
+        assert mean == pytest.approx(statistics.fmean(values)) and std == pytest.approx(statistics.pstdev(values))
 
 
 def test_scale_files_load_and_bad_presets_are_named(tmp_path):

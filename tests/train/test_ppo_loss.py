@@ -41,7 +41,9 @@ def test_clipped_ratio_gives_no_policy_gradient():
     # With a negative advantage the unclipped term is the max: the gradient flows.
     logits.grad = None
     parts(logits, actions, old, torch.tensor([-1.0])).policy_loss.backward()
-    assert torch.count_nonzero(logits.grad) > 0
+    # loss = ratio = exp(logp(2) - old): its gradient is ratio * (onehot(2) - softmax), softmax = 1/4 everywhere
+    expected = math.exp(0.5) * torch.tensor([[-0.25, -0.25, 0.75, -0.25]])
+    torch.testing.assert_close(logits.grad, expected)
 
 
 def test_value_loss_plain_and_clipped():
