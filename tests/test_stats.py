@@ -17,14 +17,19 @@ def hanley_mcneil(auc: float, m: int, n: int) -> tuple[float, float]:
     return auc - 1.959964 * se, auc + 1.959964 * se
 
 
+def newcombe_variance(theta: float, m: int, n: int) -> float:
+    n_star = (m + n) / 2 - 1
+    return theta * (1 - theta) / (m * n) * (1 + n_star * ((1 - theta) / (2 - theta) + theta / (1 + theta)))
+
+
 def test_auc_interval_contains_the_estimate_and_stays_open_at_the_edges():
     lo, hi = auc_interval(1.0, 8, 8)
     assert hi == 1.0 and 0.6 < lo < 0.9  # a perfect AUC from 16 models is far from certain
     lo, hi = auc_interval(0.0, 5, 5)
     assert lo == 0.0 and 0.2 < hi < 0.5
-    for auc in (0.3, 0.5, 0.8, 0.95):
-        lo, hi = auc_interval(auc, 10, 12)
-        assert 0.0 <= lo < auc < hi <= 1.0
+    for auc in (0.3, 0.5, 0.8, 0.95):  # each bound solves Newcombe's score equation (auc - t)^2 = z^2 var(t)
+        for bound in auc_interval(auc, 10, 12):
+            assert (auc - bound) ** 2 == pytest.approx(1.959964**2 * newcombe_variance(bound, 10, 12), rel=1e-6)
     assert sum(auc_interval(0.5, 8, 8)) == pytest.approx(1.0)  # symmetric about 0.5 with equal classes
     # more models, narrower; many models: close to the Hanley-McNeil interval
     widths = [np.subtract(*auc_interval(0.85, k, k)[::-1]) for k in (5, 20, 80)]
