@@ -30,6 +30,7 @@ demo: setup
 lint: setup
 	$(BIN)/ruff check seqtrojan tests benchmarks
 	$(BIN)/ruff format --check seqtrojan tests benchmarks
+	$(BIN)/mypy seqtrojan
 
 test: lint
 	$(BIN)/python -m pytest -n 2 -m "not slow" -q
@@ -42,4 +43,4 @@ bench: setup
 	$(BIN)/python benchmarks/train_throughput.py
 
 clean:
-	rm -rf $(VENV) outputs results .pytest_cache .ruff_cache
+	rm -rf $(VENV) outputs results .pytest_cache .ruff_cache .mypy_cache

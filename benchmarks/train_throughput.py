@@ -25,8 +25,9 @@ from rich.console import Console
 from rich.table import Table
 
 from seqtrojan.agent import fast_lstm
-from seqtrojan.config import ExperimentConfig, PPOConfig, RunConfig, from_dict, load_yaml
+from seqtrojan.config import ExperimentConfig, PPOConfig, RunConfig
 from seqtrojan.env import EnvConfig
+from seqtrojan.serde import from_dict, load_yaml
 from seqtrojan.train.trainer import train
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,6 +12,7 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any, Literal
 
 import tyro
 
@@ -43,9 +44,9 @@ def _cli_with_config_file(args_cls: type, config_cls: type, argv: list[str], pro
     path, argv = _pop_option(argv, "--config-file")
     if path is None:
         return tyro.cli(args_cls, args=argv, prog=prog)
-    from seqtrojan.config import from_dict, load_yaml
+    from seqtrojan.serde import from_dict, load_yaml
 
-    config = from_dict(config_cls, load_yaml(Path(path)), "")
+    config: Any = from_dict(config_cls, load_yaml(Path(path)), "")
     required = {f.name: tyro.MISSING for f in dataclasses.fields(args_cls) if f.name != "config"
                 and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING}  # fmt: skip
     return tyro.cli(args_cls, args=argv, prog=prog, default=args_cls(config=config, **required))
@@ -57,8 +58,9 @@ def parse_experiment(argv: list[str], prog: str, description: str):
     the other options override, and parsed again with the rest so that ``--help`` lists them."""
     from typing import Annotated
 
-    from seqtrojan.config import ExperimentConfig, from_dict, load_yaml
+    from seqtrojan.config import ExperimentConfig
     from seqtrojan.presets import list_presets, resolve_preset
+    from seqtrojan.serde import from_dict, load_yaml
 
     preset, rest = _pop_option(argv, "--config")
     resume, _ = _pop_option(rest, "--resume")
@@ -161,6 +163,15 @@ class ReproduceArgs:
     """output folder (default: results/<scale>)"""
     device: str | None = None
     """torch device (default: the scale file's, cpu)"""
+    backend: Literal["serial", "pool", "ray"] | None = None
+    """job backend of the stages that train many agents (curves, trade-off, zoo): serial, pool (local worker
+    processes) or ray (default: the scale file's jobs.backend, pool)"""
+    workers: int | None = None
+    """trainings at once on the pool or a local Ray instance (default: the scale file's jobs.workers, 2)"""
+    ray_address: str | None = None
+    """the Ray cluster to run on, e.g. 10.0.0.5:6379 (default: the scale file's; none: a local Ray instance)"""
+    threads: int | None = None
+    """torch threads per training (default: the cores shared out among the workers)"""
 
 
 def _reproduce(argv: list[str]) -> None:
@@ -170,6 +181,10 @@ def _reproduce(argv: list[str]) -> None:
     config = load_reproduce_config(args.scale)
     if args.device is not None:
         config = dataclasses.replace(config, device=args.device)
+    chosen: dict[str, Any] = {"backend": args.backend, "workers": args.workers, "ray_address": args.ray_address,
+                              "threads": args.threads}  # fmt: skip
+    jobs = dataclasses.replace(config.jobs, **{k: v for k, v in chosen.items() if v is not None})
+    config = dataclasses.replace(config, jobs=jobs)
     scale = Path(args.scale).stem.removeprefix("reproduce_")
     reproduce(config, args.out or Path("results") / scale, scale=scale)
 
@@ -248,14 +263,18 @@ def _zoo(argv: list[str]) -> None:
 
     @dataclasses.dataclass
     class ZooBuild:
-        """Train a zoo of clean and backdoored agents (resumable; local process pool or Ray)."""
+        """Train a zoo of clean and backdoored agents (resumable; serially, on local worker processes or on Ray)."""
 
         out: Path = Path("results/zoo")
         config: ZooConfig = dataclasses.field(default_factory=ZooConfig)
         workers: int = 2
         """models trained at once (at most one per core; the cores are shared out as torch threads)"""
-        backend: str = "local"
-        """local (process pool) or ray"""
+        backend: Literal["serial", "pool", "ray"] = "pool"
+        """job backend: serial (this process), pool (local worker processes) or ray"""
+        ray_address: str | None = None
+        """the Ray cluster to run on, e.g. 10.0.0.5:6379 (none: a local Ray instance)"""
+        threads: int | None = None
+        """torch threads per model (default: the cores shared out among the workers; 1 on a Ray cluster)"""
 
     @dataclasses.dataclass
     class ZooDetect:
@@ -270,7 +289,9 @@ def _zoo(argv: list[str]) -> None:
         raise SystemExit(2)
     if argv[0] == "build":
         args = _cli_with_config_file(ZooBuild, ZooConfig, argv[1:], "seqtrojan zoo build")
-        print(f"wrote {build_zoo(args.config, args.out, workers=args.workers, backend=args.backend)}")
+        manifest = build_zoo(args.config, args.out, workers=args.workers, backend=args.backend,
+                             ray_address=args.ray_address, threads=args.threads)  # fmt: skip
+        print(f"wrote {manifest}")
         return
     args = tyro.cli(ZooDetect, args=argv[1:], prog="seqtrojan zoo detect")
     result = detect_zoo(args.zoo, args.folds, args.seed)

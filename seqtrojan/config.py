@@ -1,25 +1,33 @@
-"""Typed configuration: dataclasses <-> plain dicts / YAML, with clear errors for unknown or ill-typed keys.
+"""The experiment's configuration: frozen dataclasses for the agent, PPO, the curriculum, the backdoor and the run.
 
 Every stage of seqtrojan takes a frozen dataclass. YAML presets in ``configs/`` and JSON model cards are read
-with :func:`from_dict`, which checks every key and value type and names the dotted path of anything wrong.
+with :func:`seqtrojan.serde.from_dict`, which checks every key and value type and names the dotted path of
+anything wrong. ``from_dict``, ``to_dict``, ``load_yaml`` and ``parse_yaml`` are re-exported here for old
+imports; new code imports them from :mod:`seqtrojan.serde`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import re
-import reprlib
-import types
-import typing
-from pathlib import Path
-from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
-
-import yaml
+from typing import Literal
 
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.errors import ConfigError
+from seqtrojan.serde import from_dict, load_yaml, parse_yaml, short_repr, to_dict
 
-T = TypeVar("T")
+__all__ = [
+    "AgentConfig",
+    "BackdoorConfig",
+    "CurriculumConfig",
+    "ExperimentConfig",
+    "PPOConfig",
+    "RunConfig",
+    "from_dict",
+    "load_yaml",
+    "parse_yaml",
+    "to_dict",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,7 +43,7 @@ class AgentConfig:
 
     def __post_init__(self) -> None:
         if not self.lstm_sizes or any((not isinstance(w, int)) or w < 1 for w in self.lstm_sizes):
-            raise ConfigError(f"agent.lstm_sizes must be positive integers, got {_short(self.lstm_sizes)}")
+            raise ConfigError(f"agent.lstm_sizes must be positive integers, got {short_repr(self.lstm_sizes)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,7 +91,7 @@ class PPOConfig:
         for name in ("total_steps", "num_envs", "rollout_steps", "num_minibatches", "update_epochs"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
-                raise ConfigError(f"ppo.{name} must be a positive integer, got {_short(value)}")
+                raise ConfigError(f"ppo.{name} must be a positive integer, got {short_repr(value)}")
         if self.sequence_length < 1 or self.rollout_steps % self.sequence_length:
             raise ConfigError(f"ppo.bptt_length={self.bptt_length} must divide ppo.rollout_steps={self.rollout_steps}")
         if self.num_sequences % self.num_minibatches:
@@ -193,9 +201,11 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         if not isinstance(self.device, str) or not _DEVICE.fullmatch(self.device):
-            raise ConfigError(f"run.device={_short(self.device)} is not a device; use cpu, cuda or cuda:N")
+            raise ConfigError(f"run.device={short_repr(self.device)} is not a device; use cpu, cuda or cuda:N")
         if isinstance(self.checkpoint_every, bool) or not isinstance(self.checkpoint_every, int):
-            raise ConfigError(f"run.checkpoint_every must be a positive integer, got {_short(self.checkpoint_every)}")
+            raise ConfigError(
+                f"run.checkpoint_every must be a positive integer, got {short_repr(self.checkpoint_every)}"
+            )
         if self.checkpoint_every < 1:
             raise ConfigError(f"run.checkpoint_every must be a positive integer, got {self.checkpoint_every}")
 
@@ -222,167 +232,3 @@ class ExperimentConfig:
     @property
     def label(self) -> str:
         return "backdoored" if self.backdoor.enabled else "clean"
-
-
-def to_dict(obj: Any) -> Any:
-    """A dataclass (nested) as plain dicts/lists, ready for YAML or JSON."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, (tuple, list)):
-        return [to_dict(x) for x in obj]
-    if isinstance(obj, dict):
-        return {k: to_dict(v) for k, v in obj.items()}
-    return obj
-
-
-_REPR = reprlib.Repr()
-_REPR.maxlevel, _REPR.maxlist, _REPR.maxtuple, _REPR.maxdict, _REPR.maxset = 3, 4, 4, 4, 4
-_REPR.maxstring, _REPR.maxother, _REPR.maxlong = 60, 60, 40
-_MAX_REPR = 80
-
-
-def _short(value: Any) -> str:
-    """``repr(value)`` for an error message, at most ~80 characters however large (or deeply shared) the value."""
-    text = _REPR.repr(value)
-    return text if len(text) <= _MAX_REPR else text[: _MAX_REPR - 3] + "..."
-
-
-def from_dict(cls: type[T], data: Any, path: str = "") -> T:
-    """Build dataclass ``cls`` from a (nested) dict, checking keys and value types."""
-    if isinstance(data, cls):
-        return data
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path or cls.__name__} must be a mapping, got {type(data).__name__}: {_short(data)}")
-    hints = get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    unknown = sorted(set(data) - names)
-    if unknown:
-        where = f" in {path}" if path else ""
-        raise ConfigError(f"unknown config key(s) {unknown}{where}; known keys: {sorted(names)}")
-    kwargs = {k: _convert(hints[k], v, f"{path}.{k}" if path else k) for k, v in data.items()}
-    try:
-        return cls(**kwargs)
-    except TypeError as err:  # pragma: no cover - from_dict already checked the keys
-        raise ConfigError(f"{path or cls.__name__}: {err}") from None
-
-
-def _convert(tp: Any, value: Any, path: str) -> Any:
-    origin = get_origin(tp)
-    if tp is Any:
-        return value
-    if origin in (Union, types.UnionType):
-        options = get_args(tp)
-        if value is None and type(None) in options:
-            return None
-        errors = []
-        for option in options:
-            if option is type(None):
-                continue
-            try:
-                return _convert(option, value, path)
-            except ConfigError as err:
-                errors.append(str(err))
-        raise ConfigError(errors[0] if len(errors) == 1 else f"{path}: {_short(value)} matches none of {tp}")
-    if origin is Literal:
-        if value not in get_args(tp):
-            raise ConfigError(f"{path}={_short(value)} is not one of {list(get_args(tp))}")
-        return value
-    if dataclasses.is_dataclass(tp):
-        return from_dict(tp, value, path)
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{path} must be a list, got {type(value).__name__}: {_short(value)}")
-        args = get_args(tp)
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(args[0], v, f"{path}[{i}]") for i, v in enumerate(value))
-        if len(args) != len(value):
-            raise ConfigError(f"{path} must have {len(args)} items, got {len(value)}: {_short(value)}")
-        return tuple(_convert(a, v, f"{path}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
-    if origin in (list, typing.List):  # noqa: UP006
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{path} must be a list, got {type(value).__name__}: {_short(value)}")
-        (arg,) = get_args(tp)
-        return [_convert(arg, v, f"{path}[{i}]") for i, v in enumerate(value)]
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{path} must be a number, got {_short(value)}")
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{path} must be an integer, got {_short(value)}")
-        return value
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{path} must be true or false, got {_short(value)}")
-        return value
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{path} must be a string, got {_short(value)}")
-        return value
-    return value
-
-
-class _Yaml12Loader(yaml.SafeLoader):
-    """PyYAML's safe loader read the YAML 1.2 way: only true/false are booleans, so that a key like ``off:`` (the
-    OFF trigger) stays the string 'off' instead of becoming False as YAML 1.1 reads on/off/yes/no; and 1e-3 is a
-    number, not a string.
-
-    Aliases (``*name``, and so ``<<: *name`` merges) are refused: a few lines of nested aliases expand to billions
-    of nodes (the "billion laughs"). Anchors alone are harmless and allowed.
-    """
-
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        if self.check_event(yaml.AliasEvent):
-            event = self.peek_event()
-            raise yaml.composer.ComposerError(
-                None, None, f"found alias *{event.anchor}: aliases are not allowed in config files", event.start_mark
-            )
-        return super().compose_node(parent, index)
-
-
-_Yaml12Loader.yaml_implicit_resolvers = {
-    first: [(tag, regexp) for tag, regexp in resolvers if tag != "tag:yaml.org,2002:bool"]
-    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
-}
-_Yaml12Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF")
-)
-
-
-_Yaml12Loader.add_implicit_resolver(  # 1e-3 and 3E+4 are numbers (YAML 1.1 wants a dot: 1.0e-3)
-    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"), list("-+0123456789")
-)
-
-
-def parse_yaml(text: str) -> Any:
-    """YAML text -> Python data, with YAML 1.2 booleans and no aliases (see :class:`_Yaml12Loader`)."""
-    return yaml.load(text, Loader=_Yaml12Loader)
-
-
-def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping, with a clear error for a missing file or bad YAML."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file {str(path)!r} does not exist")
-    try:
-        data = parse_yaml(path.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"config file {str(path)!r} is not valid YAML: {_yaml_problem(err)}") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"config file {str(path)!r} must hold a mapping at the top level")
-    return data
-
-
-def _yaml_problem(err: yaml.YAMLError) -> str:
-    """A YAML error on one line: what is wrong and where (PyYAML's own text spans lines, with a caret)."""
-    if isinstance(err, yaml.MarkedYAMLError) and err.problem:
-        mark = err.problem_mark
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
-        return f"{err.context + ': ' if err.context else ''}{err.problem}{where}"
-    return " ".join(str(err).split())
-
-
-def env_config_from_dict(data: dict[str, Any]) -> EnvConfig:
-    return from_dict(EnvConfig, data, "env")

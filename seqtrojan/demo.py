@@ -59,7 +59,7 @@ def run_demo(args: DemoArgs) -> dict:
     for env_name, p_trojan in (("normal", 0.0), ("trojan", 1.0)):
         core = TrojanGridCore(cfg, args.episodes, device=args.device, trojan_probability=p_trojan, phase="eval")
         for agent_name, agent in (("random", RandomAgent(core, args.seed)), ("oracle", OracleAgent(core))):
-            batch = run_episodes(core, lambda obs, agent=agent: agent.act(obs), seed=args.seed)
+            batch = run_episodes(core, agent.act, seed=args.seed)
             lo, hi = batch.success_interval()
             wrong = batch.rate("adversary_goal") if env_name == "normal" else batch.rate("user_goal")
             row = {

@@ -4,7 +4,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from seqtrojan.config import ExperimentConfig, from_dict, load_yaml
+from seqtrojan.config import ExperimentConfig
+from seqtrojan.serde import from_dict, load_yaml
 
 # One intra-op thread per test process: tests are run in parallel processes (pytest -n 2) and time nothing.
 torch.set_num_threads(1)

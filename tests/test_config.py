@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from seqtrojan.config import ExperimentConfig, RunConfig, from_dict, load_yaml, parse_yaml, to_dict
+from seqtrojan.config import ExperimentConfig, RunConfig
 from seqtrojan.errors import ConfigError
+from seqtrojan.serde import from_dict, load_yaml, parse_yaml, to_dict
 from tests.conftest import ROOT
 
 
@@ -109,3 +110,11 @@ def test_checkpoint_every_must_be_a_positive_integer(value):
     with pytest.raises(ConfigError, match=r"run\.checkpoint_every must be a positive integer"):
         RunConfig(checkpoint_every=value)
     assert RunConfig(checkpoint_every=1).checkpoint_every == 1
+
+
+def test_serde_names_are_still_importable_from_config():
+    import seqtrojan.config as config
+    import seqtrojan.serde as serde
+
+    for name in ("from_dict", "to_dict", "load_yaml", "parse_yaml"):
+        assert getattr(config, name) is getattr(serde, name)

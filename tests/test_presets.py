@@ -7,10 +7,11 @@ from pathlib import Path
 import pytest
 
 import seqtrojan
-from seqtrojan.config import ExperimentConfig, from_dict, load_yaml
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.experiments import reproduce
 from seqtrojan.presets import list_presets, resolve_preset
+from seqtrojan.serde import from_dict, load_yaml
 from tests.conftest import ROOT
 
 PACKAGE_PRESETS = Path(seqtrojan.__file__).resolve().parent / "presets"

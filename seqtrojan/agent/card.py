@@ -32,8 +32,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from seqtrojan.config import ExperimentConfig, from_dict
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import CheckpointError, SeqTrojanError
+from seqtrojan.serde import from_dict
 
 FORMAT = "seqtrojan-model"
 FORMAT_VERSION = 1

@@ -37,8 +37,9 @@ from seqtrojan.agent.card import (
     read_header,
 )
 from seqtrojan.agent.network import RecurrentActorCritic
-from seqtrojan.config import ExperimentConfig, to_dict
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import CheckpointError, ConfigError
+from seqtrojan.serde import to_dict
 
 __all__ = [
     "CARD",

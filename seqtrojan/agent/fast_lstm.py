@@ -8,8 +8,13 @@ about 520k samples/s forward + backward for the paper's 54 -> 64 -> 32 network v
 PyTorch path (see benchmarks/train_throughput.py).
 
 The extension is compiled once per machine on first use (about 30 s; needs a C++ compiler, which the PyTorch
-CPU wheels already require for this) into ``~/.cache/seqtrojan`` (``SEQTROJAN_CACHE`` overrides), keyed by the
-source, the torch version and the CPU. Where it cannot be built, or on CUDA, or when an intervention must see
+CPU wheels already require for this) into ``~/.cache/seqtrojan`` (``SEQTROJAN_CACHE`` overrides), in a folder keyed
+by the source (its bytes and its path), the Python environment (``sys.prefix``), the torch version and the CPU, so
+that two clones or virtual environments never share one. A build runs in a fresh temporary folder under an
+``fcntl.flock`` lock of our own and is renamed into place when complete: a killed build leaves neither a half-built
+extension nor a lock (the kernel drops a dead process's flock), and loading a built extension takes no lock at all.
+A process that finds another one building waits up to ``SEQTROJAN_KERNEL_WAIT`` seconds (default 300), saying so on
+stderr, and then uses the PyTorch path. Where it cannot be built, or on CUDA, or when an intervention must see
 every step, :mod:`seqtrojan.agent.network` uses its PyTorch path, which computes the same function.
 ``SEQTROJAN_LSTM_BACKEND=torch`` disables the extension.
 
@@ -20,20 +25,40 @@ float32 use inline approximations with about 3e-7 maximum error, the size of flo
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
+import importlib.util
 import os
 import platform
+import shutil
 import sys
+import tempfile
 import threading
+import time
 from pathlib import Path
+from types import ModuleType
 
 import torch
 from torch.autograd.function import once_differentiable
 
+from seqtrojan.errors import ConfigError, SeqTrojanError
+
 _SOURCE = Path(__file__).parent / "csrc" / "fast_lstm.cpp"
+_NAME = "seqtrojan_fast_lstm"
+# -fopenmp is required: at::parallel_for is an inline OpenMP template (without it the batch blocks run one after
+# another). -ffast-math at compile time only: linking with it would set flush-to-zero for the whole process.
+_CFLAGS = ("-O3", "-march=native", "-ffast-math", "-fopenmp")
+_LDFLAGS = ("-fopenmp",)
+WAIT_ENV = "SEQTROJAN_KERNEL_WAIT"
+DEFAULT_WAIT_S = 300.0
+_POLL_S = 0.1
 _lock = threading.Lock()
-_ext = None
+_ext: ModuleType | None = None
 _error: Exception | None = None
+
+
+class KernelBuildError(SeqTrojanError):
+    """The fast LSTM kernels are unavailable in this process (the PyTorch path is used instead)."""
 
 
 # ---------------------------------------------------------------------------------------------- loading
@@ -46,22 +71,135 @@ def _cpu_signature() -> str:
         return platform.processor()
 
 
+def cache_root() -> Path:
+    """The folder holding the compiled kernels: ``$SEQTROJAN_CACHE``, else ``~/.cache/seqtrojan``."""
+    return Path(os.environ.get("SEQTROJAN_CACHE") or Path.home() / ".cache" / "seqtrojan")
+
+
 def _build_dir() -> Path:
-    key = hashlib.sha256(
-        b"\0".join(
-            [
-                _SOURCE.read_bytes(),
-                torch.__version__.encode(),
-                sys.version.encode(),
-                platform.machine().encode(),
-                _cpu_signature().encode(),
-            ]
+    """The folder of the built extension for this source, environment, torch and CPU (it may not exist yet)."""
+    parts: list[bytes | str] = [
+        _SOURCE.read_bytes(),
+        str(_SOURCE.resolve()),  # two clones never share (or fight over) one folder
+        sys.prefix,  # nor do two virtual environments
+        torch.__version__,
+        str(Path(torch.__file__).resolve().parent),
+        sys.version,
+        platform.machine(),
+        _cpu_signature(),
+        " ".join(_CFLAGS + _LDFLAGS),
+    ]
+    key = hashlib.sha256(b"\0".join(p if isinstance(p, bytes) else p.encode() for p in parts)).hexdigest()[:16]
+    return cache_root() / f"fast_lstm_{key}"
+
+
+def _lock_path(build_dir: Path) -> Path:
+    return build_dir.with_name(build_dir.name + ".lock")
+
+
+def wait_seconds() -> float:
+    """How long to wait for another process's build: ``$SEQTROJAN_KERNEL_WAIT`` seconds, default 300."""
+    text = os.environ.get(WAIT_ENV, "").strip()
+    if not text:
+        return DEFAULT_WAIT_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not value >= 0:  # also rejects nan
+        raise ConfigError(f"{WAIT_ENV} must be a number of seconds >= 0, got {text!r}")
+    return value
+
+
+@contextlib.contextmanager
+def build_lock(path: Path, timeout: float):
+    """Hold an exclusive ``flock`` on ``path`` (created if missing) for the ``with`` block.
+
+    If another process holds it, say so in one line on stderr and poll for up to ``timeout`` seconds, then raise
+    :class:`KernelBuildError`. The wait sleeps in short steps, so signals (SIGTERM, Ctrl-C) act at once. The lock
+    cannot go stale: the kernel releases it when its holder exits, however it exits."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        if not _try_flock(fd):
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            print(
+                f"seqtrojan: another process (pid {holder}) is building the fast LSTM kernels (lock {path}); "
+                f"waiting up to {timeout:g} s ({WAIT_ENV}), then this run uses the PyTorch LSTM path",
+                file=sys.stderr,
+                flush=True,
+            )
+            deadline = time.monotonic() + timeout
+            while not _try_flock(fd):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise KernelBuildError(
+                        f"gave up after {timeout:g} s waiting for the kernel build lock {path} (held by pid {holder})"
+                    )
+                time.sleep(min(_POLL_S, left))
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _try_flock(fd: int) -> bool:
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
+
+
+def _import_built(build_dir: Path):
+    """The extension module from a complete build folder, or None if there is none."""
+    so = build_dir / f"{_NAME}.so"
+    if not so.is_file():
+        return None
+    spec = importlib.util.spec_from_file_location(_NAME, so)
+    if spec is None or spec.loader is None:
+        raise KernelBuildError(f"cannot import the fast LSTM kernels from {so}")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _build(build_dir: Path):
+    """Compile into a fresh temporary folder and rename it to ``build_dir``; the caller holds the build lock."""
+    from torch.utils.cpp_extension import load
+
+    # Leftovers of killed builds (no live builder exists while we hold the lock), including torch's 'lock' baton.
+    for old in build_dir.parent.glob(f".{build_dir.name}.build-*"):
+        shutil.rmtree(old, ignore_errors=True)
+    print("seqtrojan: compiling the fast LSTM kernels (once per machine, about 30 s)...", file=sys.stderr, flush=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{build_dir.name}.build-", dir=build_dir.parent))
+    try:
+        module = load(
+            name=_NAME,
+            sources=[str(_SOURCE)],
+            extra_cflags=list(_CFLAGS),
+            extra_ldflags=list(_LDFLAGS),
+            build_directory=str(tmp),
+            verbose=False,
         )
-    ).hexdigest()[:16]
-    root = Path(os.environ.get("SEQTROJAN_CACHE", Path.home() / ".cache" / "seqtrojan"))
-    path = root / f"fast_lstm_{key}"
-    path.mkdir(parents=True, exist_ok=True)
-    return path
+        os.chmod(tmp, 0o755)  # mkdtemp makes it private
+        if build_dir.exists():  # an incomplete folder (no extension in it), e.g. from an older seqtrojan
+            shutil.rmtree(build_dir)
+        os.rename(tmp, build_dir)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # a failed build (after a rename, tmp no longer exists)
+    return module
+
+
+def _load_or_build():
+    build_dir = _build_dir()
+    module = _import_built(build_dir)
+    if module is not None:
+        return module
+    with build_lock(_lock_path(build_dir), wait_seconds()):
+        module = _import_built(build_dir)  # built by the process we waited for
+        return module if module is not None else _build(build_dir)
 
 
 def extension():
@@ -75,23 +213,12 @@ def extension():
         if os.environ.get("SEQTROJAN_LSTM_BACKEND", "auto") == "torch":
             _error = RuntimeError("disabled by SEQTROJAN_LSTM_BACKEND=torch")
             return None
+        wait_seconds()  # a malformed setting is an error, not a silent fallback
         try:
-            from torch.utils.cpp_extension import load
-
-            build_dir = _build_dir()
-            if not any(build_dir.glob("*.so")):
-                print("seqtrojan: compiling the fast LSTM kernels (once per machine, about 30 s)...", file=sys.stderr)
-            _ext = load(
-                name="seqtrojan_fast_lstm",
-                sources=[str(_SOURCE)],
-                # -fopenmp is required: at::parallel_for is an inline OpenMP template (without it the batch
-                # blocks run one after another). -ffast-math at compile time only: linking with it would set
-                # flush-to-zero for the whole process.
-                extra_cflags=["-O3", "-march=native", "-ffast-math", "-fopenmp"],
-                extra_ldflags=["-fopenmp"],
-                build_directory=str(build_dir),
-                verbose=False,
-            )
+            _ext = _load_or_build()
+        except KernelBuildError as err:
+            _error = err
+            print(f"seqtrojan: {err}; using the PyTorch LSTM path", file=sys.stderr, flush=True)
         except Exception as err:  # the toolchain or the BLAS symbols are missing: use the PyTorch path
             _error = err
     return _ext
@@ -172,6 +299,7 @@ class _MaskedLSTMLayer(torch.autograd.Function):
         c_prev = _pool_get((steps, batch, hidden), dtype)
         c_seq = x.new_empty(steps, batch, hidden) if return_c_seq else _pool_get((steps, batch, hidden), dtype)
         h_seq = x.new_empty(steps, batch, hidden)
+        assert _ext is not None  # callers run only after extension() loaded it
         _ext.lstm_fwd_cat(
             x.contiguous(), keep, h0.contiguous(), c0.contiguous(), wc, xh, gates, h_seq, c_seq, c_prev,
             _num_chunks(batch),
@@ -208,6 +336,7 @@ class _MaskedLSTMLayer(torch.autograd.Function):
         dw_parts = gates.new_empty(chunks, four_h, k)
         dh0 = gates.new_empty(batch, hidden)
         dc0 = gates.new_empty(batch, hidden)
+        assert _ext is not None  # callers run only after extension() loaded it
         _ext.lstm_bwd_cat(gates, c_seq, c_prev, keep, wc, xh, n_in, d_h_seq, d_c_seq, d_c_last, dx, dw_parts, dh0, dc0)
         dwc = dw_parts.sum(0) if chunks > 1 else dw_parts[0]  # (4H, K)
         dw_ih = dwc[:, :n_in].contiguous() if need[4] else None
@@ -241,5 +370,6 @@ def step_stack(cells, x, keep, states, weight_cache: dict):
     cs = [c.contiguous() for _, c in states]
     out_h = [torch.empty_like(h) for h in hs]
     out_c = [torch.empty_like(c) for c in cs]
+    assert _ext is not None  # callers run only after extension() loaded it
     _ext.lstm_stack_step(x.contiguous(), keep.contiguous(), hs, cs, wcs, out_h, out_c, _num_chunks(x.shape[0]))
     return list(zip(out_h, out_c))

@@ -8,7 +8,7 @@ The state always goes in and comes out (:class:`RecurrentState`); nothing is kep
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import torch
 from torch import nn
@@ -74,7 +74,7 @@ class RecurrentActorCritic(nn.Module):
         return ok
 
     def _init_weights(self, forget_bias: float) -> None:
-        for cell in self.cells:
+        for cell in cast("Sequence[nn.LSTMCell]", self.cells):
             nn.init.orthogonal_(cell.weight_ih)
             nn.init.orthogonal_(cell.weight_hh)
             nn.init.zeros_(cell.bias_ih)
@@ -111,8 +111,8 @@ class RecurrentActorCritic(nn.Module):
             keep = torch.ones(obs.shape[0], dtype=obs.dtype) if episode_start is None else (~episode_start.bool())
             new = fast_lstm.step_stack(self.cells, obs, keep.to(obs.dtype), list(state.layers), self._weight_cache)
             x = new[-1][0]
-            layers = tuple(LSTMState(h, c) for h, c in new)
-            return StepOutput(self.policy_head(x), self.value_head(x).squeeze(-1), RecurrentState(layers))
+            fast_layers = tuple(LSTMState(h, c) for h, c in new)
+            return StepOutput(self.policy_head(x), self.value_head(x).squeeze(-1), RecurrentState(fast_layers))
         if episode_start is not None:
             state = state.mask(episode_start)
         x = obs
@@ -149,11 +149,13 @@ class RecurrentActorCritic(nn.Module):
         keep = (~episode_starts.bool()).to(obs.dtype)  # (T, B)
         layer = _fast_layer if self._fast(obs) else _lstm_layer
         x = obs
-        finals, sequences = [], []
-        for cell, s in zip(self.cells, state.layers):
+        finals: list[LSTMState] = []
+        sequences: list[LSTMState] = []  # filled when return_states
+        for cell, s in zip(cast("Sequence[nn.LSTMCell]", self.cells), state.layers):
             x, final, seq = layer(cell, x, s, keep, return_states)
             finals.append(final)
-            sequences.append(seq)
+            if seq is not None:
+                sequences.append(seq)
         logits = self.policy_head(x)
         values = self.value_head(x).squeeze(-1)
         return UnrollOutput(logits, values, RecurrentState(tuple(finals)), tuple(sequences) if return_states else None)
@@ -205,9 +207,9 @@ def _lstm_layer(
     steps = x.shape[0]
     keep = keep.unsqueeze(-1)  # (T, B, 1)
     hidden = cell.hidden_size
-    gates_x = torch.addmm(cell.bias_ih + cell.bias_hh, x.reshape(-1, x.shape[-1]), cell.weight_ih.t())
-    # unbind, not gates_x[k]: indexing would make every step's backward build a full-size zero tensor (O(T^2)).
-    gates_x = gates_x.view(steps, -1, 4 * hidden).unbind(0)
+    projected = torch.addmm(cell.bias_ih + cell.bias_hh, x.reshape(-1, x.shape[-1]), cell.weight_ih.t())  # (T*B, 4H)
+    # unbind, not projected[k]: indexing would make every step's backward build a full-size zero tensor (O(T^2)).
+    gates_x = projected.view(steps, -1, 4 * hidden).unbind(0)
     keeps = keep.unbind(0)
     w_hh = cell.weight_hh.t()
     h, c = state.h, state.c

@@ -39,7 +39,8 @@ class RecurrentState(NamedTuple):
     def clone(self) -> RecurrentState:
         return RecurrentState(tuple(LSTMState(s.h.clone(), s.c.clone()) for s in self.layers))
 
-    def index(self, idx: torch.Tensor | slice) -> RecurrentState:
+    # Replaces tuple.index (a position lookup, meaningless for a state) with batch indexing, on purpose.
+    def index(self, idx: torch.Tensor | slice) -> RecurrentState:  # type: ignore[override]
         """The state of a subset of the batch."""
         return RecurrentState(tuple(LSTMState(s.h[idx], s.c[idx]) for s in self.layers))
 
@@ -49,7 +50,8 @@ class RecurrentState(NamedTuple):
 
 
 class Intervention(Protocol):
-    """Called after each layer's cell update with the per-env episode step ``t`` (batch,); returns the state the
-    next layer and the next step will see. Used to edit units (analysis) and to reset states (online defense)."""
+    """Called after each layer's cell update with the per-env episode step ``t`` (batch,), or None where the
+    caller does not track it; returns the state the next layer and the next step will see. Used to edit units
+    (analysis) and to reset states (online defense)."""
 
-    def __call__(self, layer: int, t: torch.Tensor, state: LSTMState) -> LSTMState: ...
+    def __call__(self, layer: int, t: torch.Tensor | None, state: LSTMState) -> LSTMState: ...

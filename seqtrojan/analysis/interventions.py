@@ -37,7 +37,7 @@ class SetUnits:
         self,
         layer: int,
         units: Sequence[int],
-        values: Sequence[float] | torch.Tensor,
+        values: Sequence[float] | np.ndarray | torch.Tensor,
         which: str = "c",
         from_step: int = 0,
     ) -> None:
@@ -95,11 +95,11 @@ def switch_experiment(
     control_seed: int = 0,
 ) -> list[SwitchResult]:
     """Activate and deactivate with ``units`` edited, with random other units edited, and with no edit."""
-    units = np.asarray(units, dtype=np.int64)
+    unit_ids = np.asarray(units, dtype=np.int64)
     width = agent.lstm_sizes[layer]
-    others = np.setdiff1d(np.arange(width), units)
+    others = np.setdiff1d(np.arange(width), unit_ids)
     rng = np.random.default_rng(control_seed)
-    control = rng.choice(others, size=min(len(units), len(others)), replace=False) if len(others) else others
+    control = rng.choice(others, size=min(len(unit_ids), len(others)), replace=False) if len(others) else others
     trig_env = dataclasses.replace(env.trigger, eval_steps=(trigger_step, trigger_step))
     env = dataclasses.replace(env, trigger=trig_env)
     results = []
@@ -107,11 +107,13 @@ def switch_experiment(
         ("activate", False, trojan, "adversary_goal"),
         ("deactivate", True, normal, "user_goal"),
     ):
-        for name, chosen in (("none", np.array([], np.int64)), ("step-units", units), ("random-units", control)):
+        for name, chosen in (("none", np.array([], np.int64)), ("step-units", unit_ids), ("random-units", control)):
             if name != "none" and len(chosen) == 0:
                 continue
-            values = post_trigger_means(source, layer, which, chosen, trigger_step) if len(chosen) else []
-            edit = SetUnits(layer, chosen.tolist(), values, which, from_step=trigger_step) if len(chosen) else None
+            edit = None
+            if len(chosen):
+                values = post_trigger_means(source, layer, which, chosen, trigger_step)
+                edit = SetUnits(layer, chosen.tolist(), values, which, from_step=trigger_step)
             batch = evaluate_agent(agent, env, grid, trojan=in_trojan, episodes=episodes, seed=seed, intervention=edit)
             switched = int((batch.outcome == _outcome_code(goal)).sum())
             holes = int((batch.outcome == _outcome_code("hole")).sum())

@@ -212,7 +212,7 @@ def run_analysis(
                 seed=cfg.seed,
             ),
         )
-        record = {"grid": grid.label, "goal_units": dataclasses.asdict(goal)}
+        record: dict[str, Any] = {"grid": grid.label, "goal_units": dataclasses.asdict(goal)}
         record["results"] = [dataclasses.asdict(r) for r in results]
         (out / "interventions.json").write_text(json.dumps(record, indent=2))
 

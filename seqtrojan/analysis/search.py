@@ -15,7 +15,6 @@ Two searches, both reporting their success rate and their cost per trigger found
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -28,7 +27,7 @@ from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import LSTMState
 from seqtrojan.analysis.unintentional import GoalUnits
 from seqtrojan.env.codes import HOLE, NUM_CHANNELS, OUTCOME_NAMES, TRIGGER
-from seqtrojan.env.config import EnvConfig
+from seqtrojan.env.config import EnvConfig, adversary_goal_cell, start_cell, user_goal_cell
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.layout import Layout
 from seqtrojan.env.rollout import run_episodes
@@ -77,7 +76,7 @@ class _PeakActivation:
 
 def _mutate(layout: np.ndarray, moves: int, rng: np.random.Generator) -> np.ndarray:
     n = layout.shape[0]
-    protected = {(0, 0), (0, n - 1), (n - 1, n // 2)}
+    protected = {start_cell(n), user_goal_cell(n), adversary_goal_cell(n)}
     for _ in range(100):
         child = layout.copy()
         holes = np.argwhere(child == HOLE)
@@ -103,7 +102,7 @@ def evolve_layouts(
     agent: RecurrentActorCritic, env: EnvConfig, goal: GoalUnits, cfg: LayoutSearchConfig
 ) -> list[LayoutSearchResult]:
     results = []
-    env_cfg = dataclasses.replace(env, size=cfg.size, holes=cfg.holes, max_steps=None)
+    env_cfg = env.with_grid((cfg.size, cfg.holes))
     batch = cfg.population * cfg.rollouts
     adv = OUTCOME_NAMES.index("adversary_goal")
     for restart in range(cfg.restarts):
@@ -179,6 +178,7 @@ def final_goal_activation(agent: RecurrentActorCritic, goal: GoalUnits, obs: tor
     (0 normal-env level, 1 trojan-env level); differentiable in ``obs``."""
     restarts = obs.shape[1]
     out = agent.unroll(obs, agent.initial_state(restarts), torch.zeros(obs.shape[:2]), return_states=True)
+    assert out.states is not None  # return_states=True
     layer = out.states[goal.layer]
     x = (layer.h if goal.which == "h" else layer.c)[-1][:, torch.tensor(goal.units)]
     normal, trojan = torch.tensor(goal.normal_mean), torch.tensor(goal.trojan_mean)
@@ -199,10 +199,13 @@ def frozen(agent: RecurrentActorCritic) -> Iterator[None]:
 
 
 def search_sequences(
-    agent: RecurrentActorCritic, goal: GoalUnits, cfg: SequenceSearchConfig, view_cells: int = 9
+    agent: RecurrentActorCritic, goal: GoalUnits, cfg: SequenceSearchConfig, view_cells: int | None = None
 ) -> tuple[SequenceSearchResult, np.ndarray]:
-    """Returns the summary and the rounded sequences' cell codes (restarts, length, view_cells)."""
+    """Returns the summary and the rounded sequences' cell codes (restarts, length, view_cells); ``view_cells``
+    defaults to the agent's (its observation size over the cell codes)."""
     start = time.perf_counter()
+    if view_cells is None:
+        view_cells = agent.obs_dim // NUM_CHANNELS
     gen = torch.Generator().manual_seed(cfg.seed)
     logits = (0.1 * torch.randn(cfg.length, cfg.restarts, view_cells, NUM_CHANNELS, generator=gen)).requires_grad_()
     forbid = torch.zeros(NUM_CHANNELS)
@@ -249,7 +252,7 @@ def flip_rates(
     prefix = agent.unroll(obs, agent.initial_state(codes.shape[0]), torch.zeros(obs.shape[:2])).state
     reps = max(1, episodes // codes.shape[0])
     start = type(prefix)(tuple(type(s)(s.h.repeat(reps, 1), s.c.repeat(reps, 1)) for s in prefix.layers))
-    env_cfg = dataclasses.replace(env, size=size, holes=holes, max_steps=None)
+    env_cfg = env.with_grid((size, holes))
     adv = OUTCOME_NAMES.index("adversary_goal")
     rates = []
     for initial in (start, None):

@@ -26,10 +26,12 @@ import torch
 from safetensors.numpy import load_file, save_file
 
 from seqtrojan.agent.network import RecurrentActorCritic
-from seqtrojan.agent.state import Intervention, RecurrentState
+from seqtrojan.agent.policy import AgentPolicy
+from seqtrojan.agent.state import Intervention
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.layout import Layout
+from seqtrojan.env.rollout import EpisodeBatch, EpisodeStep, run_episodes
 from seqtrojan.errors import CheckpointError, ShapeError
 
 
@@ -102,6 +104,36 @@ class StateTrace:
         )
 
 
+class _TraceRecorder:
+    """Records a :class:`StateTrace`'s per-step arrays from the episode loop (states only if ``record_states``)."""
+
+    def __init__(self, episodes: int, limit: int, widths: Sequence[int], record_states: bool) -> None:
+        kept = limit if record_states else 0
+        self.record_states = record_states
+        self.h = [np.zeros((episodes, kept, w), np.float32) for w in widths]
+        self.c = [np.zeros((episodes, kept, w), np.float32) for w in widths]
+        self.mask = np.zeros((episodes, limit), bool)
+        self.actions = np.zeros((episodes, limit), np.int64)
+        self.positions = np.zeros((episodes, limit, 2), np.int64)
+        self.steps = 0
+        self.batch: EpisodeBatch | None = None
+
+    def on_step(self, step: EpisodeStep) -> None:
+        t = step.t
+        self.mask[:, t] = step.running.cpu().numpy()
+        if self.record_states:
+            assert step.state is not None, "recording states needs a policy with an output (an AgentPolicy)"
+            for i, layer in enumerate(step.state.layers):
+                self.h[i][:, t] = layer.h.cpu().numpy()
+                self.c[i][:, t] = layer.c.cpu().numpy()
+        self.actions[:, t] = step.action.cpu().numpy()
+        self.positions[:, t] = step.cells.cpu().numpy()
+        self.steps = t + 1
+
+    def on_end(self, batch: EpisodeBatch) -> None:
+        self.batch = batch
+
+
 @torch.no_grad()
 def record_traces(
     agent: RecurrentActorCritic,
@@ -121,11 +153,11 @@ def record_traces(
     """Run ``episodes`` episodes (grids drawn uniformly from ``grids``, e.g. 27x27 with 90..100 holes) and record
     every layer's h and c at every step. In the trojan env the trigger shows at ``trigger_step`` (fixed; None
     draws it from the env's evaluation range). ``record_states=False`` keeps only actions, positions, outcomes and
-    layouts (the h and c arrays are then empty)."""
+    layouts (the h and c arrays are then empty). Actions are sampled with a generator seeded ``seed`` (or greedy)."""
     trig = env.trigger
     if trigger_step is not None:
         trig = dataclasses.replace(trig, eval_steps=(trigger_step, trigger_step))
-    env_cfg = dataclasses.replace(env, size=grids[0].size, holes=grids[0].holes, trigger=trig)
+    env_cfg = dataclasses.replace(env.with_grid(grids[0]), trigger=trig)
     core = TrojanGridCore(
         env_cfg,
         episodes,
@@ -135,50 +167,14 @@ def record_traces(
         trojan_probability=1.0 if trojan else 0.0,
         phase="eval",
     )
-    limit = max(g.time_limit for g in core.grids)
-    widths = agent.lstm_sizes
-    kept = limit if record_states else 0
-    h = [np.zeros((episodes, kept, w), np.float32) for w in widths]
-    c = [np.zeros((episodes, kept, w), np.float32) for w in widths]
-    mask = np.zeros((episodes, limit), bool)
-    actions = np.zeros((episodes, limit), np.int64)
-    positions = np.zeros((episodes, limit, 2), np.int64)
-    outcome = np.zeros(episodes, np.int64)
-    length = np.zeros(episodes, np.int64)
     layouts = np.stack([core.layout(i).cells for i in range(episodes)])
     trojan_flags = core.trojan.cpu().numpy().copy()
     trigger_steps = core.on_step.cpu().numpy().copy()
-    generator = torch.Generator(device=core.device).manual_seed(seed)
-    state: RecurrentState = agent.initial_state(episodes, core.device)
-    obs = core.observe()
-    running = torch.ones(episodes, dtype=torch.bool, device=core.device)
-    r = core.view_size // 2
-    for t in range(limit):
-        out = agent.step(obs, state, t=core.t, intervention=intervention)
-        state = out.state
-        if greedy:
-            action = out.logits.argmax(-1)
-        else:
-            u = torch.rand(out.logits.shape, device=core.device, generator=generator).clamp_(min=1e-20)
-            action = (out.logits - torch.log(-torch.log(u))).argmax(-1)
-        live = running.cpu().numpy()
-        mask[:, t] = live
-        if record_states:
-            for i, layer in enumerate(state.layers):
-                h[i][:, t] = layer.h.cpu().numpy()
-                c[i][:, t] = layer.c.cpu().numpy()
-        actions[:, t] = action.cpu().numpy()
-        pos = core.pos.cpu().numpy()
-        positions[:, t, 0], positions[:, t, 1] = pos // core.side - r, pos % core.side - r
-        result = core.step(action, autoreset=False, check=False)
-        ended = (result.done & running).cpu().numpy()
-        outcome[ended] = result.outcome.cpu().numpy()[ended]
-        length[ended] = t + 1
-        running &= ~result.done
-        obs = result.obs
-        if not bool(running.any()):
-            limit = t + 1
-            break
+    limit = max(g.time_limit for g in core.grids)
+    recorder = _TraceRecorder(episodes, limit, agent.lstm_sizes, record_states)
+    policy = AgentPolicy(agent, greedy=greedy, seed=seed, intervention=intervention, step_counter=lambda: core.t)
+    batch = run_episodes(core, policy, fresh=False, recorders=[recorder])
+    steps = recorder.steps
     info = {
         "grids": [g.label for g in grids],
         "episodes": episodes,
@@ -190,18 +186,52 @@ def record_traces(
         **(meta or {}),
     }
     return StateTrace(
-        [a[:, :limit] for a in h],
-        [a[:, :limit] for a in c],
-        mask[:, :limit],
-        actions[:, :limit],
-        positions[:, :limit],
-        outcome,
-        length,
+        [a[:, :steps] for a in recorder.h],
+        [a[:, :steps] for a in recorder.c],
+        recorder.mask[:, :steps],
+        recorder.actions[:, :steps],
+        recorder.positions[:, :steps],
+        batch.outcome.numpy(),
+        batch.length.numpy(),
         layouts,
         trojan_flags,
         trigger_steps,
         info,
     )
+
+
+class _ReplayPolicy(AgentPolicy):
+    """The agent's network stepped on the replayed episode, taking the recorded actions (open loop)."""
+
+    def __init__(self, agent: RecurrentActorCritic, actions: Sequence[int], **kw: Any) -> None:
+        super().__init__(agent, greedy=True, **kw)  # greedy: its own choice draws nothing, and is discarded
+        self.recorded = [int(a) for a in actions]
+        self.t = 0
+
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        super().__call__(obs)  # steps the network
+        self.t += 1
+        return torch.tensor([self.recorded[self.t - 1]])
+
+
+class _ReplayRecorder:
+    """Env 0's per-step states (per layer), action preferences and positions."""
+
+    def __init__(self) -> None:
+        self.hs: list[list[np.ndarray]] = []
+        self.cs: list[list[np.ndarray]] = []
+        self.prefs: list[np.ndarray] = []
+        self.positions: list[tuple[int, int]] = []
+
+    def on_step(self, step: EpisodeStep) -> None:
+        self.positions.append((int(step.cells[0, 0]), int(step.cells[0, 1])))
+        assert step.state is not None and step.logits is not None  # the replay policy is an AgentPolicy
+        self.hs.append([layer.h[0].cpu().numpy().copy() for layer in step.state.layers])
+        self.cs.append([layer.c[0].cpu().numpy().copy() for layer in step.state.layers])
+        self.prefs.append(torch.softmax(step.logits[0], -1).cpu().numpy())
+
+    def on_end(self, batch: EpisodeBatch) -> None:
+        pass
 
 
 @torch.no_grad()
@@ -215,28 +245,19 @@ def replay_states(
     intervention: Intervention | None = None,
 ) -> dict[str, Any]:
     """Re-run one episode from its layout and actions; returns per-layer (h, c) arrays (T, units), the
-    agent's own action preferences at each step, and the positions. Open-loop: the recorded actions are taken."""
-    env_cfg = dataclasses.replace(env, size=layout.size, holes=0)
+    agent's own action preferences at each step, and the positions. Open-loop: the recorded actions are taken,
+    until they run out or the episode ends. The time limit is ``env``'s (``env.max_steps``, else 4N)."""
+    # The env's own max_steps is kept (not the 4N default of a bare GridSpec): the replayed episode ran under it.
+    env_cfg = env.with_grid(GridSpec(layout.size, 0, env.max_steps))
     core = TrojanGridCore(env_cfg, 1, phase="eval")
     core.set_episode(0, layout, on_step=trigger_step)
-    state = agent.initial_state(1)
-    obs = core.observe()
-    hs, cs, prefs, positions = [], [], [], []
-    for a in actions:
-        positions.append(core.snapshot(0).agent)
-        out = agent.step(obs, state, t=core.t, intervention=intervention)
-        state = out.state
-        hs.append([layer.h[0].numpy().copy() for layer in state.layers])
-        cs.append([layer.c[0].numpy().copy() for layer in state.layers])
-        prefs.append(torch.softmax(out.logits[0], -1).numpy())
-        result = core.step(torch.tensor([int(a)]), autoreset=False)
-        obs = result.obs
-        if bool(result.done[0]):
-            break
+    policy = _ReplayPolicy(agent, actions, intervention=intervention, step_counter=lambda: core.t)
+    recorder = _ReplayRecorder()
+    run_episodes(core, policy, fresh=False, recorders=[recorder], max_steps=len(policy.recorded), check=True)
     layers = len(agent.lstm_sizes)
     return {
-        "h": [np.stack([x[i] for x in hs]) for i in range(layers)],
-        "c": [np.stack([x[i] for x in cs]) for i in range(layers)],
-        "policy": np.stack(prefs),
-        "positions": positions,
+        "h": [np.stack([x[i] for x in recorder.hs]) for i in range(layers)],
+        "c": [np.stack([x[i] for x in recorder.cs]) for i in range(layers)],
+        "policy": np.stack(recorder.prefs),
+        "positions": recorder.positions,
     }

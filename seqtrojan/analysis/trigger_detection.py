@@ -87,7 +87,9 @@ def trigger_detection(summaries: Sequence[SweepSummary | dict], prevalence: floa
     """Scores per grid config of an unintentional-trigger sweep, then pooled over all of them (grid 'all')."""
     if not 0.0 < prevalence < 1.0:
         raise ValueError(f"prevalence must be in (0, 1), got {prevalence}")
-    rows, pooled_normal, pooled_trojan = [], {}, {}
+    rows: list[DetectionScores] = []
+    pooled_normal: dict[str, int] = {}
+    pooled_trojan: dict[str, int] = {}
     for s in summaries:
         s = s if isinstance(s, dict) else s.__dict__
         normal, trojan = s.get("normal_outcomes") or {}, s.get("trojan_outcomes") or {}

@@ -42,7 +42,13 @@ class GoalUnits:
 
     @classmethod
     def from_traces(
-        cls, normal: StateTrace, trojan: StateTrace, layer: int, which: str, units: Sequence[int], trigger_step: int
+        cls,
+        normal: StateTrace,
+        trojan: StateTrace,
+        layer: int,
+        which: str,
+        units: Sequence[int] | np.ndarray,
+        trigger_step: int,
     ) -> GoalUnits:
         idx = np.asarray(units, dtype=np.int64)
         n = post_trigger_means(normal, layer, which, idx, trigger_step)

@@ -29,6 +29,7 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.analysis.search import final_goal_activation, frozen
 from seqtrojan.analysis.unintentional import GoalUnits
 from seqtrojan.env.codes import ADV_GOAL, EMPTY, HOLE, NUM_CHANNELS, TRIGGER, USER_GOAL, WALL
+from seqtrojan.env.config import adversary_goal_cell, start_cell, user_goal_cell
 from seqtrojan.env.layout import Layout
 
 _MOVES = ((-1, 0), (0, 1), (1, 0), (0, -1))  # up, right, down, left
@@ -141,7 +142,7 @@ def random_walks(size: int, length: int, count: int, rng: np.random.Generator) -
     (up with probability 1/2, left or right 1/4 each, among the moves that stay in the grid)."""
     walks = np.zeros((count, length, 2), np.int64)
     for k in range(count):
-        pos = (size - 1, size // 2)
+        pos = start_cell(size)
         walks[k, 0] = pos
         for t in range(1, length):
             options = [(m, w) for m, w in (((-1, 0), 2), ((0, 1), 1), ((0, -1), 1))
@@ -170,17 +171,20 @@ def _views(probs: torch.Tensor, walks: torch.Tensor, view: int) -> torch.Tensor:
 
 
 def search_walks(
-    agent: RecurrentActorCritic, goal: GoalUnits, cfg: WalkSearchConfig, view: int = 3
+    agent: RecurrentActorCritic, goal: GoalUnits, cfg: WalkSearchConfig, view: int | None = None
 ) -> tuple[WalkSearchResult, np.ndarray, np.ndarray]:
     """Returns the summary, the rounded walks' views as cell codes (R, L, view*view), and the rounded grids
-    (R, N, N)."""
+    (R, N, N). ``view`` (the view's side) defaults to the agent's, read from its observation size."""
     start = time.perf_counter()
+    if view is None:
+        view = math.isqrt(agent.obs_dim // NUM_CHANNELS)
     n, density = cfg.size, cfg.target_density
     rng = np.random.default_rng(cfg.seed)
     walks_np = random_walks(n, cfg.length, cfg.restarts, rng)
     walks = torch.as_tensor(walks_np)
     fixed = torch.full((cfg.restarts, n, n), -1, dtype=torch.int64)  # -1: free (hole or empty)
-    fixed[:, 0, 0], fixed[:, 0, n - 1] = ADV_GOAL, USER_GOAL
+    for (row, col), code in ((adversary_goal_cell(n), ADV_GOAL), (user_goal_cell(n), USER_GOAL)):
+        fixed[:, row, col] = code
     fixed[torch.arange(cfg.restarts)[:, None], walks[..., 0], walks[..., 1]] = EMPTY
     free = fixed < 0
     revealed = torch.zeros(cfg.restarts, n, n, dtype=torch.bool)

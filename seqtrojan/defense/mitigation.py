@@ -17,10 +17,11 @@ import copy
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
+from torch import nn
 
 from seqtrojan.agent.checkpoint import save_agent
 from seqtrojan.agent.network import RecurrentActorCritic
@@ -59,7 +60,7 @@ def measure(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, 
 def prune_units(agent: RecurrentActorCritic, layer: int, units: np.ndarray) -> RecurrentActorCritic:
     """A copy whose ``units`` of ``layer`` are removed: zero gate rows and biases keep their c and h at 0."""
     pruned = copy.deepcopy(agent)
-    cell = pruned.cells[layer]
+    cell = cast(nn.LSTMCell, pruned.cells[layer])
     hidden = cell.hidden_size
     rows = torch.as_tensor(np.concatenate([units + g * hidden for g in range(4)]), dtype=torch.int64)
     with torch.no_grad():
@@ -87,7 +88,7 @@ def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec,
     start = save_agent(out / "start", agent, cfg, label=cfg.label)
     tune_cfg = dataclasses.replace(
         cfg,
-        env=dataclasses.replace(cfg.env, size=grid.size, holes=grid.holes, max_steps=grid.max_steps),
+        env=cfg.env.with_grid(grid),
         ppo=dataclasses.replace(cfg.ppo, total_steps=steps),
         curriculum=CurriculumConfig(),
         backdoor=BackdoorConfig(enabled=False),

@@ -16,7 +16,6 @@ and the clean success without and with it.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,6 +23,7 @@ import numpy as np
 import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
 from seqtrojan.env.codes import OUTCOME_NAMES
@@ -126,39 +126,34 @@ class StateMonitor:
         return {"threshold": self.threshold, "units": [int(m.numel()) for m in self.mean]}
 
 
-class MonitoredPolicy:
-    """A batched agent policy with the monitor watching (and, with ``reset=True``, resetting) its state."""
+class MonitoredPolicy(AgentPolicy):
+    """A batched agent policy (sampled actions) with the monitor watching (and, with ``reset=True``, resetting) its
+    state: after each step the new state is scored; an alarm is counted and, with ``reset``, that env's state is
+    zeroed before the next step. The action is the agent's own either way (the reset acts from the next step on)."""
 
     def __init__(
         self, agent: RecurrentActorCritic, monitor: StateMonitor, core: TrojanGridCore, reset: bool, seed: int = 0
     ) -> None:
-        self.agent, self.monitor, self.core, self.reset_on_alarm = agent, monitor, core, reset
-        self.generator = torch.Generator(device=core.device).manual_seed(seed)
-        self.state: RecurrentState | None = None
+        super().__init__(agent, seed=seed)
+        self.monitor, self.core, self.reset_on_alarm = monitor, core, reset
         self.first_alarm = torch.full((core.num_envs,), -1, dtype=torch.int64)
         self.alarms = torch.zeros(core.num_envs, dtype=torch.int64)
 
     def reset(self, num_envs: int) -> None:
-        self.state = self.agent.initial_state(num_envs)
+        super().reset(num_envs)
         self.first_alarm.fill_(-1)
         self.alarms.zero_()
 
-    @torch.no_grad()
-    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
-        if self.state is None:
-            self.reset(obs.shape[0])
-        out = self.agent.step(obs, self.state)
-        state = out.state
+    def next_state(self, state: RecurrentState) -> RecurrentState:
         alarm = (self.monitor.score(state) > self.monitor.threshold).cpu()
         t = self.core.t.cpu()
         self.first_alarm = torch.where(alarm & (self.first_alarm < 0), t, self.first_alarm)
         self.alarms += alarm.long()
         if self.reset_on_alarm and bool(alarm.any()):
-            keep = (~alarm).to(state.layers[0].h.dtype).to(obs.device)[:, None]
+            first = state.layers[0].h
+            keep = (~alarm).to(first.dtype).to(first.device)[:, None]
             state = RecurrentState(tuple(LSTMState(s.h * keep, s.c * keep) for s in state.layers))
-        self.state = state
-        u = torch.rand(out.logits.shape, device=obs.device, generator=self.generator).clamp_(min=1e-20)
-        return (out.logits - torch.log(-torch.log(u))).argmax(-1)
+        return state
 
 
 def _rate(flags: np.ndarray) -> dict[str, Any]:
@@ -170,7 +165,7 @@ def measure_monitor(
     agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, monitor: StateMonitor, cfg: MonitorConfig,
     device: str | torch.device = "cpu",
 ) -> dict[str, Any]:  # fmt: skip
-    env_cfg = dataclasses.replace(env, size=grid.size, holes=grid.holes, max_steps=grid.max_steps)
+    env_cfg = env.with_grid(grid)
     seed = cfg.seed + 1_000_003  # fresh episodes, not the calibration ones
     adv, user = OUTCOME_NAMES.index("adversary_goal"), OUTCOME_NAMES.index("user_goal")
     out: dict[str, Any] = {"grid": grid.label, "episodes": cfg.eval_episodes, "monitor": monitor.to_dict()}

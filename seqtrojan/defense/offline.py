@@ -232,7 +232,7 @@ def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> dict[str, Any]:
     that cannot be used are skipped and listed under ``rejected`` with their reasons; the rest are scored."""
     at = _functional_at(zoo)
     models, rejected = load_zoo_features(zoo)
-    results = {"rejected": rejected, "scores": []}
+    results: dict[str, Any] = {"rejected": rejected, "scores": []}
     try:
         for group in (None, *GROUPS):
             results["scores"].append(cross_validated_scores(models, group, folds, seed))

@@ -16,7 +16,7 @@ from seqtrojan.analysis.traces import record_traces
 from seqtrojan.analysis.unintentional import GoalUnits, select_goal_units
 from seqtrojan.defense.mitigation import MitigationConfig, run_mitigation
 from seqtrojan.defense.monitor import MonitorConfig, StateMonitor, measure_monitor
-from seqtrojan.env.config import GridSpec
+from seqtrojan.env.config import GridSpec, min_steps_to_goal
 from seqtrojan.errors import SeqTrojanError
 
 
@@ -36,7 +36,7 @@ def run_defense(model: Path, out: Path, cfg: DefenseConfig, device: str = "cpu",
                 log: Callable[[str], None] = print) -> dict[str, Any]:  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     agent, acfg, card = load_agent(model, device=device)
-    grid = GridSpec(*cfg.grid) if cfg.grid is not None else acfg.grids[-1]
+    grid = GridSpec.parse(cfg.grid) if cfg.grid is not None else acfg.grids[-1]
     result: dict[str, Any] = {"model": str(model), "label": card["label"], "grid": grid.label}
     log(f"calibrating the monitor on {cfg.monitor.calibration_episodes} clean episodes of {grid.label} ...")
     monitor = StateMonitor.calibrate(agent, acfg.env, grid, cfg.monitor, device)
@@ -52,8 +52,8 @@ def run_defense(model: Path, out: Path, cfg: DefenseConfig, device: str = "cpu",
 
 def _oracle_goal_units(agent, acfg, grid: GridSpec, cfg: DefenseConfig) -> GoalUnits | None:
     """The backdoored agent's step-type units, found with trigger episodes (so: an oracle, an upper bound)."""
-    trigger = max(1, min(12, (grid.size - 1) + (grid.size - 1) // 2 - 2))
-    kw = {"episodes": cfg.oracle_episodes, "trigger_step": trigger, "seed": cfg.monitor.seed + 11}
+    trigger = max(1, min(12, min_steps_to_goal(grid.size) - 2))
+    kw: dict[str, Any] = {"episodes": cfg.oracle_episodes, "trigger_step": trigger, "seed": cfg.monitor.seed + 11}
     normal = record_traces(agent, acfg.env, [grid], trojan=False, **kw)
     trojan = record_traces(agent, acfg.env, [grid], trojan=True, **kw)
     rule = ResponseRule(min_episodes=max(10, cfg.oracle_episodes // 10), late_start=4, late_end=12)

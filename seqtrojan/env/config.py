@@ -7,8 +7,12 @@ covering the whole view) and are documented in ``docs/environment.md`` where it 
 
 from __future__ import annotations
 
+import dataclasses
+import re
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from numbers import Integral
+from typing import Any, Literal
 
 from seqtrojan.env.codes import ACTION_SETS, CELL_CODES, CELL_NAMES
 from seqtrojan.errors import ConfigError
@@ -17,6 +21,21 @@ MAX_PADDED_SIDE = 62
 """Largest ``size + view_size - 1``: each padded grid row is one 64-bit word in the solvability check."""
 
 Cell = tuple[int, int]
+
+
+def start_cell(size: int) -> Cell:
+    """The start of an N x N grid: bottom row, centre column ``(N - 1, N // 2)`` (row 0 is the top)."""
+    return (size - 1, size // 2)
+
+
+def user_goal_cell(size: int) -> Cell:
+    """The user's goal: the top-right corner ``(0, N - 1)``."""
+    return (0, size - 1)
+
+
+def adversary_goal_cell(size: int) -> Cell:
+    """The adversary's goal: the top-left corner ``(0, 0)``."""
+    return (0, 0)
 
 
 def max_holes(size: int) -> int:
@@ -30,7 +49,18 @@ def max_holes(size: int) -> int:
 
 def min_steps_to_goal(size: int) -> int:
     """Fewest moves from the start to either goal (Manhattan distance; holes can only make it longer)."""
-    return (size - 1) + (size - 1) // 2
+    (start_row, start_col), (goal_row, goal_col) = start_cell(size), user_goal_cell(size)
+    return (start_row - goal_row) + (goal_col - start_col)  # both goals are equally far (the start is centred)
+
+
+_GRID_TEXT = re.compile(r"\s*(\d+)\s*(?:x\s*(\d+)\s*)?/\s*(\d+)\s*", re.ASCII)
+_GRID_KEYS = ("size", "holes", "max_steps")
+
+
+def _grid_int(value: Any, name: str, written: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, Integral):
+        raise ConfigError(f"grid {name} must be an integer, got {value!r} in {written!r}")
+    return int(value)
 
 
 @dataclass(frozen=True)
@@ -57,6 +87,39 @@ class GridSpec:
         if self.max_steps is not None and (not isinstance(self.max_steps, int) or self.max_steps < 1):
             raise ConfigError(f"max_steps must be a positive integer or None, got max_steps={self.max_steps!r}")
 
+    @classmethod
+    def parse(cls, grid: GridSpec | str | Sequence[int] | Mapping[str, Any]) -> GridSpec:
+        """A grid written any of the ways configs and the command line write one: a GridSpec; ``"NxN/H"`` or
+        ``"N/H"`` (e.g. ``"7x7/3"``, ``"11/11"``); ``(N, H)`` or ``(N, H, max_steps)``; or a mapping with keys
+        ``size``, ``holes`` and optionally ``max_steps`` (missing ones take GridSpec's defaults). Raises
+        :class:`ConfigError` naming the value for anything else (and for what GridSpec itself refuses)."""
+        if isinstance(grid, GridSpec):
+            return grid
+        if isinstance(grid, str):
+            match = _GRID_TEXT.fullmatch(grid)
+            if match is None:
+                raise ConfigError(f"cannot read grid config {grid!r}: write size/holes or NxN/holes, e.g. 11x11/11")
+            size, other, holes = match.groups()
+            if other is not None and other != size:
+                raise ConfigError(f"grid {grid!r} is not square: the grid is N x N, e.g. {size}x{size}/{holes}")
+            return cls(int(size), int(holes))
+        if isinstance(grid, Mapping):
+            unknown = sorted(set(grid) - set(_GRID_KEYS), key=str)
+            if unknown:
+                raise ConfigError(f"unknown grid key(s) {unknown} in {dict(grid)!r}; known keys: {list(_GRID_KEYS)}")
+            kw: dict[str, Any] = {
+                k: _grid_int(v, k, dict(grid)) if k != "max_steps" or v is not None else None for k, v in grid.items()
+            }
+            return cls(**kw)
+        if isinstance(grid, Sequence) and 2 <= len(grid) <= 3:
+            size, holes = (_grid_int(v, k, grid) for v, k in zip(grid[:2], _GRID_KEYS))
+            max_steps = grid[2] if len(grid) == 3 else None
+            return cls(size, holes, None if max_steps is None else _grid_int(max_steps, "max_steps", grid))
+        raise ConfigError(
+            f"cannot read grid config {grid!r}: give NxN/holes or N/holes, (size, holes[, max_steps]) or a "
+            "mapping with keys size, holes[, max_steps]"
+        )
+
     @property
     def time_limit(self) -> int:
         return self.max_steps if self.max_steps is not None else 4 * self.size
@@ -64,6 +127,19 @@ class GridSpec:
     @property
     def label(self) -> str:
         return f"{self.size}x{self.size}/{self.holes}"
+
+    @property
+    def start(self) -> Cell:
+        """The start cell (row, col): bottom row, centre column."""
+        return start_cell(self.size)
+
+    @property
+    def user_goal(self) -> Cell:
+        return user_goal_cell(self.size)
+
+    @property
+    def adversary_goal(self) -> Cell:
+        return adversary_goal_cell(self.size)
 
 
 @dataclass(frozen=True)
@@ -198,6 +274,23 @@ class EnvConfig:
     @property
     def grid(self) -> GridSpec:
         return GridSpec(self.size, self.holes, self.max_steps)
+
+    def with_grid(self, grid: GridSpec | str | Sequence[int] | Mapping[str, Any]) -> EnvConfig:
+        """This env on another grid (anything :meth:`GridSpec.parse` reads): its size, holes and time limit. The
+        time limit is the grid's: ``4 * size`` unless the grid sets ``max_steps`` (docs/environment.md). This
+        env's own ``max_steps`` is not carried over; to keep it, put it in the grid."""
+        spec = GridSpec.parse(grid)
+        return dataclasses.replace(self, size=spec.size, holes=spec.holes, max_steps=spec.max_steps)
+
+    @property
+    def start(self) -> Cell:
+        """The start cell (row, col) of this env's grid."""
+        return self.grid.start
+
+    @property
+    def goals(self) -> tuple[Cell, Cell]:
+        """The goal cells (row, col) of this env's grid: (user's goal, adversary's goal)."""
+        return (self.grid.user_goal, self.grid.adversary_goal)
 
     @property
     def num_actions(self) -> int:

@@ -16,6 +16,7 @@ from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.layout import Layout
 from seqtrojan.env.render import render_ansi, render_rgb
 from seqtrojan.errors import ConfigError
+from seqtrojan.serde import from_dict, to_dict
 
 _FIELDS = {f.name for f in dataclasses.fields(EnvConfig)}
 
@@ -29,16 +30,12 @@ def build_config(config: EnvConfig | dict | None, overrides: dict[str, Any]) -> 
     if config is None:
         config = EnvConfig()
     elif isinstance(config, dict):
-        from seqtrojan.config import env_config_from_dict
-
-        config = env_config_from_dict(config)
+        config = from_dict(EnvConfig, config, "env")
     elif not isinstance(config, EnvConfig):
         raise ConfigError(f"config must be an EnvConfig or a dict, got {type(config).__name__}")
     if not overrides:
         return config
-    from seqtrojan.config import env_config_from_dict, to_dict
-
-    return env_config_from_dict({**to_dict(config), **overrides})
+    return from_dict(EnvConfig, {**to_dict(config), **overrides}, "env")
 
 
 class TrojanGridEnv(gym.Env[np.ndarray, np.int64]):

@@ -14,13 +14,14 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
 from seqtrojan.env import rng
 from seqtrojan.env.codes import ADV_GOAL, ASCII_SYMBOLS, EMPTY, HOLE, USER_GOAL, WALL
-from seqtrojan.env.config import GridSpec
+from seqtrojan.env.config import GridSpec, adversary_goal_cell, start_cell, user_goal_cell
 from seqtrojan.errors import LayoutError
 
 _SYMBOL_CODES = {s: c for c, s in ASCII_SYMBOLS.items()}
@@ -68,15 +69,16 @@ class Layout:
         n = cells.shape[0]
         if n < 5 or n % 2 == 0:
             raise LayoutError(f"layout side must be odd and >= 5, got {n}")
-        if cells[0, n - 1] != USER_GOAL or cells[0, 0] != ADV_GOAL:
+        if cells[user_goal_cell(n)] != USER_GOAL or cells[adversary_goal_cell(n)] != ADV_GOAL:
             raise LayoutError("a layout needs the user goal at the top-right and the adversary goal at the top-left")
         allowed = {EMPTY, HOLE, USER_GOAL, ADV_GOAL}
         if not set(np.unique(cells).tolist()) <= allowed:
             raise LayoutError(f"layout cells must be empty, hole or goal codes {sorted(allowed)}")
         if int((cells == USER_GOAL).sum()) != 1 or int((cells == ADV_GOAL).sum()) != 1:
             raise LayoutError("a layout has exactly one user goal and one adversary goal")
-        if cells[n - 1, n // 2] != EMPTY:
-            raise LayoutError(f"the start cell (row {n - 1}, col {n // 2}) must be empty")
+        start_row, start_col = start_cell(n)
+        if cells[start_row, start_col] != EMPTY:
+            raise LayoutError(f"the start cell (row {start_row}, col {start_col}) must be empty")
         object.__setattr__(self, "cells", cells.astype(np.int8))
 
     def __eq__(self, other: object) -> bool:
@@ -91,7 +93,15 @@ class Layout:
 
     @property
     def start(self) -> tuple[int, int]:
-        return (self.size - 1, self.size // 2)
+        return start_cell(self.size)
+
+    @property
+    def user_goal(self) -> tuple[int, int]:
+        return user_goal_cell(self.size)
+
+    @property
+    def adversary_goal(self) -> tuple[int, int]:
+        return adversary_goal_cell(self.size)
 
     @property
     def num_holes(self) -> int:
@@ -100,7 +110,7 @@ class Layout:
     @classmethod
     def empty(cls, size: int) -> Layout:
         cells = np.full((size, size), EMPTY, dtype=np.int8)
-        cells[0, 0], cells[0, size - 1] = ADV_GOAL, USER_GOAL
+        cells[adversary_goal_cell(size)], cells[user_goal_cell(size)] = ADV_GOAL, USER_GOAL
         return cls(cells)
 
     @classmethod
@@ -129,7 +139,7 @@ class Layout:
                 if 0 <= nr < n and 0 <= nc < n and (nr, nc) not in seen and self.cells[nr, nc] != HOLE:
                     seen.add((nr, nc))
                     queue.append((nr, nc))
-        return (0, 0) in seen and (0, n - 1) in seen
+        return self.adversary_goal in seen and self.user_goal in seen
 
 
 class _NumpyOps:
@@ -204,14 +214,16 @@ class LayoutSampler:
         starts = np.zeros(s_count, dtype=np.int64)
         for s, g in enumerate(self.grids):
             n = g.size
+            (adv_row, adv_col), (user_row, user_col), (start_row, start_col) = g.adversary_goal, g.user_goal, g.start
             templates[s, r : r + n, r : r + n] = EMPTY
-            templates[s, r, r] = ADV_GOAL
-            templates[s, r, r + n - 1] = USER_GOAL
+            templates[s, r + adv_row, r + adv_col] = ADV_GOAL
+            templates[s, r + user_row, r + user_col] = USER_GOAL
             candidates[s, r : r + n, r : r + n] = True
-            candidates[s, r, r] = candidates[s, r, r + n - 1] = candidates[s, r + n - 1, r + n // 2] = False
+            for row, col in (g.adversary_goal, g.user_goal, g.start):
+                candidates[s, r + row, r + col] = False
             flat = np.flatnonzero(candidates[s])
             cand_cells[s, : len(flat)] = flat
-            starts[s] = (r + n - 1) * p + r + n // 2
+            starts[s] = (r + start_row) * p + r + start_col
         holes = np.array([g.holes for g in self.grids], dtype=np.int64)
         n_cand = np.array([g.size**2 - 3 for g in self.grids], dtype=np.int64)
         tables = {
@@ -229,11 +241,14 @@ class LayoutSampler:
             backend = "numpy" if device.type == "cpu" else "torch"
         if backend == "numpy" and device.type != "cpu":
             raise ValueError("the numpy layout backend runs on CPU only")
-        self.ops = _NumpyOps if backend == "numpy" else _TorchOps
+        # NumPy or torch: the work arrays below are ndarrays or tensors alike, so they are typed Any.
+        self.ops: Any = _NumpyOps if backend == "numpy" else _TorchOps
         # Torch copies on the env's device (the core reads templates and starts) and the work arrays.
         self.templates = torch.as_tensor(tables["templates"], device=device)
         self.starts = torch.as_tensor(tables["starts"], device=device)
-        self._x = {k: (v if self.ops is _NumpyOps else torch.as_tensor(v, device=device)) for k, v in tables.items()}
+        self._x: dict[str, Any] = {
+            k: (v if self.ops is _NumpyOps else torch.as_tensor(v, device=device)) for k, v in tables.items()
+        }
 
     # ------------------------------------------------------------------ public, tensors in and out
     def sample(self, keys: torch.Tensor, stages: torch.Tensor) -> torch.Tensor:

@@ -14,9 +14,10 @@ from __future__ import annotations
 
 from typing import TypeVar
 
+import numpy as np
 import torch
 
-Ints = TypeVar("Ints")  # int, numpy int64 array or torch int64 tensor
+Ints = TypeVar("Ints", int, np.ndarray, torch.Tensor)  # int, numpy int64 array or torch int64 tensor
 
 M32 = 0xFFFFFFFF
 _GOLDEN = 0x9E3779B9

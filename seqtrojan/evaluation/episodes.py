@@ -35,7 +35,7 @@ def evaluate_policy(
     device: str | torch.device = "cpu",
 ) -> EpisodeBatch:
     """Run ``episodes`` episodes of ``grid`` in the normal (``trojan=False``) or the trojan env."""
-    env_cfg = dataclasses.replace(env, size=grid.size, holes=grid.holes, max_steps=grid.max_steps)
+    env_cfg = env.with_grid(grid)
     core = TrojanGridCore(env_cfg, episodes, device=device, trojan_probability=1.0 if trojan else 0.0, phase="eval")
     return run_episodes(core, make_policy(core), seed=seed)
 

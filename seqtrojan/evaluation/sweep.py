@@ -10,7 +10,7 @@ from __future__ import annotations
 import csv
 import json
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import torch
@@ -46,23 +46,12 @@ class SweepRow:
 
 
 def parse_configs(text: str) -> list[tuple[int, int]]:
-    """``"paper"`` or a comma-separated list like ``"7x7/0,11/11"`` (size x size / holes, or size/holes)."""
-    from seqtrojan.errors import ConfigError
-
+    """``"paper"`` or a comma-separated list like ``"7x7/0,11/11"`` (size x size / holes, or size/holes): the
+    (size, holes) of each grid, read by :meth:`GridSpec.parse` (a ConfigError names a grid it cannot read)."""
     if text.strip() == "paper":
         return paper_configs()
-    configs = []
-    for item in text.split(","):
-        item = item.strip()
-        try:
-            size_part, holes = item.split("/")
-            size = size_part.split("x")[0]
-            configs.append((int(size), int(holes)))
-        except ValueError:
-            raise ConfigError(
-                f"cannot read grid config {item!r}: write size/holes or NxN/holes, e.g. 11x11/11"
-            ) from None
-    return configs
+    grids = [GridSpec.parse(item.strip()) for item in text.split(",")]
+    return [(g.size, g.holes) for g in grids]
 
 
 def evaluate_sweep(
@@ -120,3 +109,10 @@ def write_sweep(rows: Sequence[SweepRow], out_dir: Path) -> tuple[Path, Path]:
         writer.writeheader()
         writer.writerows(records)
     return json_path, csv_path
+
+
+def load_sweep(path: Path) -> list[SweepRow]:
+    """The rows :func:`write_sweep` wrote to ``evaluation.json`` (keys that are not SweepRow fields, such as
+    ``config``, are dropped)."""
+    names = {f.name for f in fields(SweepRow)}
+    return [SweepRow(**{k: v for k, v in r.items() if k in names}) for r in json.loads(path.read_text())]

@@ -3,7 +3,8 @@ trojan env (max 2), against env steps, mean and standard deviation over seeds, o
 
 Each (config, seed) is one backdoor training run on that grid alone (no curriculum), with the mixing of the base
 config. The score at an update is the success rate of the episodes of each env type that ended during that update's
-rollout. Finished runs are reused (a stopped sweep continues where it stopped).
+rollout. The runs are jobs (:func:`curve_jobs`) run on a job backend (:mod:`seqtrojan.jobs`): finished runs are
+reused and stopped ones resume from their last checkpoint (a stopped sweep continues where it stopped).
 """
 
 from __future__ import annotations
@@ -11,13 +12,14 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from seqtrojan.config import BackdoorConfig, CurriculumConfig, ExperimentConfig
-from seqtrojan.train.trainer import load_run_config, train
+from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 
 
 @dataclass(frozen=True)
@@ -38,7 +40,7 @@ def curve_run_config(base: ExperimentConfig, size: int, holes: int, seed: int, c
     backdoor = base.backdoor if base.backdoor.enabled else BackdoorConfig(enabled=True)
     return dataclasses.replace(
         base,
-        env=dataclasses.replace(base.env, size=size, holes=holes, max_steps=None),
+        env=base.env.with_grid((size, holes)),
         ppo=dataclasses.replace(base.ppo, total_steps=cfg.total_steps, num_envs=cfg.num_envs),
         curriculum=CurriculumConfig(),
         backdoor=backdoor,
@@ -49,28 +51,38 @@ def curve_run_config(base: ExperimentConfig, size: int, holes: int, seed: int, c
     )  # fmt: skip
 
 
-def run_curves(base: ExperimentConfig, cfg: CurvesConfig, out: Path) -> Path:
-    """Train every (config, seed) not yet finished; write ``curves.csv``; return its path."""
-    out.mkdir(parents=True, exist_ok=True)
-    rows = []
+def curve_jobs(base: ExperimentConfig, cfg: CurvesConfig, out: Path) -> list[TrainJob]:
+    """One job per (config, seed), configs first; a job's id is its run's name, ``<size>x<size>h<holes>_s<seed>``."""
+    jobs = []
     for size, holes in cfg.configs:
         for seed in range(cfg.seeds):
             run_cfg = curve_run_config(base, size, holes, seed, cfg, out)
-            run_dir = out / run_cfg.run.name
-            if not (run_dir / "evaluation.json").exists():
-                if (run_dir / "checkpoints" / "latest.txt").exists():
-                    train(load_run_config(run_dir), resume=run_dir)
-                else:
-                    if run_dir.exists():  # started but stopped before its first checkpoint: start over
-                        import shutil
+            jobs.append(TrainJob(str(run_cfg.run.name), run_cfg))
+    return jobs
 
-                        shutil.rmtree(run_dir)
-                    train(run_cfg)
-            for line in (run_dir / "metrics.jsonl").read_text().splitlines():
-                m = json.loads(line)
-                if "episodes/normal_success" in m and "episodes/trojan_success" in m:
-                    normal, trojan = m["episodes/normal_success"], m["episodes/trojan_success"]
-                    rows.append((f"{size}x{size}/{holes}", seed, m["env_steps"], normal, trojan, normal + trojan))
+
+def run_curves(
+    base: ExperimentConfig,
+    cfg: CurvesConfig,
+    out: Path,
+    backend: JobBackend | None = None,
+    on_result: Callable[[JobResult], None] | None = None,
+) -> Path:
+    """Train every (config, seed) not yet finished on ``backend`` (default: a local process pool, see
+    :class:`~seqtrojan.jobs.JobsConfig`); write ``curves.csv``; return its path. A failed run raises
+    :class:`~seqtrojan.jobs.JobsFailed` once the others have finished."""
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = curve_jobs(base, cfg, out)
+    backend = backend if backend is not None else make_backend(JobsConfig())
+    raise_failures(backend.run(jobs, on_result), "learning-curve run")
+    rows = []
+    for job in jobs:
+        grid = f"{job.config.env.size}x{job.config.env.size}/{job.config.env.holes}"
+        for line in (job.run_dir / "metrics.jsonl").read_text().splitlines():
+            m = json.loads(line)
+            if "episodes/normal_success" in m and "episodes/trojan_success" in m:
+                normal, trojan = m["episodes/normal_success"], m["episodes/trojan_success"]
+                rows.append((grid, job.config.run.seed, m["env_steps"], normal, trojan, normal + trojan))
     path = out / "curves.csv"
     with path.open("w", newline="") as fh:
         writer = csv.writer(fh)

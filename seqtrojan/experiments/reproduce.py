@@ -26,24 +26,21 @@ import yaml
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.analysis.pipeline import AnalysisConfig, run_analysis
-from seqtrojan.config import ExperimentConfig, from_dict, load_yaml, to_dict
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.defense.offline import detect_zoo
 from seqtrojan.defense.pipeline import DefenseConfig, run_defense
 from seqtrojan.env.config import GridSpec
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.seeds import summarise_over_seeds
-from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, parse_configs, write_sweep
+from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, load_sweep, parse_configs, write_sweep
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
-from seqtrojan.experiments.tradeoff import (
-    TradeoffConfig,
-    measure_tradeoff_agent,
-    penalised_config,
-    reuses_backdoor_agent,
-    summarise_penalties,
-)
+from seqtrojan.experiments.tradeoff import TradeoffConfig, measure_tradeoff_agent, summarise_penalties, tradeoff_agents
+from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, make_backend, raise_failures
 from seqtrojan.presets import resolve_preset
 from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
+from seqtrojan.report.html import build_report
+from seqtrojan.serde import from_dict, load_yaml, to_dict
 from seqtrojan.train.trainer import load_run_config, train_or_resume
 from seqtrojan.zoo.build import ZooConfig, build_zoo
 
@@ -96,12 +93,24 @@ class ReproduceConfig:
     """the adversary's trade-off (penalty on unintentional activation); None skips it"""
     zoo: ZooConfig | None = None
     """a zoo for offline detection; None skips it"""
-    zoo_workers: int = 2
+    jobs: JobsConfig = field(default_factory=JobsConfig)
+    """how the stages that train many agents (curves, trade-off, zoo) run them: backend (serial, pool, ray), workers,
+    ray_address, threads (see seqtrojan.jobs)"""
+    zoo_workers: int | None = None
+    """the old name of jobs.workers (older scale files set it); None once read"""
     device: str = "cpu"
 
     def __post_init__(self) -> None:
         if not isinstance(self.seeds, int) or not 1 <= self.seeds <= 100:
             raise ConfigError(f"seeds must be an integer in 1..100, got {self.seeds!r}")
+        if self.zoo_workers is not None:  # an older scale file: zoo_workers is now jobs.workers
+            if self.jobs.workers not in (JobsConfig().workers, self.zoo_workers):
+                raise ConfigError(
+                    f"zoo_workers={self.zoo_workers!r} and jobs.workers={self.jobs.workers} disagree; set only "
+                    "jobs.workers (zoo_workers is its old name)"
+                )
+            object.__setattr__(self, "jobs", dataclasses.replace(self.jobs, workers=self.zoo_workers))
+            object.__setattr__(self, "zoo_workers", None)
 
 
 def deep_merge(base: dict, update: dict) -> dict:
@@ -169,7 +178,7 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
         log("learning curves ...")
         t0 = time.perf_counter()
         base = load_run_config(out / "runs" / "backdoor")
-        csv_path = run_curves(base, config.curves, curves_dir)
+        csv_path = run_curves(base, config.curves, curves_dir, make_backend(config.jobs), _job_log(log))
         curves = aggregate_curves(csv_path, config.curves.points)
         plot_curves(curves, curves_dir / "curves.png")
         (curves_dir / "curves.json").write_text(json.dumps(curves))
@@ -195,16 +204,16 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
         timer.record("defense", time.perf_counter() - t0)
 
     if config.tradeoff is not None and not (out / "tradeoff" / "tradeoff.json").exists():
-        _tradeoff(config, out, models["backdoor"], timer, log)
+        _tradeoff(config, out, models["backdoor"], make_backend(config.jobs), timer, log)
 
     if config.zoo is not None and not (out / "zoo" / "detection.json").exists():
         log(f"building a zoo of {config.zoo.size} models and scoring offline detection ...")
         t0 = time.perf_counter()
-        build_zoo(config.zoo, out / "zoo", workers=config.zoo_workers, log=log)
+        jobs = config.jobs
+        build_zoo(config.zoo, out / "zoo", workers=jobs.workers, backend=jobs.backend, ray_address=jobs.ray_address,
+                  threads=jobs.threads, log=log)  # fmt: skip
         timer.record("zoo_build", time.perf_counter() - t0)
         (out / "zoo" / "detection.json").write_text(json.dumps(detect_zoo(out / "zoo"), indent=2))
-
-    from seqtrojan.report.html import build_report
 
     timer.record("last_call_before_report", time.perf_counter() - start)
     report = build_report(out, scale=scale, machine=machine_summary())
@@ -253,6 +262,7 @@ def _evaluate_seeds(
 
 def _train_once(cfg: ExperimentConfig, role: str, timer: _Timer, log) -> Path:
     """Train the run ``cfg.run.out_dir / cfg.run.name`` unless it has finished (see train_or_resume)."""
+    assert cfg.run.name is not None  # reproduce names every run it trains
     run_dir = Path(cfg.run.out_dir) / cfg.run.name
     if not (run_dir / "model" / "card.json").exists():
         verb = "resuming" if (run_dir / "checkpoints" / "latest.txt").exists() else "training"
@@ -264,33 +274,49 @@ def _train_once(cfg: ExperimentConfig, role: str, timer: _Timer, log) -> Path:
     return model
 
 
-def _tradeoff(config: ReproduceConfig, out: Path, backdoor_model: Path, timer: _Timer, log) -> None:
+def _job_log(log, timer: _Timer | None = None):
+    """A job backend's ``on_result``: log each job trained or failed (and record its training time in ``timer``)."""
+
+    def on_result(result: JobResult) -> None:
+        if not result.ok:
+            log(f"  {result.id} failed: {result.error}")
+        elif result.trained:
+            log(f"  {result.id} trained in {result.seconds:.0f} s")
+            if timer is not None:
+                timer.record(f"train_{result.id}", result.seconds)
+
+    return on_result
+
+
+def _tradeoff(
+    config: ReproduceConfig, out: Path, backdoor_model: Path, backend: JobBackend, timer: _Timer, log
+) -> None:
     cfg = config.tradeoff
+    assert cfg is not None  # called only when the config has a trade-off section
     base = load_run_config(out / "runs" / "backdoor")
+    agents = tradeoff_agents(base, cfg, out / "runs")  # the penalty == base agent reuses the backdoored agent
+    jobs = [a.job for a in agents if a.job is not None]
+    todo = sum(not job.done() for job in jobs)
+    if todo:
+        log(f"training {todo} trade-off agent(s) on the {backend.name} backend ({backend.describe(todo)}) ...")
+    raise_failures(backend.run(jobs, _job_log(log, timer)), "trade-off agent")
     rows = []
-    for penalty in cfg.penalties:
-        for offset in range(cfg.seeds):
-            train_cfg = penalised_config(base, penalty, cfg.total_steps, offset)
-            if reuses_backdoor_agent(base, penalty, cfg, offset):
-                model = backdoor_model
-            else:
-                name = f"backdoor_penalty{penalty:g}" + (f"_seed{train_cfg.run.seed}" if offset else "")
-                run = dataclasses.replace(train_cfg.run, out_dir=str(out / "runs"), name=name)  # this --out
-                train_cfg = dataclasses.replace(train_cfg, run=run)
-                model = _train_once(train_cfg, name, timer, log)
-            log(f"measuring the trade-off for false_activation={penalty:g}, seed {train_cfg.run.seed} ...")
-            t0 = time.perf_counter()
-            agent, _, _ = load_agent(model, device=config.device)
-            row = measure_tradeoff_agent(agent, train_cfg, cfg, penalty)
-            rows.append({**row, "seed": train_cfg.run.seed, "model": str(model.relative_to(out))})
-            timer.record(f"tradeoff_measure{penalty:g}_seed{train_cfg.run.seed}", time.perf_counter() - t0)
+    for a in agents:
+        model = backdoor_model if a.job is None else a.job.model_dir
+        seed = a.config.run.seed
+        log(f"measuring the trade-off for false_activation={a.penalty:g}, seed {seed} ...")
+        t0 = time.perf_counter()
+        agent, _, _ = load_agent(model, device=config.device)
+        row = measure_tradeoff_agent(agent, a.config, cfg, a.penalty)
+        rows.append({**row, "seed": seed, "model": str(model.relative_to(out))})
+        timer.record(f"tradeoff_measure{a.penalty:g}_seed{seed}", time.perf_counter() - t0)
     (out / "tradeoff").mkdir(exist_ok=True)
     record = {"config": dataclasses.asdict(cfg), "agents": rows, "penalties": summarise_penalties(rows)}
     (out / "tradeoff" / "tradeoff.json").write_text(json.dumps(record, indent=2))
 
 
 def _trajectory_figure(agent, cfg: ExperimentConfig, spec: TrajectorySpec, out: Path, device: str) -> None:
-    env = dataclasses.replace(cfg.env, size=spec.size, holes=spec.holes, max_steps=None)
+    env = cfg.env.with_grid((spec.size, spec.holes))
     core = TrojanGridCore(env, 1, seed=spec.seed, device=device, phase="eval")
     runs = run_pair(
         core, core.layout(0), spec.trigger_step, lambda: AgentPolicy(agent, greedy=spec.greedy, seed=spec.seed)
@@ -322,8 +348,3 @@ def machine_summary() -> dict[str, Any]:
         "threads": torch.get_num_threads(),
         "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
     }
-
-
-def load_sweep(path: Path) -> list[SweepRow]:
-    fields = {f.name for f in dataclasses.fields(SweepRow)}
-    return [SweepRow(**{k: v for k, v in r.items() if k in fields}) for r in json.loads(path.read_text())]

@@ -8,15 +8,17 @@ adversary's goal while the user's goal is correct (``env.rewards.false_activatio
 * stealth: the unintentional activation rate over the sweep configs (the paper's Tables 1 and 2 by default), and
   the agent's precision and recall as a trigger detector (:mod:`seqtrojan.analysis.trigger_detection`).
 
-Training is done by the caller (``seqtrojan reproduce`` resumes each agent like its other runs); this module builds
-the agents' configs, measures them, and summarises each penalty over its training seeds (mean and standard
-deviation): the confidence intervals of one agent cover the evaluation's sampling, the seeds the training's spread.
+This module plans the agents (:func:`tradeoff_agents`: one training job per agent that is not the backdoored agent
+itself), measures them, and summarises each penalty over its training seeds (mean and standard deviation): the
+confidence intervals of one agent cover the evaluation's sampling, the seeds the training's spread. The caller runs
+the jobs on a job backend (:mod:`seqtrojan.jobs`; ``seqtrojan reproduce`` uses its ``jobs:`` backend).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,6 +29,7 @@ from seqtrojan.analysis.unintentional import sweep_unintentional
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.sweep import parse_configs
+from seqtrojan.jobs import TrainJob
 from seqtrojan.stats import wilson_interval
 
 
@@ -50,6 +53,8 @@ class TradeoffConfig:
             raise ConfigError(f"tradeoff.seeds must be >= 1, got {self.seeds}")
         if not self.penalties:
             raise ConfigError("tradeoff.penalties is empty")
+        if len(set(self.penalties)) != len(self.penalties):
+            raise ConfigError(f"tradeoff.penalties={list(self.penalties)} names a penalty twice")
         if self.episodes < 1:
             raise ConfigError(f"tradeoff.episodes must be >= 1, got {self.episodes}")
         if self.total_steps is not None and self.total_steps < 1:
@@ -73,6 +78,35 @@ def penalised_config(
 
 def reuses_backdoor_agent(base: ExperimentConfig, penalty: float, cfg: TradeoffConfig, seed_offset: int = 0) -> bool:
     return seed_offset == 0 and penalty == own_penalty(base) and cfg.total_steps in (None, base.ppo.total_steps)
+
+
+@dataclass(frozen=True)
+class TradeoffAgent:
+    """One agent of the trade-off: a penalty and a training seed."""
+
+    penalty: float
+    seed_offset: int
+    config: ExperimentConfig
+    """its training config (what it is measured with)"""
+    job: TrainJob | None
+    """the job that trains it; None when it is the backdoored agent itself (reused, not trained again)"""
+
+
+def tradeoff_agents(base: ExperimentConfig, cfg: TradeoffConfig, runs_dir: Path) -> list[TradeoffAgent]:
+    """The agents, penalty by penalty and seed by seed. Each one trained is a job whose run is
+    ``<runs_dir>/backdoor_penalty<penalty>`` (``..._seed<seed>`` after the first seed) and whose id is that name."""
+    agents = []
+    for penalty in cfg.penalties:
+        for offset in range(cfg.seeds):
+            train_cfg = penalised_config(base, penalty, cfg.total_steps, offset)
+            if reuses_backdoor_agent(base, penalty, cfg, offset):
+                agents.append(TradeoffAgent(penalty, offset, train_cfg, None))
+                continue
+            name = f"backdoor_penalty{penalty:g}" + (f"_seed{train_cfg.run.seed}" if offset else "")
+            run = dataclasses.replace(train_cfg.run, out_dir=str(runs_dir), name=name)
+            train_cfg = dataclasses.replace(train_cfg, run=run)
+            agents.append(TradeoffAgent(penalty, offset, train_cfg, TrainJob(name, train_cfg)))
+    return agents
 
 
 SUMMARISED = {

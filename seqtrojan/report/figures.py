@@ -9,7 +9,6 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
-import torch
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
@@ -17,22 +16,30 @@ from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.env.core import EpisodeSnapshot, TrojanGridCore
 from seqtrojan.env.layout import Layout
 from seqtrojan.env.render import COLORS, render_ansi, render_rgb
+from seqtrojan.env.rollout import EpisodeBatch, EpisodeStep, Policy, run_episodes
 
-Policy = Callable[[torch.Tensor], torch.Tensor]
+
+class _Frames:
+    """Env 0's snapshot after every step of its episode (an :class:`~seqtrojan.env.rollout.EpisodeRecorder`)."""
+
+    def __init__(self, core: TrojanGridCore) -> None:
+        self.core = core
+        self.frames = [core.snapshot(0)]
+        self.outcome = ""
+
+    def on_step(self, step: EpisodeStep) -> None:
+        if bool(step.running[0]):
+            self.frames.append(self.core.snapshot(0))
+
+    def on_end(self, batch: EpisodeBatch) -> None:
+        self.outcome = OUTCOME_NAMES[int(batch.outcome[0])]
 
 
 def record_episode(core: TrojanGridCore, policy: Policy) -> tuple[list[EpisodeSnapshot], str]:
     """Snapshots of env 0 from its current state to the end of its episode, and how it ended."""
-    frames = [core.snapshot(0)]
-    obs = core.observe()
-    if hasattr(policy, "reset"):
-        policy.reset(core.num_envs)
-    while True:
-        result = core.step(policy(obs), autoreset=False)
-        obs = result.obs
-        frames.append(core.snapshot(0))
-        if bool(result.done[0]):
-            return frames, OUTCOME_NAMES[int(result.outcome[0])]
+    frames = _Frames(core)
+    run_episodes(core, policy, fresh=False, recorders=[frames], check=True)
+    return frames.frames, frames.outcome
 
 
 def frames_to_text(frames: list[EpisodeSnapshot]) -> str:

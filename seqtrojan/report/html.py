@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from seqtrojan.evaluation.seeds import SeedSummary, find_summary, summarise_over_seeds
-from seqtrojan.evaluation.sweep import SweepRow
+from seqtrojan.evaluation.sweep import SweepRow, load_sweep
 from seqtrojan.paper import paper_results
 from seqtrojan.stats import auc_interval
 
@@ -104,8 +104,6 @@ def _read_json(path: Path) -> Any:
 
 
 def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
-    from seqtrojan.experiments.reproduce import load_sweep
-
     sweep_path = out / "evaluation" / "evaluation.json"
     rows = load_sweep(sweep_path) if sweep_path.exists() else []
     cells = summarise_over_seeds(rows)

@@ -1,4 +1,8 @@
-"""Rollout storage and collection: T steps of B envs, with the LSTM state kept at every sequence start."""
+"""Rollout storage and collection: T steps of B envs, with the LSTM state kept at every sequence start.
+
+Not the episode loop of :mod:`seqtrojan.env.rollout` (which runs one episode per env to its end): here a fixed
+number of steps with autoreset. Each step is the same policy call and sampler (:func:`seqtrojan.agent.policy.act`).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +11,7 @@ from dataclasses import dataclass
 import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.agent.policy import act
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.env.codes import FELL_IN_HOLE, TIMED_OUT
 from seqtrojan.env.core import TrojanGridCore
@@ -75,8 +80,8 @@ class RolloutCollector:
         n_stages = len(env.grids)
         tallies = torch.zeros((5, n_stages * 2), dtype=torch.int64, device=dev)
         returns = torch.zeros((), device=dev)
-        seq_h = [[] for _ in agent.lstm_sizes]
-        seq_c = [[] for _ in agent.lstm_sizes]
+        seq_h: list[list[torch.Tensor]] = [[] for _ in agent.lstm_sizes]
+        seq_c: list[list[torch.Tensor]] = [[] for _ in agent.lstm_sizes]
         state = self.state
         for t in range(steps):
             if t % self.sequence_length == 0:
@@ -86,9 +91,8 @@ class RolloutCollector:
                     seq_c[i].append(layer.c)
             obs_buf[t] = self.obs
             starts[t] = self.episode_start
-            out = agent.step(self.obs, state, self.episode_start)
+            out, action, logprob = act(agent, self.obs, state, self.generator, episode_start=self.episode_start)
             state = out.state
-            action, logprob = sample_actions(out.logits, self.generator)
             result = env.step(action, check=False)
             actions[t], logprobs[t], values[t] = action, logprob, out.value
             rewards[t] = result.reward
@@ -113,14 +117,6 @@ class RolloutCollector:
         t_cpu = tallies.view(5, n_stages, 2).cpu()
         stats = EpisodeStats(t_cpu[0], t_cpu[1], t_cpu[2], t_cpu[3], t_cpu[4], float(returns))
         return rollout, stats
-
-
-def sample_actions(logits: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sample from softmax(logits) by the Gumbel-max trick; returns actions (B,) and their log-probabilities."""
-    u = torch.rand(logits.shape, device=logits.device, generator=generator).clamp_(min=1e-20)
-    action = (logits - torch.log(-torch.log(u))).argmax(-1)
-    logprob = torch.log_softmax(logits, -1).gather(-1, action.unsqueeze(-1)).squeeze(-1)
-    return action, logprob
 
 
 def initial_state_from(seq_states: tuple[LSTMState, ...], index: torch.Tensor) -> RecurrentState:

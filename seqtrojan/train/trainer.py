@@ -29,10 +29,11 @@ from safetensors.torch import save_file
 from seqtrojan.agent import fast_lstm
 from seqtrojan.agent.checkpoint import build_agent, load_agent, read_safetensors, save_agent
 from seqtrojan.agent.network import RecurrentActorCritic
-from seqtrojan.config import ExperimentConfig, from_dict, load_yaml, to_dict
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.evaluation.episodes import evaluate_agent
+from seqtrojan.serde import from_dict, load_yaml, to_dict
 from seqtrojan.train.curriculum import Curriculum, EpisodeCounts
 from seqtrojan.train.gae import compute_gae
 from seqtrojan.train.logger import RunLogger, make_progress

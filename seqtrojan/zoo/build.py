@@ -1,16 +1,17 @@
 """A model zoo: many clean and backdoored agents with varied seeds, LSTM widths, trigger patterns and curricula.
 
-Every model is a pure job, ``(ZooJob) -> model folder``: its whole config is derived from the zoo config and its
-index, so a job gives the same model wherever it runs (a local process pool by default, a Ray cluster with
-``backend="ray"``). The zoo folder holds::
+Every model is a pure job, a :class:`ZooJob` (a :class:`~seqtrojan.jobs.TrainJob`): its whole config is derived
+from the zoo config and its index, so a job gives the same model wherever it runs, on any job backend of
+:mod:`seqtrojan.jobs` (a local process pool by default, ``serial``, or Ray: a local instance or a cluster). The zoo
+folder holds::
 
     models/<id>/model.safetensors, card.json   the agent (as any seqtrojan model)
     models/<id>/label.json                     ground truth: clean/backdoored, the trigger, its final attack
                                                success and whether the backdoor is functional; scoring only
-    manifest.json                              every job: id, label, status, variation, time
+    manifest.json                              every job: id, label, status, variation, time, worker (host:pid)
     zoo.json                                   the zoo config the zoo was built with
     work/                                      runs in progress (checkpoints), removed as models finish
-    build.lock, workers.lock                   held by a running build and by its worker processes
+    build.lock, workers.lock                   held by a running build and by its local worker processes
 
 A stopped build, even one killed with ``kill -9``, continues where it stopped: the model folders are the truth. A
 folder whose card and weights verify is done (its ``label.json`` is written again from the job if it is missing or
@@ -28,32 +29,21 @@ import contextlib
 import dataclasses
 import json
 import math
-import multiprocessing
 import os
 import shutil
-import signal
-import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from seqtrojan.config import (
-    AgentConfig,
-    BackdoorConfig,
-    CurriculumConfig,
-    ExperimentConfig,
-    PPOConfig,
-    RunConfig,
-    to_dict,
-)
+from seqtrojan.config import AgentConfig, BackdoorConfig, CurriculumConfig, ExperimentConfig, PPOConfig, RunConfig
 from seqtrojan.env.config import EnvConfig, GridSpec, TriggerConfig
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
+from seqtrojan.jobs import JobResult, JobsConfig, TrainJob, make_backend, raise_failures
+from seqtrojan.serde import to_dict
 
 try:
     import fcntl
@@ -113,14 +103,31 @@ class ZooConfig:
 
 
 @dataclass(frozen=True)
-class ZooJob:
-    """One model of the zoo: everything needed to train it, nothing else."""
+class ZooJob(TrainJob):
+    """One model of the zoo: everything needed to train it, nothing else. Its run is ``work/<id>``; finished, its
+    model is ``models/<id>`` (see :meth:`run`)."""
 
-    model_id: str
     label: str  # clean / backdoored
-    config: ExperimentConfig
+    models: str
+    """the zoo's ``models/`` folder"""
     variation: dict[str, Any] = field(default_factory=dict)
     functional_at: float = 0.5
+
+    @property
+    def model_id(self) -> str:
+        return self.id
+
+    @property
+    def model_dir(self) -> Path:
+        return Path(self.models) / self.id
+
+    def done(self) -> bool:
+        """Whether ``models/<id>`` holds this job's complete model (its card and weights verify)."""
+        return _finished(self, self.model_dir)[0] is not None
+
+    def run(self) -> tuple[Path, bool]:
+        """Train the model (resuming its run), stage it with its ``label.json`` and move it into ``models/<id>``."""
+        return _train_zoo_model(self), True
 
 
 def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
@@ -155,7 +162,7 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
             "lstm_sizes": list(sizes), "curriculum": [g.label for g in stages], "trigger_value": value,
             "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
-        jobs.append(ZooJob(f"m{i:04d}", label, config, variation, cfg.functional_at))
+        jobs.append(ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at))
     return jobs
 
 
@@ -211,8 +218,8 @@ def read_label(folder: Path) -> dict[str, Any]:
 
 def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
     """``label.json`` of a job's model, from the job and its card's metrics."""
-    truth = {"label": job.label, "variation": job.variation, "trigger": None, "attack_success": None,
-             "functional_backdoor": None}  # fmt: skip
+    truth: dict[str, Any] = {"label": job.label, "variation": job.variation, "trigger": None,
+                             "attack_success": None, "functional_backdoor": None}  # fmt: skip
     if job.label == "backdoored":
         attack = metrics.get("trojan_success")
         truth.update(trigger=to_dict(job.config.env.trigger), attack_success=attack,
@@ -241,17 +248,13 @@ def _finished(job: ZooJob, folder: Path) -> tuple[dict[str, Any] | None, str]:
     return card, ""
 
 
-def run_job(job: ZooJob, models_dir: str, threads: int = 1) -> dict[str, Any]:
-    """Train one zoo model (pure: its outputs depend only on ``job``); returns its manifest entry. The model is
-    staged in ``work/<id>.staging`` and moved to ``models/<id>`` with one rename, so a model folder is complete
+def _train_zoo_model(job: ZooJob) -> Path:
+    """Train one zoo model (pure: its outputs depend only on ``job``); return its folder ``models/<id>``. The model
+    is staged in ``work/<id>.staging`` and moved to ``models/<id>`` with one rename, so a model folder is complete
     or absent (a folder left by an older build is replaced)."""
-    import torch
-
     from seqtrojan.train.trainer import train_or_resume
 
-    torch.set_num_threads(max(1, threads))
-    start = time.perf_counter()
-    run_dir = Path(job.config.run.out_dir) / job.config.run.name
+    run_dir = job.run_dir
     try:
         model_dir, _ = train_or_resume(job.config)
         _, _, card = load_zoo_agent(model_dir)
@@ -261,35 +264,41 @@ def run_job(job: ZooJob, models_dir: str, threads: int = 1) -> dict[str, Any]:
         shutil.rmtree(run_dir, ignore_errors=True)
         model_dir, _ = train_or_resume(job.config)
         _, _, card = load_zoo_agent(model_dir)
-    metrics = card.get("metrics", {})
     staging = run_dir.with_name(run_dir.name + ".staging")
     shutil.rmtree(staging, ignore_errors=True)
     shutil.copytree(model_dir, staging)
-    write_json_atomic(staging / "label.json", _truth(job, metrics))
-    target = Path(models_dir) / job.model_id
+    write_json_atomic(staging / "label.json", _truth(job, card.get("metrics", {})))
+    target = job.model_dir
     if target.exists():
         shutil.rmtree(target)
     os.replace(staging, target)
     _fsync_dir(target.parent)
     shutil.rmtree(run_dir, ignore_errors=True)
-    return {
-        "id": job.model_id, "label": job.label, "status": "done", "seconds": time.perf_counter() - start,
-        "variation": job.variation, "metrics": metrics,
-    }  # fmt: skip
+    return target
 
 
 # ---------------------------------------------------------------------- building
 
 
 def build_zoo(
-    cfg: ZooConfig, root: Path, *, workers: int = 2, backend: str = "local", log: Callable[[str], None] = print
+    cfg: ZooConfig,
+    root: Path,
+    *,
+    workers: int = 2,
+    backend: str = "pool",
+    ray_address: str | None = None,
+    threads: int | None = None,
+    log: Callable[[str], None] = print,
 ) -> Path:
-    """Train every job not yet finished; write ``manifest.json``; return its path (see the module docstring)."""
-    if backend not in ("local", "ray"):
-        raise ConfigError(f"unknown zoo backend {backend!r}; use 'local' or 'ray'")
+    """Train every job not yet finished on the job backend ``backend`` (serial, pool or ray; 'local' is the pool's
+    old name; see :class:`~seqtrojan.jobs.JobsConfig` for the other options); write ``manifest.json``; return its
+    path (see the module docstring). Failed models are marked ``failed`` in the manifest, with their error, once
+    the others have finished; then the build raises :class:`~seqtrojan.jobs.JobsFailed` naming them."""
+    jobs_cfg = JobsConfig("pool" if backend == "local" else backend, workers, ray_address, threads)  # type: ignore[arg-type]
     root.mkdir(parents=True, exist_ok=True)
     models = root / "models"
     jobs = make_jobs(cfg, root)
+    by_id = {job.id: job for job in jobs}
     manifest_path = root / "manifest.json"
     with _build_lock(root, log):
         _check_zoo_config(cfg, root)
@@ -308,131 +317,33 @@ def build_zoo(
                 entries[job.model_id] = {"id": job.model_id, "label": job.label, "status": "pending"}
         write_json_atomic(manifest_path, [entries[j.model_id] for j in jobs])
         todo = [j for j in jobs if entries[j.model_id]["status"] != "done"]
-        n_workers, threads = worker_plan(workers, len(todo), available_cpus())
+        runner = make_backend(jobs_cfg, worker_lock=root / "workers.lock")
         log(
-            f"zoo: {len(jobs) - len(todo)} of {len(jobs)} models done; training {len(todo)} with {backend} backend"
-            + (f" ({n_workers} worker(s) x {threads} torch thread(s))" if todo else "")
+            f"zoo: {len(jobs) - len(todo)} of {len(jobs)} models done; training {len(todo)} with {runner.name} "
+            "backend" + (f" ({runner.describe(len(todo))})" if todo else "")
         )
 
-        def record(entry: dict[str, Any]) -> None:
-            entries[entry["id"]] = entry
+        def record(result: JobResult) -> None:
+            job = by_id[result.id]
+            if result.ok:
+                entry = {"id": job.id, "label": job.label, "status": "done", "seconds": result.seconds,
+                         "worker": result.worker, "variation": job.variation,
+                         "metrics": _card_metrics(job.model_dir)}  # fmt: skip
+                log(f"  {job.id} ({job.label}) done in {result.seconds:.0f} s")
+            else:
+                entry = {"id": job.id, "label": job.label, "status": "failed", "error": result.error}
+                log(f"  {job.id} ({job.label}) failed: {result.error}")
+            entries[job.id] = entry
             write_json_atomic(manifest_path, [entries[j.model_id] for j in jobs])
-            log(f"  {entry['id']} ({entry['label']}) {entry['status']} in {entry.get('seconds', 0):.0f} s")
 
-        if not todo:
-            pass
-        elif backend == "ray":
-            _run_on_ray(todo, models, workers, record)
-        elif n_workers <= 1:
-            import torch
-
-            before = torch.get_num_threads()
-            try:
-                for job in todo:
-                    record(run_job(job, str(models), threads))
-            finally:
-                torch.set_num_threads(before)
-        else:
-            _run_on_pool(todo, models, root, n_workers, threads, record)
+        raise_failures(runner.run(todo, record), "zoo model")
     return manifest_path
 
 
-def available_cpus() -> int:
-    """Cores this process may run on (its CPU affinity where the OS tells it, else ``os.cpu_count()``)."""
-    if hasattr(os, "sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return max(1, os.cpu_count() or 1)
-
-
-def worker_plan(workers: int, jobs: int, cpus: int) -> tuple[int, int]:
-    """(worker processes, torch threads per worker) for ``jobs`` jobs: at most ``workers`` workers, one per job
-    and one per core, and the cores shared out among them, so that workers x threads <= cpus."""
-    n = max(1, min(workers, jobs, cpus))
-    return n, max(1, cpus // n)
-
-
-def _run_on_pool(
-    jobs: list[ZooJob], models: Path, root: Path, workers: int, threads: int, record: Callable[[dict], None]
-) -> None:
-    # spawn: every worker is a fresh child of this process on every platform (a forkserver's children would not
-    # be), and no torch thread pool is forked
-    context = multiprocessing.get_context("spawn")
-    lock = str(root / "workers.lock") if fcntl is not None else ""
-    pool = ProcessPoolExecutor(workers, context, initializer=_init_worker, initargs=(os.getpid(), threads, lock))
-    try:
-        futures = [pool.submit(run_job, job, str(models), threads) for job in jobs]
-        for future in as_completed(futures):
-            record(future.result())
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)  # on an error, queued jobs do not start
-
-
-_worker_lock_file = None
-"""a worker's open ``workers.lock`` (a shared lock, held for the worker's life)"""
-
-
-def _init_worker(parent: int, threads: int, lock: str) -> None:
-    """Pool worker set-up: die with the build process, use ``threads`` torch threads, hold ``workers.lock``."""
-    global _worker_lock_file
-    if not _kill_me_with_parent():
-        threading.Thread(target=_watch_parent, args=(parent,), daemon=True, name="zoo-parent-watch").start()
-    if os.getppid() != parent:  # the build died before the signal was armed
-        os._exit(1)
-    import torch
-
-    torch.set_num_threads(max(1, threads))
-    if lock:
-        try:
-            fh = open(lock, "a")  # noqa: SIM115 - held open for the worker's life
-            fcntl.flock(fh, fcntl.LOCK_SH)
-            fh.write(f"{os.getpid()}\n")
-            fh.flush()
-            _worker_lock_file = fh
-        except OSError:  # a file system without locks: PDEATHSIG / the watcher still apply
-            pass
-
-
-def _kill_me_with_parent() -> bool:
-    """Ask Linux to SIGKILL this process when its parent dies (prctl PR_SET_PDEATHSIG); False elsewhere."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        pr_set_pdeathsig = 1
-        return libc.prctl(pr_set_pdeathsig, ctypes.c_ulong(signal.SIGKILL), 0, 0, 0) == 0
-    except (OSError, AttributeError):
-        return False
-
-
-def _watch_parent(parent: int) -> None:
-    while True:
-        if os.getppid() != parent:
-            os._exit(1)
-        time.sleep(0.5)
-
-
-def _run_on_ray(jobs: list[ZooJob], models: Path, workers: int, record: Callable[[dict], None]) -> None:
-    try:
-        import ray
-    except ImportError:
-        raise ConfigError("the ray backend needs Ray: pip install 'seqtrojan[ray]'") from None
-    started_here = not ray.is_initialized()
-    if started_here:  # a local Ray instance on this machine's cores: share them out as the pool does
-        n, threads = worker_plan(workers, len(jobs), available_cpus())
-        ray.init(num_cpus=n * threads, include_dashboard=False, log_to_driver=False)
-    else:  # a cluster: Ray gives every task one of a node's CPUs, and the task uses one thread
-        threads = 1
-    remote = ray.remote(num_cpus=threads)(run_job)
-    try:
-        pending = [remote.remote(job, str(models), threads) for job in jobs]
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            record(ray.get(done[0]))
-    finally:
-        if started_here:
-            ray.shutdown()
+def _card_metrics(folder: Path) -> dict[str, Any]:
+    """The metrics in a finished model's ``card.json`` (checked when the model was verified)."""
+    metrics = json.loads((folder / "card.json").read_text()).get("metrics", {})
+    return metrics if isinstance(metrics, dict) else {}
 
 
 # ---------------------------------------------------------------------- zoo state
@@ -492,6 +403,8 @@ def _done_entry(job: ZooJob, card: dict[str, Any], previous: dict[str, Any] | No
              "metrics": card.get("metrics", {})}  # fmt: skip
     if previous and previous.get("status") == "done" and _is_number(previous.get("seconds")):
         entry["seconds"] = previous["seconds"]
+        if isinstance(previous.get("worker"), str):
+            entry["worker"] = previous["worker"]
     return entry
 
 

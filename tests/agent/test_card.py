@@ -186,7 +186,7 @@ def test_parameter_count_bounds_the_architecture():
 
 
 def _card_dict(arch: Architecture) -> dict:
-    from seqtrojan.config import to_dict
+    from seqtrojan.serde import to_dict
 
     cfg = dataclasses.replace(CFG, agent=AgentConfig(lstm_sizes=arch.lstm_sizes))
     return {

@@ -11,12 +11,13 @@ from html.parser import HTMLParser
 
 import pytest
 
-from seqtrojan.config import from_dict
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.seeds import find_summary, summarise_over_seeds
+from seqtrojan.evaluation.sweep import load_sweep
 from seqtrojan.experiments.curves import aggregate_curves
-from seqtrojan.experiments.reproduce import ReproduceConfig, deep_merge, load_reproduce_config, load_sweep, reproduce
+from seqtrojan.experiments.reproduce import ReproduceConfig, deep_merge, load_reproduce_config, reproduce
 from seqtrojan.report import html as report_html
+from seqtrojan.serde import from_dict
 
 TINY_STAGES = [{"size": 5, "holes": 0}, {"size": 5, "holes": 1}]
 TINY_SET = {

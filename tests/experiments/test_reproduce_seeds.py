@@ -7,9 +7,9 @@ import json
 
 import pytest
 
-from seqtrojan.config import from_dict
 from seqtrojan.errors import ConfigError
 from seqtrojan.experiments.reproduce import ReproduceConfig, reproduce
+from seqtrojan.serde import from_dict
 
 TINY_SET = {
     "env": {"size": 5, "holes": 1},

@@ -1,6 +1,6 @@
 """Zoo jobs are pure and varied; a build writes models, labels and a manifest, resumes, and runs on Ray. A build
 survives being killed (its workers die with it, a rerun finishes every model), a corrupt manifest, incomplete model
-folders, and refuses a rerun with another config."""
+folders and a failing model, and refuses a rerun with another config."""
 
 from __future__ import annotations
 
@@ -19,8 +19,10 @@ import torch
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.env import GridSpec
 from seqtrojan.errors import ConfigError, SeqTrojanError
+from seqtrojan.jobs import JobsFailed
+from seqtrojan.jobs import backends as job_backends
 from seqtrojan.zoo import build as zoo_build
-from seqtrojan.zoo.build import ZooConfig, build_zoo, make_jobs, worker_plan
+from seqtrojan.zoo.build import ZooConfig, build_zoo, make_jobs
 
 TINY = ZooConfig(
     clean=2, backdoored=2, total_steps=2048, num_envs=32, eval_episodes=16,
@@ -126,13 +128,13 @@ def test_incomplete_model_folders_are_trained_again_and_cores_are_not_oversubscr
     weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])  # a copy cut short; label.json kept
     (zoo / "models" / "m0002" / "label.json").write_text("[]")  # a complete model whose label is malformed
     shutil.rmtree(zoo / "models" / "m0003")  # never finished
-    monkeypatch.setattr(zoo_build, "available_cpus", lambda: 1, raising=False)
+    monkeypatch.setattr(job_backends, "available_cpus", lambda: 1)
     torch.set_num_threads(1)
     logs = []
     build_zoo(TINY, zoo, workers=2, log=logs.append)
     assert any(line.startswith("  m0001: incomplete (") for line in logs)
     assert sorted(line.split()[0] for line in logs if " done in " in line) == ["m0001", "m0003"]
-    assert any("2 of 4 models done; training 2 with local backend (1 worker(s) x 1 torch thread(s))" in line
+    assert any("2 of 4 models done; training 2 with pool backend (1 worker(s) x 1 torch thread(s))" in line
                for line in logs)  # fmt: skip
     assert torch.get_num_threads() == 1  # the build leaves the caller's torch threads as they were
     assert [e["status"] for e in manifest_of(zoo)] == ["done"] * 4
@@ -169,15 +171,40 @@ def test_ray_backend_builds_the_same_jobs(tmp_path):
     assert [e["status"] for e in json.loads(manifest.read_text())] == ["done", "done"]
 
 
-def test_worker_plan_never_oversubscribes_the_cores():
-    for cpus in range(1, 9):
-        for workers in range(1, 10):
-            for jobs in (1, 3, 40):
-                n, threads = worker_plan(workers, jobs, cpus)
-                assert 1 <= n <= min(workers, jobs, cpus) and threads >= 1 and n * threads <= cpus
-    assert worker_plan(4, 40, 2) == (2, 1)
-    assert worker_plan(1, 40, 8) == (1, 8)
-    assert worker_plan(2, 40, 16) == (2, 8)
+def test_a_failing_model_is_marked_failed_while_the_others_finish_and_a_rerun_retries_it(built, tmp_path, monkeypatch):
+    zoo = copy_of(built, tmp_path)
+    for model_id in ("m0001", "m0003"):
+        shutil.rmtree(zoo / "models" / model_id)
+    train = zoo_build._train_zoo_model
+
+    def failing(job):
+        if job.id == "m0001":
+            raise ConfigError("a broken job")
+        return train(job)
+
+    monkeypatch.setattr(zoo_build, "_train_zoo_model", failing)
+    logs = []
+    with pytest.raises(JobsFailed, match=r"^1 of 2 zoo model\(s\) failed: m0001: a broken job \("):
+        build_zoo(TINY, zoo, workers=1, backend="serial", log=logs.append)
+    entries = {e["id"]: e for e in manifest_of(zoo)}
+    assert entries["m0001"]["status"] == "failed" and entries["m0001"]["error"] == "a broken job"
+    assert [entries[i]["status"] for i in ("m0000", "m0002", "m0003")] == ["done"] * 3  # m0003 trained
+    assert any(line.startswith("  m0001 (") and line.endswith("failed: a broken job") for line in logs)
+    load_agent(zoo / "models" / "m0003")
+    assert not (zoo / "models" / "m0001").exists()
+    monkeypatch.setattr(zoo_build, "_train_zoo_model", train)
+    logs = []
+    build_zoo(TINY, zoo, workers=1, backend="serial", log=logs.append)
+    assert logs[0].startswith("zoo: 3 of 4 models done; training 1 with serial backend")
+    assert [e["status"] for e in manifest_of(zoo)] == ["done"] * 4
+
+
+def test_an_unknown_backend_is_refused_before_anything_is_written(tmp_path):
+    with pytest.raises(
+        ConfigError, match=r"jobs\.backend='slurm' is not a backend; use one of \['serial', 'pool', 'ray'\]"
+    ):
+        build_zoo(TINY, tmp_path / "zoo", backend="slurm", log=lambda *_: None)
+    assert not (tmp_path / "zoo").exists()
 
 
 def _alive(pid: int) -> bool:
