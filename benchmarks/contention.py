@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -32,19 +33,27 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 
+# Single-threaded CPU-bound loops; each ends by itself soon after the benchmark does (its parent changes).
+_UNTIL_ORPHANED = "import os\nparent = os.getppid()\nwhile os.getppid() == parent:\n"
 COMPETITORS = {
-    "busy": "while True:\n    pass\n",
-    "matmul": "import numpy as np\na = np.random.rand(256, 256)\nwhile True:\n    a = (a @ a) / 256.0\n",
+    "busy": _UNTIL_ORPHANED + "    for _ in range(1_000_000):\n        pass\n",
+    "matmul": "import numpy as np\na = np.random.rand(256, 256)\n"
+    + _UNTIL_ORPHANED
+    + "    for _ in range(100):\n        a = (a @ a) / np.abs(a).sum(0).max()\n",
 }
 
 
 def _worker(size: int, holes: int, envs: int, backend: str) -> None:
     """Print one JSON line: this process's PPO throughput and the settings it ran with."""
+    import seqtrojan  # first: it sets the OpenMP defaults, which torch's runtime reads once when it loads
+
     sys.path.insert(0, str(HERE))
     import torch
     from train_throughput import measure_speed
 
     from seqtrojan.agent import fast_lstm
+
+    del seqtrojan
 
     with tempfile.TemporaryDirectory() as tmp:
         rate = measure_speed(size, holes, envs, backend, "cpu", tmp)
@@ -107,6 +116,7 @@ def main() -> None:
     from rich.console import Console
     from rich.table import Table
 
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # so that the competitors are stopped
     variants = args.variant or ["default"]
     envs = {v: _variant_env(v, parser) for v in variants}
     counts = sorted(set([0, *args.competitors]))

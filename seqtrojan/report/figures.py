@@ -36,7 +36,8 @@ class _Frames:
 
 
 def record_episode(core: TrojanGridCore, policy: Policy) -> tuple[list[EpisodeSnapshot], str]:
-    """Snapshots of env 0 from its current state to the end of its episode, and how it ended."""
+    """Snapshots of env 0 from its current state to the end of its episode, and how it ended (any other envs of
+    ``core`` are stepped along until theirs end too)."""
     frames = _Frames(core)
     run_episodes(core, policy, fresh=False, recorders=[frames], check=True)
     return frames.frames, frames.outcome
