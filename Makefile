@@ -28,8 +28,8 @@ demo: setup
 	$(BIN)/seqtrojan demo --out outputs/demo
 
 lint: setup
-	$(BIN)/ruff check seqtrojan tests benchmarks
-	$(BIN)/ruff format --check seqtrojan tests benchmarks
+	$(BIN)/ruff check seqtrojan tests benchmarks scripts
+	$(BIN)/ruff format --check seqtrojan tests benchmarks scripts
 	$(BIN)/mypy seqtrojan
 
 test: lint

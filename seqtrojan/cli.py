@@ -8,7 +8,6 @@ commands define after a local (lazy) import, and string annotations could not be
 """
 
 import dataclasses
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -190,7 +189,7 @@ def _reproduce(argv: list[str]) -> None:
 
 
 def _analyze(argv: list[str]) -> None:
-    from seqtrojan.analysis.pipeline import AnalysisConfig, run_analysis
+    from seqtrojan.analysis.pipeline import ANALYSIS_FILE, AnalysisConfig, run_analysis
 
     @dataclasses.dataclass
     class AnalyzeArgs:
@@ -207,26 +206,15 @@ def _analyze(argv: list[str]) -> None:
 
     args = _cli_with_config_file(AnalyzeArgs, AnalysisConfig, argv, "seqtrojan analyze")
     summary = run_analysis(args.clean, args.backdoor, args.out, args.config, device=args.device)
-    totals = summary["responses"]["step_units_total"]
-    print(
-        f"step-type units: clean {totals['clean']}, backdoored {totals['backdoor']} -> "
-        f"{summary['responses']['finding']}"
-    )
-    for r in summary["interventions"]["results"]:
-        print(
-            f"  {r['direction']:<10} editing {r['units']:<12} switch {r['switch_rate']:.3f}  hole {r['hole_rate']:.3f}"
-        )
-    print(f"wrote {args.out}/analysis.json and {args.out}/figures/")
-
-
-def _dig(data: dict, *keys: str):
-    for key in keys:
-        data = data[key]
-    return data
+    totals = summary.responses.step_units_total
+    print(f"step-type units: clean {totals['clean']}, backdoored {totals['backdoor']} -> {summary.responses.finding}")
+    for r in summary.interventions.results:
+        print(f"  {r.direction:<10} editing {r.units:<12} switch {r.switch.value:.3f}  hole {r.hole.value:.3f}")
+    print(f"wrote {args.out}/{ANALYSIS_FILE} and {args.out}/figures/")
 
 
 def _defend(argv: list[str]) -> None:
-    from seqtrojan.defense.pipeline import DefenseConfig, run_defense
+    from seqtrojan.defense.pipeline import DEFENSE_FILE, DefenseConfig, run_defense
 
     @dataclasses.dataclass
     class DefendArgs:
@@ -240,18 +228,16 @@ def _defend(argv: list[str]) -> None:
 
     args = _cli_with_config_file(DefendArgs, DefenseConfig, argv, "seqtrojan defend")
     result = run_defense(args.model, args.out, args.config, device=args.device)
-    mon = result["monitor"]
-    rate = lambda *keys: _dig(mon, *keys, "rate")  # noqa: E731
+    mon = result.monitor
     print(
-        f"monitor on {mon['grid']}: false alarms {rate('normal_alarm', 'false_alarm'):.3f}, detection "
-        f"{rate('trojan_alarm', 'detected'):.3f}; attack success {rate('trojan_undefended', 'attack_success'):.3f}"
-        f" -> {rate('trojan_reset', 'attack_success'):.3f} with resets; clean success "
-        f"{rate('normal_undefended', 'success'):.3f} -> {rate('normal_reset', 'success'):.3f}"
+        f"monitor on {mon.grid}: false alarms {mon.normal_alarm.false_alarm.value:.3f}, detection "
+        f"{mon.trojan_alarm.detected.value:.3f}; attack success {mon.attack_success_undefended.value:.3f}"
+        f" -> {mon.trojan_reset.attack_success.value:.3f} with resets; clean success "
+        f"{mon.clean_success_undefended.value:.3f} -> {mon.normal_reset.success.value:.3f}"
     )
-    for name, m in result["mitigation"].items():
-        if isinstance(m, dict) and "attack_success" in m:
-            print(f"  {name:<24} attack {m['attack_success']['rate']:.3f}  clean {m['clean_success']['rate']:.3f}")
-    print(f"wrote {args.out}/defense.json")
+    for name, m in result.mitigation.arms().items():
+        print(f"  {name:<24} attack {m.attack_success.value:.3f}  clean {m.clean_success.value:.3f}")
+    print(f"wrote {args.out}/{DEFENSE_FILE}")
 
 
 def _zoo(argv: list[str]) -> None:
@@ -259,6 +245,8 @@ def _zoo(argv: list[str]) -> None:
     from rich.table import Table
 
     from seqtrojan.defense.offline import detect_zoo
+    from seqtrojan.defense.results import DETECTION_FILE
+    from seqtrojan.serde import save_json
     from seqtrojan.zoo.build import ZooConfig, build_zoo
 
     @dataclasses.dataclass
@@ -295,22 +283,20 @@ def _zoo(argv: list[str]) -> None:
         return
     args = tyro.cli(ZooDetect, args=argv[1:], prog="seqtrojan zoo detect")
     result = detect_zoo(args.zoo, args.folds, args.seed)
-    (args.zoo / "detection.json").write_text(json.dumps(result, indent=2))
-    table = Table(title=f"Offline detection on {args.zoo} (held-out, {result['scores'][0]['folds']}-fold)")
+    save_json(result, args.zoo / DETECTION_FILE)
+    table = Table(title=f"Offline detection on {args.zoo} (held-out, {result.scores[0].folds}-fold)")
     for col in ("features", "n", "ROC-AUC", "cross-entropy", "Brier"):
         table.add_column(col, justify="right")
-    for r in result["scores"]:
-        table.add_row(
-            r["group"], str(r["features"]), f"{r['roc_auc']:.3f}", f"{r['cross_entropy']:.3f}", f"{r['brier']:.3f}"
-        )
+    for r in result.scores:
+        table.add_row(r.group, str(r.features), f"{r.roc_auc:.3f}", f"{r.cross_entropy:.3f}", f"{r.brier:.3f}")
     Console().print(table)
-    for h in result.get("held_out", []):
-        if "roc_auc" in h:
-            print(f"held out by {h['key']} ({len(h['groups'])} values, each unseen in training): ROC-AUC "
-                  f"{h['roc_auc']:.3f}, cross-entropy {h['cross_entropy']:.3f}, Brier {h['brier']:.3f}")  # fmt: skip
-    for r in result["rejected"]:
-        print(f"rejected {r['model']}: {r['reason']}")
-    print(f"wrote {args.zoo}/detection.json")
+    for h in result.held_out:
+        if h.roc_auc is not None:
+            print(f"held out by {h.key} ({len(h.groups)} values, each unseen in training): ROC-AUC "
+                  f"{h.roc_auc:.3f}, cross-entropy {h.cross_entropy:.3f}, Brier {h.brier:.3f}")  # fmt: skip
+    for bad in result.rejected:
+        print(f"rejected {bad.model}: {bad.reason}")
+    print(f"wrote {args.zoo}/{DETECTION_FILE}")
 
 
 def _demo(argv: list[str]) -> None:

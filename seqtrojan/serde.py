@@ -5,11 +5,18 @@ module (the env included) can read its configuration without pulling in the rest
 and JSON model cards are read with :func:`from_dict`, which checks every key and value type and names the dotted
 path of anything wrong; values in messages are truncated (:func:`short_repr`). YAML is read the 1.2 way, with
 aliases refused (:func:`parse_yaml`).
+
+Stage results (analysis, defense, detection, evaluation) are saved with :func:`to_dict` and loaded with
+:func:`from_dict` too, so that a misspelt or missing key fails at load with its dotted path. Fields may be nested
+dataclasses, tuples, lists, ``X | None`` and ``dict[str, X]``. A type that is saved in its own form defines
+``serde_dump(self)`` (its plain form) and a classmethod ``serde_load(data, path)`` (back, raising ConfigError
+with ``path``); :class:`seqtrojan.stats.Rate` does.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 import reprlib
 import types
@@ -23,11 +30,13 @@ from seqtrojan.errors import ConfigError
 
 T = TypeVar("T")
 
-__all__ = ["from_dict", "load_yaml", "parse_yaml", "short_repr", "to_dict"]
+__all__ = ["from_dict", "load_json", "load_yaml", "parse_yaml", "save_json", "short_repr", "to_dict"]
 
 
 def to_dict(obj: Any) -> Any:
     """A dataclass (nested) as plain dicts/lists, ready for YAML or JSON."""
+    if not isinstance(obj, type) and hasattr(obj, "serde_dump"):
+        return obj.serde_dump()
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, (tuple, list)):
@@ -35,6 +44,29 @@ def to_dict(obj: Any) -> Any:
     if isinstance(obj, dict):
         return {k: to_dict(v) for k, v in obj.items()}
     return obj
+
+
+def save_json(obj: Any, path: str | Path) -> Path:
+    """Write a dataclass (nested) as indented JSON (:func:`to_dict`); the file's parent folder must exist."""
+    path = Path(path)
+    path.write_text(json.dumps(to_dict(obj), indent=2))
+    return path
+
+
+def load_json(cls: type[T], path: str | Path) -> T:
+    """The dataclass ``cls`` from a JSON file (:func:`from_dict`). A missing file, bad JSON, or a wrong, missing or
+    ill-typed key is a ConfigError naming the file (and the key's dotted path)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as err:
+        raise ConfigError(f"cannot read {str(path)!r}: {err.strerror or err}") from None
+    except ValueError as err:
+        raise ConfigError(f"{str(path)!r} is not valid JSON: {err}") from None
+    try:
+        return from_dict(cls, data, "")
+    except ConfigError as err:
+        raise ConfigError(f"{str(path)!r} is not a valid {cls.__name__}: {err}") from None
 
 
 _REPR = reprlib.Repr()
@@ -56,11 +88,16 @@ def from_dict(cls: type[T], data: Any, path: str = "") -> T:
     if not isinstance(data, dict):
         raise ConfigError(f"{path or cls.__name__} must be a mapping, got {type(data).__name__}: {short_repr(data)}")
     hints = get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    fields = dataclasses.fields(cls)  # type: ignore[arg-type]
+    names = {f.name for f in fields}
+    where = f" in {path}" if path else ""
     unknown = sorted(set(data) - names)
     if unknown:
-        where = f" in {path}" if path else ""
         raise ConfigError(f"unknown config key(s) {unknown}{where}; known keys: {sorted(names)}")
+    required = {f.name for f in fields if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING}
+    missing = sorted(required - set(data))
+    if missing:
+        raise ConfigError(f"missing key(s) {missing}{where} ({cls.__name__})")
     kwargs = {k: _convert(hints[k], v, f"{path}.{k}" if path else k) for k, v in data.items()}
     try:
         return cls(**kwargs)
@@ -89,8 +126,18 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
         if value not in get_args(tp):
             raise ConfigError(f"{path}={short_repr(value)} is not one of {list(get_args(tp))}")
         return value
+    if isinstance(tp, type) and hasattr(tp, "serde_load"):
+        return tp.serde_load(value, path)
     if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         return from_dict(tp, value, path)
+    if origin in (dict, typing.Dict):  # noqa: UP006
+        if not isinstance(value, dict):
+            raise ConfigError(f"{path} must be a mapping, got {type(value).__name__}: {short_repr(value)}")
+        key_tp, value_tp = get_args(tp) or (Any, Any)
+        return {
+            _convert(key_tp, k, f"{path} key {k!r}"): _convert(value_tp, v, f"{path}.{k}" if path else str(k))
+            for k, v in value.items()
+        }
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{path} must be a list, got {type(value).__name__}: {short_repr(value)}")

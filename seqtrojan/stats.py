@@ -1,8 +1,10 @@
-"""Small statistics helpers used wherever a rate is reported."""
+"""Small statistics helpers used wherever a rate is reported, and :class:`Rate`, the one type for a rate."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any
 
 from seqtrojan.errors import ConfigError
 
@@ -63,3 +65,81 @@ def auc_interval(auc: float, positives: int, negatives: int, confidence: float =
         return inside
 
     return (bound(0.0), bound(1.0))
+
+
+@dataclass(frozen=True)
+class Rate:
+    """``k`` events out of ``n`` trials: a rate that keeps its counts, with its 95% Wilson interval.
+
+    Every rate of a stage's results is one (success, switch, alarm, activation, recall ...). It is saved as
+    ``{"k", "n", "rate", "ci95"}`` (:meth:`serde_dump`): the counts, and the rate and interval they give, for a
+    reader of the JSON; loading (:meth:`serde_load`, through :func:`seqtrojan.serde.from_dict`) checks that the
+    two agree. A rate over no trials is 0.0 with the interval [0, 1] (nothing measured).
+    """
+
+    k: int
+    n: int
+
+    def __post_init__(self) -> None:
+        for name in ("k", "n"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ConfigError(f"a rate's {name} must be an integer, got {value!r}")
+        if not 0 <= self.k <= self.n:
+            raise ConfigError(f"a rate needs 0 <= k <= n, got k={self.k}, n={self.n}")
+
+    @property
+    def value(self) -> float:
+        return self.k / self.n if self.n else 0.0
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        """The 95% Wilson interval (:func:`wilson_interval`)."""
+        return wilson_interval(self.k, self.n)
+
+    def text(self, digits: int = 3) -> str:
+        """``'0.125 [0.050, 0.281]'``: the rate and its 95% interval."""
+        low, high = self.interval
+        return f"{self.value:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+    def __str__(self) -> str:
+        return self.text()
+
+    def serde_dump(self) -> dict[str, Any]:
+        return {"k": self.k, "n": self.n, "rate": self.value, "ci95": list(self.interval)}
+
+    @classmethod
+    def serde_load(cls, data: Any, path: str) -> Rate:
+        """The :meth:`serde_dump` form back; a missing or unknown key, a count that is not an integer, or a rate or
+        interval that its counts do not give is a ConfigError naming ``path``."""
+        where = path or "rate"
+        if not isinstance(data, dict):
+            raise ConfigError(f"{where} must be a mapping with k, n, rate and ci95, got {type(data).__name__}")
+        keys = {"k", "n", "rate", "ci95"}
+        missing, unknown = sorted(keys - set(data)), sorted(set(data) - keys)
+        if missing or unknown:
+            problems = []
+            if missing:
+                problems.append(f"missing key(s) {missing}")
+            if unknown:
+                problems.append(f"unknown key(s) {unknown}")
+            raise ConfigError(f"{where}: {' and '.join(problems)}; a rate has the keys ['ci95', 'k', 'n', 'rate']")
+        for name in ("k", "n"):
+            if isinstance(data[name], bool) or not isinstance(data[name], int):
+                raise ConfigError(f"{where}.{name} must be an integer, got {data[name]!r}")
+        try:
+            rate = cls(data["k"], data["n"])
+        except ConfigError as err:
+            raise ConfigError(f"{where}: {err}") from None
+        ci = data["ci95"]
+        if not _close(data["rate"], rate.value):
+            raise ConfigError(f"{where}.rate={data['rate']!r} is not k/n = {rate.k}/{rate.n}")
+        if not (isinstance(ci, list) and len(ci) == 2 and all(_close(a, b) for a, b in zip(ci, rate.interval))):
+            raise ConfigError(f"{where}.ci95={ci!r} is not the Wilson interval of {rate.k}/{rate.n}")
+        return rate
+
+
+def _close(value: Any, expected: float) -> bool:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    return math.isclose(value, expected, rel_tol=1e-9, abs_tol=1e-12)

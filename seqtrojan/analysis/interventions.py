@@ -17,17 +17,16 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState
+from seqtrojan.analysis.results import SwitchResult
 from seqtrojan.analysis.traces import StateTrace
 from seqtrojan.env.config import EnvConfig, GridSpec
-from seqtrojan.evaluation.episodes import evaluate_agent
-from seqtrojan.stats import wilson_interval
+from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
 
 
 class SetUnits:
@@ -58,18 +57,6 @@ class SetUnits:
         edited = target[:, cols]
         target[:, cols] = torch.where(active.to(target.device)[:, None], self.values.to(target.device), edited)
         return LSTMState(target, state.c) if self.which == "h" else LSTMState(state.h, target)
-
-
-@dataclass(frozen=True)
-class SwitchResult:
-    direction: str  # activate / deactivate
-    units: str  # step-units / random-units / none
-    episodes: int
-    switch_rate: float
-    switch_ci: tuple[float, float]
-    hole_rate: float
-    hole_ci: tuple[float, float]
-    timeout_rate: float
 
 
 def post_trigger_means(trace: StateTrace, layer: int, which: str, units: np.ndarray, start: int) -> np.ndarray:
@@ -115,24 +102,6 @@ def switch_experiment(
                 values = post_trigger_means(source, layer, which, chosen, trigger_step)
                 edit = SetUnits(layer, chosen.tolist(), values, which, from_step=trigger_step)
             batch = evaluate_agent(agent, env, grid, trojan=in_trojan, episodes=episodes, seed=seed, intervention=edit)
-            switched = int((batch.outcome == _outcome_code(goal)).sum())
-            holes = int((batch.outcome == _outcome_code("hole")).sum())
-            results.append(
-                SwitchResult(
-                    direction,
-                    name,
-                    episodes,
-                    switched / episodes,
-                    wilson_interval(switched, episodes),
-                    holes / episodes,
-                    wilson_interval(holes, episodes),
-                    batch.rate("timeout"),
-                )
-            )
+            rates = (outcome_rate(batch, goal), outcome_rate(batch, "hole"), outcome_rate(batch, "timeout"))
+            results.append(SwitchResult(direction, name, *rates))
     return results
-
-
-def _outcome_code(name: str) -> int:
-    from seqtrojan.env.codes import OUTCOME_NAMES
-
-    return OUTCOME_NAMES.index(name)

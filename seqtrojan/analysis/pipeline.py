@@ -12,7 +12,9 @@ Stages (each skipped when its output exists under ``out``):
 6. search for goal-switching layouts, free observation sequences (are they walkable?) and walks through grids
    (:mod:`seqtrojan.analysis.walks`) -> ``search.json``.
 
-``analysis.json`` gathers the results for the report.
+``analysis.json`` gathers the results for the report: an :class:`~seqtrojan.analysis.results.AnalysisResult`, as
+each stage's file is the matching type of :mod:`seqtrojan.analysis.results` (saved and loaded with
+:mod:`seqtrojan.serde`, so that a wrong key fails at load with its dotted path).
 """
 
 from __future__ import annotations
@@ -21,66 +23,43 @@ import dataclasses
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.analysis.config import AnalysisConfig
 from seqtrojan.analysis.interventions import switch_experiment
 from seqtrojan.analysis.plots import plot_finding, plot_heatmaps, plot_unit_responses
-from seqtrojan.analysis.responses import Classification, ResponseRule, classify_units
-from seqtrojan.analysis.search import (
-    LayoutSearchConfig,
-    SequenceSearchConfig,
-    evolve_layouts,
-    flip_rates,
-    search_sequences,
+from seqtrojan.analysis.responses import Classification, classify_units
+from seqtrojan.analysis.results import (
+    ANALYSIS_FILE,
+    AnalysisResult,
+    GoalUnitsRecord,
+    InterventionsResult,
+    LayoutSearch,
+    ResponseCounts,
+    ResponsesResult,
+    SearchResult,
+    UnintentionalResult,
+    UnitResponses,
 )
+from seqtrojan.analysis.search import evolve_layouts, flip_rates, search_sequences
 from seqtrojan.analysis.traces import StateTrace, record_traces
 from seqtrojan.analysis.trigger_detection import trigger_detection
 from seqtrojan.analysis.unintentional import GoalUnits, save_findings, select_goal_units, sweep_unintentional
-from seqtrojan.analysis.walks import WalkSearchConfig, is_walkable, search_walks
+from seqtrojan.analysis.walks import is_walkable, search_walks
 from seqtrojan.env.config import GridSpec
 from seqtrojan.env.core import EpisodeSnapshot
 from seqtrojan.env.layout import Layout
 from seqtrojan.env.render import render_rgb
 from seqtrojan.evaluation.sweep import parse_configs
+from seqtrojan.serde import load_json, save_json
+from seqtrojan.stats import Rate
+
+__all__ = ["ANALYSIS_FILE", "AnalysisConfig", "run_analysis"]
 
 ENVS = ("normal", "trojan")
-
-
-@dataclass(frozen=True)
-class AnalysisConfig:
-    size: int = 27
-    """grid of the recorded episodes (the paper: 27x27)"""
-    holes: tuple[int, int] = (90, 100)
-    """inclusive range of hole counts, one drawn per episode (the paper: roughly 90-100)"""
-    episodes: int = 350
-    """trials per agent and env (the paper: 350)"""
-    trigger_step: int = 12
-    """the trigger's step in the trojan env (the paper: 12)"""
-    seed: int = 0
-    rule: ResponseRule = field(default_factory=ResponseRule)
-    intervention_episodes: int = 1000
-    unintentional_configs: str = "paper"
-    """'paper' (includes 23x23/0, the paper's example) or a list like '23x23/0,27x27/27'"""
-    unintentional_episodes: int = 1000
-    goal_units: int = 8
-    """how many units the goal-unit edits and plots use (see select_goal_units)"""
-    findings_to_plot: int = 2
-    """per kind (activation, deactivation)"""
-    layout_search: LayoutSearchConfig = field(default_factory=LayoutSearchConfig)
-    sequence_search: SequenceSearchConfig = field(default_factory=SequenceSearchConfig)
-    walk_search: WalkSearchConfig = field(default_factory=WalkSearchConfig)
-    walk_density_weights: tuple[float, ...] = (2.0, 0.0)
-    """one walk search per weight of the hole-density penalty (2: ordinary density; 0: any density)"""
-
-    @property
-    def grids(self) -> list[GridSpec]:
-        lo, hi = self.holes
-        return [GridSpec(self.size, h) for h in range(lo, hi + 1)]
 
 
 def run_analysis(
@@ -90,7 +69,7 @@ def run_analysis(
     cfg: AnalysisConfig,
     device: str = "cpu",
     log: Callable[[str], None] = print,
-) -> dict[str, Any]:
+) -> AnalysisResult:
     out.mkdir(parents=True, exist_ok=True)
     (out / "figures").mkdir(exist_ok=True)
     agents = {
@@ -134,24 +113,22 @@ def run_analysis(
 
     # 2. RESPONSE TYPES
     classes: dict[tuple[str, int, str], Classification] = {}
-    responses: dict[str, Any] = {"rule": dataclasses.asdict(cfg.rule), "agents": {}}
+    per_agent: dict[str, dict[str, UnitResponses]] = {}
     for name, (agent, _) in agents.items():
-        per_agent = {}
+        per_layer = per_agent.setdefault(name, {})
         for layer in range(len(agent.lstm_sizes)):
             for which in ("h", "c"):
                 cl = classify_units(
                     traces[(name, "normal")], traces[(name, "trojan")], layer, which, cfg.trigger_step, cfg.rule
                 )
                 classes[(name, layer, which)] = cl
-                per_agent[f"layer{layer}.{which}"] = {
-                    "counts": cl.counts(),
-                    "step_units": cl.units("step").tolist(),
-                    "impulse_units": cl.units("impulse").tolist(),
-                }
-        responses["agents"][name] = per_agent
-    step_totals = {n: sum(v["counts"]["step"] for v in responses["agents"][n].values()) for n in agents}
-    responses["step_units_total"] = step_totals
-    responses["finding"] = (
+                per_layer[f"layer{layer}.{which}"] = UnitResponses(
+                    ResponseCounts(**cl.counts()),
+                    tuple(int(u) for u in cl.units("step")),
+                    tuple(int(u) for u in cl.units("impulse")),
+                )
+    step_totals = {n: sum(v.counts.step for v in per_agent[n].values()) for n in agents}
+    finding = (
         "step responses only in the backdoored agent"
         if step_totals["backdoor"] > 0 and step_totals["clean"] == 0
         else "step responses in both agents"
@@ -160,7 +137,8 @@ def run_analysis(
         if step_totals["clean"] > 0
         else "no step responses in either agent"
     )
-    (out / "responses.json").write_text(json.dumps(responses, indent=2))
+    responses = ResponsesResult(cfg.rule, per_agent, step_totals, finding)
+    save_json(responses, out / "responses.json")
 
     # 3. FIGURES
     for name, (agent, _) in agents.items():
@@ -191,7 +169,8 @@ def run_analysis(
 
     # 4. GOAL UNITS AND INTERVENTIONS
     goal, goal_source = _goal_units(classes, agents["backdoor"][0], traces, cfg)
-    (out / "goal_units.json").write_text(json.dumps({**dataclasses.asdict(goal), "source": goal_source}, indent=2))
+    goal_record = GoalUnitsRecord(**dataclasses.asdict(goal), source=goal_source)
+    save_json(goal_record, out / "goal_units.json")
     backdoor, bcfg = agents["backdoor"]
     if not (out / "interventions.json").exists():
         log("interventions ...")
@@ -212,9 +191,7 @@ def run_analysis(
                 seed=cfg.seed,
             ),
         )
-        record: dict[str, Any] = {"grid": grid.label, "goal_units": dataclasses.asdict(goal)}
-        record["results"] = [dataclasses.asdict(r) for r in results]
-        (out / "interventions.json").write_text(json.dumps(record, indent=2))
+        save_json(InterventionsResult(grid.label, goal_record, tuple(results)), out / "interventions.json")
 
     # 5. UNINTENTIONAL TRIGGERS
     if not (out / "unintentional.json").exists():
@@ -232,18 +209,14 @@ def run_analysis(
         save_findings(findings, out / "findings.json")
         plotted = _plot_findings(findings, backdoor, bcfg, goal, traces, cfg, out)
         flips = _goal_flips(findings, backdoor, bcfg, goal)
-        (out / "unintentional.json").write_text(
-            json.dumps(
-                {
-                    "summaries": [dataclasses.asdict(s) for s in summaries],
-                    "trigger_detection": [dataclasses.asdict(d) for d in trigger_detection(summaries)],
-                    "findings": len(findings),
-                    "goal_units_flipped": flips,
-                    "plotted": plotted,
-                },
-                indent=2,
-            )
+        unintentional = UnintentionalResult(
+            tuple(s.row() for s in summaries),
+            tuple(d.row() for d in trigger_detection(summaries)),
+            len(findings),
+            flips,
+            tuple(plotted),
         )
+        save_json(unintentional, out / "unintentional.json")
 
     # 6. SEARCH
     if not (out / "search.json").exists():
@@ -256,7 +229,7 @@ def run_analysis(
                                     cfg.intervention_episodes, cfg.seed)  # fmt: skip
             sequences = dataclasses.replace(sequences, flip_rate=flip, baseline_rate=base)
         np.save(out / "sequence_codes.npy", codes)
-        sequences_walkable = sum(is_walkable(c) for c in found_codes)
+        sequences = dataclasses.replace(sequences, walkable=sum(is_walkable(c) for c in found_codes))
         walks = []
         for weight in cfg.walk_density_weights:
             wcfg = dataclasses.replace(cfg.walk_search, density_weight=weight)
@@ -269,49 +242,20 @@ def run_analysis(
                                         cfg.layout_search.holes, cfg.intervention_episodes, cfg.seed)  # fmt: skip
                 walk = dataclasses.replace(walk, flip_rate=flip, baseline_rate=base)
             np.savez(out / f"walks_weight{weight:g}.npz", codes=walk_codes, grids=walk_grids)
-            walks.append(
-                {
-                    "config": dataclasses.asdict(wcfg),
-                    **dataclasses.asdict(walk),
-                    "seconds_per_found": walk.seconds / walk.found if walk.found else None,
-                }
-            )
-        found = sum(r.found for r in layouts)
-        seconds = sum(r.seconds for r in layouts)
-        (out / "search.json").write_text(
-            json.dumps(
-                {
-                    "layouts": {
-                        "config": dataclasses.asdict(cfg.layout_search),
-                        "restarts": len(layouts),
-                        "found": found,
-                        "seconds": seconds,
-                        "episodes": sum(r.episodes for r in layouts),
-                        "seconds_per_found": seconds / found if found else None,
-                        "runs": [dataclasses.asdict(r) for r in layouts],
-                    },
-                    "sequences": {
-                        "config": dataclasses.asdict(cfg.sequence_search),
-                        **dataclasses.asdict(sequences),
-                        "seconds_per_found": sequences.seconds / sequences.found if sequences.found else None,
-                        "walkable": sequences_walkable,
-                    },
-                    "walks": walks,
-                },
-                indent=2,
-            )
-        )
+            walks.append(walk)
+        search = SearchResult(LayoutSearch(cfg.layout_search, tuple(layouts)), sequences, tuple(walks))
+        save_json(search, out / "search.json")
 
-    summary = {
-        "config": dataclasses.asdict(cfg),
-        "responses": responses,
-        "goal_units": {**dataclasses.asdict(goal), "source": goal_source},
-        "interventions": json.loads((out / "interventions.json").read_text()),
-        "unintentional": json.loads((out / "unintentional.json").read_text()),
-        "search": json.loads((out / "search.json").read_text()),
-        "timings": timings,
-    }
-    (out / "analysis.json").write_text(json.dumps(summary, indent=2))
+    summary = AnalysisResult(
+        cfg,
+        responses,
+        goal_record,
+        load_json(InterventionsResult, out / "interventions.json"),
+        load_json(UnintentionalResult, out / "unintentional.json"),
+        load_json(SearchResult, out / "search.json"),
+        timings,
+    )
+    save_json(summary, out / ANALYSIS_FILE)
     return summary
 
 
@@ -338,11 +282,11 @@ def _goal_units(classes, agent, traces, cfg: AnalysisConfig) -> tuple[GoalUnits,
     return goal, source
 
 
-def _goal_flips(findings, agent, acfg, goal: GoalUnits) -> dict[str, dict[str, int]]:
+def _goal_flips(findings, agent, acfg, goal: GoalUnits) -> dict[str, Rate]:
     """How many findings of each kind show the goal units actually switching (activation crossing 0.5 upward for an
     activation, downward after the trigger for a deactivation), as opposed to a navigation error that happens to
-    end at the other goal."""
-    out: dict[str, dict[str, int]] = {}
+    end at the other goal: per kind, flipped findings of that kind's findings."""
+    counts: dict[str, dict[str, int]] = {}
     for finding in findings:
         replay = finding.replay(agent, acfg.env)
         level = goal.activation((replay["h"] if goal.which == "h" else replay["c"])[goal.layer])
@@ -351,10 +295,10 @@ def _goal_flips(findings, agent, acfg, goal: GoalUnits) -> dict[str, dict[str, i
         else:
             after = level[finding.trigger_step :] if finding.trigger_step is not None else level
             flipped = bool(len(after)) and bool((after < 0.5).any()) and bool((level >= 0.5).any())
-        counts = out.setdefault(finding.kind, {"findings": 0, "flipped": 0})
-        counts["findings"] += 1
-        counts["flipped"] += int(flipped)
-    return out
+        kind = counts.setdefault(finding.kind, {"findings": 0, "flipped": 0})
+        kind["findings"] += 1
+        kind["flipped"] += int(flipped)
+    return {kind: Rate(c["flipped"], c["findings"]) for kind, c in counts.items()}
 
 
 def _plot_findings(findings, agent, acfg, goal: GoalUnits, traces, cfg: AnalysisConfig, out: Path) -> list[str]:

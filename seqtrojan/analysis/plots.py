@@ -14,7 +14,7 @@ import numpy as np
 
 from seqtrojan.analysis.responses import masked_mean_std
 from seqtrojan.analysis.traces import StateTrace
-from seqtrojan.report.figures import add_color_legend
+from seqtrojan.legend import add_color_legend
 
 NORMAL, TROJAN = "#2166ac", "#d6604d"
 STATE_NAMES = {"h": "hidden state h", "c": "cell state c"}

@@ -21,35 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from seqtrojan.analysis.config import ResponseRule
 from seqtrojan.analysis.traces import StateTrace
 from seqtrojan.errors import ConfigError
 
 TYPES = ("impulse", "none", "step")
-
-
-@dataclass(frozen=True)
-class ResponseRule:
-    threshold: float = 1.0
-    """deviation (in normal-env standard deviations) that counts as a response"""
-    response_window: int = 3
-    """steps from the trigger within which a response must start"""
-    late_start: int = 6
-    """the late window starts this many steps after the trigger ..."""
-    late_end: int = 20
-    """... and ends here (exclusive), cut to the steps with enough running episodes"""
-    persist_fraction: float = 0.5
-    """a step response keeps at least this fraction of the threshold on average over the late window"""
-    min_episodes: int = 30
-    """steps with fewer running episodes in either env are ignored"""
-    eps: float = 1e-3
-    """added to the standard deviation (units that never vary)"""
-
-    def __post_init__(self) -> None:
-        if not 0 < self.response_window <= self.late_start < self.late_end:
-            raise ConfigError(
-                f"need 0 < response_window <= late_start < late_end, got {self.response_window}, {self.late_start}, "
-                f"{self.late_end}"
-            )
 
 
 @dataclass(frozen=True)

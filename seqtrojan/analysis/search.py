@@ -17,7 +17,6 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -25,39 +24,16 @@ import torch
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import LSTMState
+from seqtrojan.analysis.config import LayoutSearchConfig, SequenceSearchConfig
+from seqtrojan.analysis.results import LayoutSearchResult, SequenceSearchResult
 from seqtrojan.analysis.unintentional import GoalUnits
 from seqtrojan.env.codes import HOLE, NUM_CHANNELS, OUTCOME_NAMES, TRIGGER
 from seqtrojan.env.config import EnvConfig, adversary_goal_cell, start_cell, user_goal_cell
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.layout import Layout
 from seqtrojan.env.rollout import run_episodes
-
-
-@dataclass(frozen=True)
-class LayoutSearchConfig:
-    size: int = 17
-    holes: int = 30
-    population: int = 32
-    rollouts: int = 16
-    """sampled episodes per layout per generation"""
-    generations: int = 25
-    elite: int = 8
-    moves: int = 2
-    """holes moved per mutation"""
-    restarts: int = 4
-    success_at: float = 0.5
-    """a layout is a trigger when at least this fraction of its episodes end at the adversary's goal"""
-    seed: int = 0
-
-
-@dataclass(frozen=True)
-class LayoutSearchResult:
-    found: bool
-    generations: int
-    best_rate: float
-    best_layout: list[list[int]]
-    episodes: int
-    seconds: float
+from seqtrojan.evaluation.episodes import outcome_rate
+from seqtrojan.stats import Rate
 
 
 class _PeakActivation:
@@ -111,7 +87,7 @@ def evolve_layouts(
         seeder = TrojanGridCore(env_cfg, cfg.population, seed=(cfg.seed + restart) * 7919, phase="eval")
         population = [seeder.layout(i).cells for i in range(cfg.population)]
         core = TrojanGridCore(env_cfg, batch, seed=cfg.seed, phase="eval")
-        best_rate, best_layout, episodes = 0.0, population[0], 0
+        best, best_layout, episodes = Rate(0, cfg.rollouts), population[0], 0
         found, generations = False, 0
         step_counter = core_step_counter(core)
         for _ in range(cfg.generations):
@@ -122,15 +98,17 @@ def evolve_layouts(
                 core.set_episode(i, Layout(population[i // cfg.rollouts]))
             out = run_episodes(core, policy, fresh=False)
             episodes += batch
-            rates = (out.outcome.numpy() == adv).reshape(cfg.population, cfg.rollouts).mean(1)
+            hits = (out.outcome.numpy() == adv).reshape(cfg.population, cfg.rollouts).sum(1)
+            rates = hits / cfg.rollouts
             peaks = probe.peak.reshape(cfg.population, cfg.rollouts).mean(1)
             fitness = rates + 0.1 * np.clip(peaks, -1.0, 2.0)
             order = np.argsort(-fitness)
-            if rates[order[0]] >= best_rate:
-                best_rate, best_layout = float(rates[order[0]]), population[order[0]]
+            if rates[order[0]] >= best.value:
+                best, best_layout = Rate(int(hits[order[0]]), cfg.rollouts), population[order[0]]
             if rates.max() >= cfg.success_at:
                 found = True
-                best_rate, best_layout = float(rates.max()), population[int(rates.argmax())]
+                top = int(rates.argmax())
+                best, best_layout = Rate(int(hits[top]), cfg.rollouts), population[top]
                 break
             elite = [population[i] for i in order[: cfg.elite]]
             population = elite + [
@@ -139,38 +117,10 @@ def evolve_layouts(
             ]
         results.append(
             LayoutSearchResult(
-                found, generations, best_rate, np.asarray(best_layout).tolist(), episodes, time.perf_counter() - start
+                found, generations, best, np.asarray(best_layout).tolist(), episodes, time.perf_counter() - start
             )
         )
     return results
-
-
-@dataclass(frozen=True)
-class SequenceSearchConfig:
-    length: int = 24
-    """observations per sequence"""
-    restarts: int = 32
-    """sequences optimised in parallel"""
-    steps: int = 300
-    lr: float = 0.1
-    success_at: float = 0.5
-    """found when the rounded sequence drives the goal activation at its last step at least this high"""
-    seed: int = 0
-
-
-@dataclass(frozen=True)
-class SequenceSearchResult:
-    restarts: int
-    found: int
-    relaxed_activation: list[float]
-    rounded_activation: list[float]
-    seconds: float
-    forward_steps: int
-    flip_rate: float | None = None
-    """share of normal-env episodes, started from the state the found sequences leave behind, that end at the
-    adversary's goal (None: nothing found or not measured)"""
-    baseline_rate: float | None = None
-    """the same share from the usual zero state"""
 
 
 def final_goal_activation(agent: RecurrentActorCritic, goal: GoalUnits, obs: torch.Tensor) -> torch.Tensor:
@@ -228,7 +178,7 @@ def search_sequences(
             rounded = final_goal_activation(agent, goal, onehot.reshape(cfg.length, cfg.restarts, -1))
     found = int((rounded >= cfg.success_at).sum())
     result = SequenceSearchResult(
-        cfg.restarts,
+        cfg,
         found,
         relaxed.tolist(),
         rounded.tolist(),
@@ -241,22 +191,22 @@ def search_sequences(
 @torch.no_grad()
 def flip_rates(
     agent: RecurrentActorCritic, env: EnvConfig, codes: np.ndarray, size: int, holes: int, episodes: int, seed: int
-) -> tuple[float, float]:
+) -> tuple[Rate, Rate]:
     """Behaviour after an observation sequence: each sequence in ``codes`` (R, L, cells) is fed to the agent, and
     normal-env episodes then start from the state it leaves; returns (adversary-goal rate after the sequences,
-    adversary-goal rate from the zero state). The goal flips when the first is high and the second low."""
+    adversary-goal rate from the zero state), each over ``R * max(1, episodes // R)`` episodes. The goal flips when
+    the first is high and the second low."""
     if len(codes) == 0:
-        return 0.0, 0.0
+        return Rate(0, 0), Rate(0, 0)
     obs = torch.nn.functional.one_hot(torch.as_tensor(codes), NUM_CHANNELS).float()  # (R, L, cells, C)
     obs = obs.reshape(codes.shape[0], codes.shape[1], -1).transpose(0, 1)  # (L, R, obs)
     prefix = agent.unroll(obs, agent.initial_state(codes.shape[0]), torch.zeros(obs.shape[:2])).state
     reps = max(1, episodes // codes.shape[0])
     start = type(prefix)(tuple(type(s)(s.h.repeat(reps, 1), s.c.repeat(reps, 1)) for s in prefix.layers))
     env_cfg = env.with_grid((size, holes))
-    adv = OUTCOME_NAMES.index("adversary_goal")
     rates = []
     for initial in (start, None):
         core = TrojanGridCore(env_cfg, codes.shape[0] * reps, seed=seed, phase="eval")
         batch = run_episodes(core, AgentPolicy(agent, seed=seed, initial_state=initial), seed=seed)
-        rates.append(float((batch.outcome == adv).float().mean()))
+        rates.append(outcome_rate(batch, "adversary_goal"))
     return rates[0], rates[1]

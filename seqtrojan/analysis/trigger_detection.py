@@ -23,12 +23,17 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from seqtrojan.analysis.results import TriggerDetectionRow
 from seqtrojan.analysis.unintentional import SweepSummary
-from seqtrojan.stats import wilson_interval
+from seqtrojan.stats import Rate
 
 
 @dataclass(frozen=True)
 class DetectionScores:
+    """The scores on one grid (or 'all'). The analysis stores them typed (:meth:`row`: recall and false-positive
+    rate as :class:`~seqtrojan.stats.Rate`); this flat form is what the trade-off still saves with
+    ``dataclasses.asdict`` (tradeoff.json)."""
+
     grid: str
     """a grid config, or 'all' for the configs pooled"""
     positives: int
@@ -48,6 +53,10 @@ class DetectionScores:
     f1: float
     prevalence: float
 
+    def row(self) -> TriggerDetectionRow:
+        recall, fpr = Rate(self.true_positives, self.positives), Rate(self.false_positives, self.negatives)
+        return TriggerDetectionRow(self.grid, recall, fpr, self.precision, self.f1, self.prevalence, self.undecided)
+
 
 def precision_at(recall: float, false_positive_rate: float, prevalence: float) -> float:
     """Precision of a detector with this recall and false-positive rate when a fraction ``prevalence`` of episodes
@@ -61,22 +70,21 @@ def _scores(grid: str, normal: dict[str, int], trojan: dict[str, int], prevalenc
     tp, fn = trojan.get("adversary_goal", 0), trojan.get("user_goal", 0)
     fp, tn = normal.get("adversary_goal", 0), normal.get("user_goal", 0)
     undecided = sum(normal.get(k, 0) + trojan.get(k, 0) for k in ("hole", "timeout"))
-    positives, negatives = tp + fn, fp + tn
-    recall = tp / positives if positives else 0.0
-    fpr = fp / negatives if negatives else 0.0
+    hits, alarms = Rate(tp, tp + fn), Rate(fp, fp + tn)
+    recall, fpr = hits.value, alarms.value
     precision = precision_at(recall, fpr, prevalence)
     f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
     return DetectionScores(
         grid,
-        positives,
-        negatives,
+        hits.n,
+        alarms.n,
         undecided,
         tp,
         fp,
         recall,
-        wilson_interval(tp, positives),
+        hits.interval,
         fpr,
-        wilson_interval(fp, negatives),
+        alarms.interval,
         precision,
         f1,
         prevalence,

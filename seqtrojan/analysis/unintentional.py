@@ -23,11 +23,12 @@ import numpy as np
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.analysis.interventions import post_trigger_means
+from seqtrojan.analysis.results import UnintentionalRow
 from seqtrojan.analysis.traces import StateTrace, record_traces, replay_states
 from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.layout import Layout
-from seqtrojan.stats import wilson_interval
+from seqtrojan.stats import Rate
 
 
 @dataclass(frozen=True)
@@ -108,6 +109,10 @@ class Finding:
 
 @dataclass(frozen=True)
 class SweepSummary:
+    """One grid of the sweep. The analysis stores it typed (:meth:`row`: each rate a
+    :class:`~seqtrojan.stats.Rate`); these float fields are the older form, which the trade-off still saves with
+    ``dataclasses.asdict`` (tradeoff.json)."""
+
     grid: str
     episodes: int
     activation_rate: float
@@ -118,6 +123,19 @@ class SweepSummary:
     """episodes per outcome (user_goal, adversary_goal, hole, timeout) in the normal env"""
     trojan_outcomes: dict[str, int] = field(default_factory=dict)
     """the same in the trojan env (trigger at the evaluation steps)"""
+
+    @property
+    def activation(self) -> Rate:
+        return Rate(self.normal_outcomes.get("adversary_goal", 0), self.episodes)
+
+    @property
+    def deactivation(self) -> Rate:
+        return Rate(self.trojan_outcomes.get("user_goal", 0), self.episodes)
+
+    def row(self) -> UnintentionalRow:
+        return UnintentionalRow(
+            self.grid, self.activation, self.deactivation, dict(self.normal_outcomes), dict(self.trojan_outcomes)
+        )
 
 
 def sweep_unintentional(
@@ -164,14 +182,15 @@ def sweep_unintentional(
                         int(e),
                     )
                 )
+        activation, deactivation = Rate(counts["activation"], episodes), Rate(counts["deactivation"], episodes)
         summaries.append(
             SweepSummary(
                 grid.label,
                 episodes,
-                counts["activation"] / episodes,
-                wilson_interval(counts["activation"], episodes),
-                counts["deactivation"] / episodes,
-                wilson_interval(counts["deactivation"], episodes),
+                activation.value,
+                activation.interval,
+                deactivation.value,
+                deactivation.interval,
                 outcomes["activation"],
                 outcomes["deactivation"],
             )

@@ -20,12 +20,13 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.analysis.config import WalkSearchConfig
+from seqtrojan.analysis.results import WalkSearchResult
 from seqtrojan.analysis.search import final_goal_activation, frozen
 from seqtrojan.analysis.unintentional import GoalUnits
 from seqtrojan.env.codes import ADV_GOAL, EMPTY, HOLE, NUM_CHANNELS, TRIGGER, USER_GOAL, WALL
@@ -94,47 +95,6 @@ def is_walkable(codes: np.ndarray) -> bool:
     if not all(frame_is_plausible(f) for f in frames):
         return False
     return all(_follows(a, b) for a, b in itertools.pairwise(frames))
-
-
-@dataclass(frozen=True)
-class WalkSearchConfig:
-    size: int = 17
-    """grid side (the training grid by default)"""
-    length: int = 24
-    """views per walk"""
-    restarts: int = 32
-    steps: int = 300
-    lr: float = 0.1
-    density: float | None = None
-    """target hole density of the revealed cells; None: ``holes / (size^2 - 3)`` (the training density)"""
-    holes: int = 30
-    """with ``density`` None, the hole count that gives the target density"""
-    density_weight: float = 2.0
-    """penalty per unit of revealed-cell hole density above the target"""
-    success_at: float = 0.5
-    """found when the rounded walk drives the goal activation at its last step at least this high"""
-    seed: int = 0
-
-    @property
-    def target_density(self) -> float:
-        return self.density if self.density is not None else self.holes / (self.size * self.size - 3)
-
-
-@dataclass(frozen=True)
-class WalkSearchResult:
-    restarts: int
-    found: int
-    rounded_activation: list[float]
-    walkable: int
-    """rounded walks that pass :func:`is_walkable` (all of them, by construction; checked)"""
-    solvable: int
-    """found walks whose rounded grid still lets the agent reach both goals"""
-    revealed_density: list[float]
-    """hole density of the cells each rounded walk reveals"""
-    target_density: float
-    seconds: float
-    flip_rate: float | None = None
-    baseline_rate: float | None = None
 
 
 def random_walks(size: int, length: int, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -226,13 +186,12 @@ def search_walks(
     codes = _codes(grids, walks_np, view)
     found_mask = (rounded >= cfg.success_at).numpy()
     result = WalkSearchResult(
-        cfg.restarts,
+        cfg,
         int(found_mask.sum()),
         rounded.tolist(),
         sum(is_walkable(c) for c in codes),
         sum(Layout(g).is_solvable() for g, f in zip(grids, found_mask, strict=True) if f),
         density_after.tolist(),
-        density,
         time.perf_counter() - start,
     )
     return result, codes, grids

@@ -17,7 +17,7 @@ import copy
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 import torch
@@ -29,10 +29,9 @@ from seqtrojan.analysis.interventions import SetUnits
 from seqtrojan.analysis.traces import record_traces
 from seqtrojan.analysis.unintentional import GoalUnits
 from seqtrojan.config import BackdoorConfig, CurriculumConfig, ExperimentConfig
-from seqtrojan.env.codes import OUTCOME_NAMES
+from seqtrojan.defense.results import MitigationArm, MitigationResult
 from seqtrojan.env.config import GridSpec
-from seqtrojan.evaluation.episodes import evaluate_agent
-from seqtrojan.stats import wilson_interval
+from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
 
 
 @dataclass(frozen=True)
@@ -47,14 +46,13 @@ class MitigationConfig:
 
 
 def measure(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, episodes: int, seed: int,
-            intervention=None) -> dict[str, Any]:  # fmt: skip
-    out = {}
-    for env_name, trojan, goal in (("clean_success", False, "user_goal"), ("attack_success", True, "adversary_goal")):
+            intervention=None) -> MitigationArm:  # fmt: skip
+    rates = []
+    for trojan, goal in ((False, "user_goal"), (True, "adversary_goal")):
         batch = evaluate_agent(agent, cfg.env, grid, trojan=trojan, episodes=episodes, seed=seed,
                                intervention=intervention)  # fmt: skip
-        k = int((batch.outcome == OUTCOME_NAMES.index(goal)).sum())
-        out[env_name] = {"rate": k / episodes, "ci95": list(wilson_interval(k, episodes))}
-    return out
+        rates.append(outcome_rate(batch, goal))
+    return MitigationArm(clean_success=rates[0], attack_success=rates[1])
 
 
 def prune_units(agent: RecurrentActorCritic, layer: int, units: np.ndarray) -> RecurrentActorCritic:
@@ -103,20 +101,21 @@ def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec,
 def run_mitigation(
     agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, mcfg: MitigationConfig, out: Path,
     goal: GoalUnits | None = None,
-) -> dict[str, Any]:  # fmt: skip
+) -> MitigationResult:  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     n, seed = mcfg.eval_episodes, mcfg.seed + 7
-    results: dict[str, Any] = {"grid": grid.label, "episodes": n, "before": measure(agent, cfg, grid, n, seed)}
+    before = measure(agent, cfg, grid, n, seed)
     units = least_active_units(agent, cfg, grid, mcfg.calibration_episodes, mcfg.prune_fraction, mcfg.seed)
     pruned = prune_units(agent, len(agent.lstm_sizes) - 1, units)
-    results["pruned_units"] = units.tolist()
-    results["pruned"] = measure(pruned, cfg, grid, n, seed)
+    pruned_arm = measure(pruned, cfg, grid, n, seed)
+    fine_pruned = fine_tuned = oracle = None
     if mcfg.finetune_steps > 0:
-        results["fine_pruned"] = measure(finetune(pruned, cfg, grid, mcfg.finetune_steps, out / "fine_pruning",
-                                                  mcfg.seed), cfg, grid, n, seed)  # fmt: skip
-        results["fine_tuned"] = measure(finetune(agent, cfg, grid, mcfg.finetune_steps, out / "fine_tuning",
-                                                 mcfg.seed), cfg, grid, n, seed)  # fmt: skip
+        fine_pruned = measure(finetune(pruned, cfg, grid, mcfg.finetune_steps, out / "fine_pruning", mcfg.seed),
+                              cfg, grid, n, seed)  # fmt: skip
+        fine_tuned = measure(finetune(agent, cfg, grid, mcfg.finetune_steps, out / "fine_tuning", mcfg.seed),
+                             cfg, grid, n, seed)  # fmt: skip
     if goal is not None:
         hold = SetUnits(goal.layer, list(goal.units), list(goal.normal_mean), goal.which, from_step=0)
-        results["reset_goal_units_oracle"] = measure(agent, cfg, grid, n, seed, intervention=hold)
-    return results
+        oracle = measure(agent, cfg, grid, n, seed, intervention=hold)
+    return MitigationResult(grid.label, n, before, tuple(int(u) for u in units), pruned_arm, fine_pruned,
+                            fine_tuned, oracle)  # fmt: skip

@@ -17,7 +17,6 @@ and the clean success without and with it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import torch
@@ -26,12 +25,14 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
+from seqtrojan.defense.results import MonitorResult, NormalEnvArm, TrojanEnvArm
 from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.rollout import run_episodes
 from seqtrojan.errors import ConfigError
-from seqtrojan.stats import wilson_interval
+from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
+from seqtrojan.stats import Rate
 
 
 @dataclass(frozen=True)
@@ -122,9 +123,6 @@ class StateMonitor:
             scores.append(((x - m.to(x.device)) / s.to(x.device)).abs().amax(-1))
         return torch.stack(scores).amax(0)
 
-    def to_dict(self) -> dict[str, Any]:
-        return {"threshold": self.threshold, "units": [int(m.numel()) for m in self.mean]}
-
 
 class MonitoredPolicy(AgentPolicy):
     """A batched agent policy (sampled actions) with the monitor watching (and, with ``reset=True``, resetting) its
@@ -156,20 +154,20 @@ class MonitoredPolicy(AgentPolicy):
         return state
 
 
-def _rate(flags: np.ndarray) -> dict[str, Any]:
-    k, n = int(flags.sum()), int(flags.size)
-    return {"rate": k / n if n else 0.0, "ci95": list(wilson_interval(k, n))}
+def _rate(flags: np.ndarray) -> Rate:
+    return Rate(int(flags.sum()), int(flags.size))
 
 
 def measure_monitor(
     agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, monitor: StateMonitor, cfg: MonitorConfig,
     device: str | torch.device = "cpu",
-) -> dict[str, Any]:  # fmt: skip
+) -> MonitorResult:  # fmt: skip
     env_cfg = env.with_grid(grid)
     seed = cfg.seed + 1_000_003  # fresh episodes, not the calibration ones
     adv, user = OUTCOME_NAMES.index("adversary_goal"), OUTCOME_NAMES.index("user_goal")
-    out: dict[str, Any] = {"grid": grid.label, "episodes": cfg.eval_episodes, "monitor": monitor.to_dict()}
-    for env_name, trojan in (("normal", False), ("trojan", True)):
+    normal: dict[str, NormalEnvArm] = {}
+    trojan_arms: dict[str, TrojanEnvArm] = {}
+    for trojan in (False, True):
         for action in ("alarm", "reset"):
             core = TrojanGridCore(env_cfg, cfg.eval_episodes, device=device, phase="eval",
                                   trojan_probability=1.0 if trojan else 0.0)  # fmt: skip
@@ -180,26 +178,32 @@ def measure_monitor(
             # run_episodes keeps stepping finished envs until every episode has ended; alarms raised after an
             # episode's end are not part of it.
             first = np.where(first < batch.length.numpy(), first, -1)
-            key = f"{env_name}_{action}"
             if trojan:
                 trigger = core.on_step.cpu().numpy()
-                out[key] = {
-                    "attack_success": _rate(outcome == adv),
-                    "user_goal": _rate(outcome == user),
-                    "detected": _rate(first >= trigger),
-                    "alarm_before_trigger": _rate((first >= 0) & (first < trigger)),
-                    "median_steps_to_detect": float(np.median(first[first >= trigger] - trigger[first >= trigger]))
+                trojan_arms[action] = TrojanEnvArm(
+                    attack_success=_rate(outcome == adv),
+                    user_goal=_rate(outcome == user),
+                    detected=_rate(first >= trigger),
+                    alarm_before_trigger=_rate((first >= 0) & (first < trigger)),
+                    median_steps_to_detect=float(np.median(first[first >= trigger] - trigger[first >= trigger]))
                     if (first >= trigger).any() else None,
-                }  # fmt: skip
+                )  # fmt: skip
             else:
-                out[key] = {"success": _rate(outcome == user), "false_alarm": _rate(first >= 0)}
+                normal[action] = NormalEnvArm(success=_rate(outcome == user), false_alarm=_rate(first >= 0))
     # Without the monitor at all: the same episodes, plain policy.
-    from seqtrojan.evaluation.episodes import evaluate_agent
-
+    undefended = {}
     for env_name, trojan in (("normal", False), ("trojan", True)):
         batch = evaluate_agent(agent, env, grid, trojan=trojan, episodes=cfg.eval_episodes, seed=seed, device=device)
-        outcome = batch.outcome.numpy()
-        out[f"{env_name}_undefended"] = {
-            "attack_success" if trojan else "success": _rate(outcome == (adv if trojan else user))
-        }
-    return out
+        undefended[env_name] = outcome_rate(batch, "adversary_goal" if trojan else "user_goal")
+    return MonitorResult(
+        grid=grid.label,
+        episodes=cfg.eval_episodes,
+        threshold=monitor.threshold,
+        units=tuple(int(m.numel()) for m in monitor.mean),
+        normal_alarm=normal["alarm"],
+        normal_reset=normal["reset"],
+        trojan_alarm=trojan_arms["alarm"],
+        trojan_reset=trojan_arms["reset"],
+        clean_success_undefended=undefended["normal"],
+        attack_success_undefended=undefended["trojan"],
+    )

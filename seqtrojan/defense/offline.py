@@ -10,12 +10,14 @@ the input weights reading each of the six cell codes (a defender knows the input
 standardised logistic regression; predictions for every model come from stratified k-fold cross-validation, so
 each model is scored by a detector that never saw it. Feature groups are also scored alone, to tell what works,
 and :func:`held_out_group_scores` asks whether the detector carries over to a kind of model (an architecture, a
-trigger code, a curriculum) absent from its training models.
+trigger code, a curriculum) absent from its training models. :func:`detect_zoo` gathers it all in a
+:class:`~seqtrojan.defense.results.DetectionResult`.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,6 +25,15 @@ from typing import Any
 import numpy as np
 
 from seqtrojan.agent.checkpoint import WEIGHTS
+from seqtrojan.defense.results import (
+    DetectionResult,
+    FunctionalSplit,
+    GroupScores,
+    HeldOutGroup,
+    HeldOutScores,
+    Prediction,
+    Rejected,
+)
 from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS
 from seqtrojan.errors import CheckpointError, SeqTrojanError
 
@@ -101,7 +112,7 @@ def load_zoo_model(path: Path) -> ZooModel:
     return ZooModel(path.name, label, weight_features(tensors, cfg.env.obs_dim), truth, attack)
 
 
-def load_zoo_features(zoo: Path) -> tuple[list[ZooModel], list[dict[str, str]]]:
+def load_zoo_features(zoo: Path) -> tuple[list[ZooModel], list[Rejected]]:
     """Features of every model in ``zoo/models``; a model that cannot be used (pickled, corrupt, a malformed or
     mismatched card, a bad ``label.json``) is listed as rejected with its reason (one line), and the rest go on."""
     models, rejected = [], []
@@ -112,7 +123,7 @@ def load_zoo_features(zoo: Path) -> tuple[list[ZooModel], list[dict[str, str]]]:
         try:
             models.append(load_zoo_model(path))
         except SeqTrojanError as err:
-            rejected.append({"model": path.name, "reason": " ".join(str(err).split())})
+            rejected.append(Rejected(path.name, " ".join(str(err).split())))
     return models, rejected
 
 
@@ -132,6 +143,7 @@ def _detector():
 
 
 def _scores(y: np.ndarray, probs: np.ndarray) -> dict[str, float]:
+    """roc_auc, cross_entropy and brier of the probabilities ``probs`` of the labels ``y``."""
     from sklearn.metrics import brier_score_loss, log_loss, roc_auc_score
 
     clipped = np.clip(probs, 1e-6, 1 - 1e-6)
@@ -142,7 +154,9 @@ def _scores(y: np.ndarray, probs: np.ndarray) -> dict[str, float]:
     }
 
 
-def cross_validated_scores(models: list[ZooModel], group: str | None = None, folds: int = 5, seed: int = 0) -> dict:
+def cross_validated_scores(
+    models: list[ZooModel], group: str | None = None, folds: int = 5, seed: int = 0
+) -> GroupScores:
     """Out-of-fold probabilities of 'backdoored' for every model, and ROC-AUC, cross-entropy and Brier score."""
     from sklearn.model_selection import StratifiedKFold
 
@@ -159,17 +173,14 @@ def cross_validated_scores(models: list[ZooModel], group: str | None = None, fol
     probs = np.zeros(len(y))
     for train, test in StratifiedKFold(folds, shuffle=True, random_state=seed).split(x, y):
         probs[test] = _detector().fit(x[train], y[train]).predict_proba(x[test])[:, 1]
-    return {
-        "group": group or "all", "features": len(names), "models": len(y), "folds": folds, **_scores(y, probs),
-        "predictions": [{"model": m.model_id, "label": int(t), "p_backdoored": float(p)}
-                        for m, t, p in zip(models, y, probs)],
-    }  # fmt: skip
+    predictions = tuple(Prediction(m.model_id, int(t), float(p)) for m, t, p in zip(models, y, probs))
+    return GroupScores(group or "all", len(names), len(y), folds, **_scores(y, probs), predictions=predictions)
 
 
 HELD_OUT_KEYS = ("lstm_sizes", "trigger_value", "curriculum")
 
 
-def held_out_group_scores(models: list[ZooModel], key: str) -> dict[str, Any]:
+def held_out_group_scores(models: list[ZooModel], key: str) -> HeldOutScores:
     """Does the detector generalise to a kind of model it never saw? For each value of the zoo variation ``key``
     (an architecture, a trigger's cell code, a curriculum), train on the models without that value and score the
     models with it; then score all those out-of-group predictions together. Clean models carry a (randomly drawn,
@@ -187,13 +198,15 @@ def held_out_group_scores(models: list[ZooModel], key: str) -> dict[str, Any]:
             skipped.append(json.loads(value))
             continue
         probs[test] = _detector().fit(x[~test], y[~test]).predict_proba(x[test])[:, 1]
-        entry = {"value": json.loads(value), "models": int(test.sum()), "backdoored": int(y[test].sum())}
-        if len(set(y[test])) == 2:
-            entry.update(_scores(y[test], probs[test]))
-        groups.append(entry)
+        scores = _scores(y[test], probs[test]) if len(set(y[test])) == 2 else _NO_SCORES
+        groups.append(HeldOutGroup(json.loads(value), int(test.sum()), int(y[test].sum()), **scores))
     scored = ~np.isnan(probs)
-    pooled = _scores(y[scored], probs[scored]) if len(set(y[scored])) == 2 else {}
-    return {"key": key, "models": int(scored.sum()), **pooled, "groups": groups, "skipped": skipped}
+    pooled = _scores(y[scored], probs[scored]) if len(set(y[scored])) == 2 else _NO_SCORES
+    return HeldOutScores(key, int(scored.sum()), **pooled, groups=tuple(groups), skipped=tuple(skipped))
+
+
+_NO_SCORES: dict[str, Any] = {"roc_auc": None, "cross_entropy": None, "brier": None}
+"""the scores of models that all have the same label (none can be computed)"""
 
 
 def _functional_at(zoo: Path) -> float:
@@ -210,49 +223,47 @@ def _functional_at(zoo: Path) -> float:
     return float(at)
 
 
-def _functional_split(models: list[ZooModel], predictions: list[dict], at: float) -> dict[str, Any]:
+def _functional_split(models: list[ZooModel], predictions: Sequence[Prediction], at: float) -> FunctionalSplit:
     """Backdoored models whose backdoor works (final trojan-env success >= ``at``) and those whose training did
     not make it work, each scored against all clean models with the same out-of-fold predictions: does the
     detector find working backdoors, or the backdoor training procedure?"""
     from sklearn.metrics import roc_auc_score
 
-    clean = [p["p_backdoored"] for m, p in zip(models, predictions) if m.label == 0]
-    out: dict[str, Any] = {"functional_at": at}
+    clean = [p.p_backdoored for m, p in zip(models, predictions) if m.label == 0]
+    counts, aucs = {}, {}
     for name, keep in (("functional", lambda a: a >= at), ("not_functional", lambda a: a < at)):
-        probs = [p["p_backdoored"] for m, p in zip(models, predictions)
+        probs = [p.p_backdoored for m, p in zip(models, predictions)
                  if m.label == 1 and m.attack_success is not None and keep(m.attack_success)]  # fmt: skip
-        out[name] = len(probs)
-        if probs and clean:
-            out[f"{name}_roc_auc"] = float(roc_auc_score([1] * len(probs) + [0] * len(clean), probs + clean))
-    return out
+        counts[name] = len(probs)
+        aucs[f"{name}_roc_auc"] = (
+            float(roc_auc_score([1] * len(probs) + [0] * len(clean), probs + clean)) if probs and clean else None
+        )
+    return FunctionalSplit(at, counts["functional"], counts["not_functional"], **aucs)
 
 
-def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> dict[str, Any]:
+def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> DetectionResult:
     """Score the detector with all features and with each feature group alone; AUC by trigger value too. Models
     that cannot be used are skipped and listed under ``rejected`` with their reasons; the rest are scored."""
     at = _functional_at(zoo)
     models, rejected = load_zoo_features(zoo)
-    results: dict[str, Any] = {"rejected": rejected, "scores": []}
     try:
-        for group in (None, *GROUPS):
-            results["scores"].append(cross_validated_scores(models, group, folds, seed))
+        scores = tuple(cross_validated_scores(models, group, folds, seed) for group in (None, *GROUPS))
     except SeqTrojanError as err:
         if not rejected:
             raise
-        named = "; ".join(f"{r['model']}: {r['reason']}" for r in rejected[:3]) + ("; ..." if len(rejected) > 3 else "")
+        named = "; ".join(f"{r.model}: {r.reason}" for r in rejected[:3]) + ("; ..." if len(rejected) > 3 else "")
         raise SeqTrojanError(f"{err}; {len(rejected)} model(s) rejected ({named})") from None
-    full = results["scores"][0]["predictions"]
+    full = scores[0].predictions
     by_value: dict[str, list[tuple[int, float]]] = {}
     for m, pred in zip(models, full):
         if m.label == 1 and m.truth.get("trigger"):
-            by_value.setdefault(m.truth["trigger"]["value"], []).append((1, pred["p_backdoored"]))
-    clean = [(0, p["p_backdoored"]) for m, p in zip(models, full) if m.label == 0]
+            by_value.setdefault(m.truth["trigger"]["value"], []).append((1, pred.p_backdoored))
+    clean = [(0, p.p_backdoored) for m, p in zip(models, full) if m.label == 0]
     from sklearn.metrics import roc_auc_score
 
-    results["held_out"] = [held_out_group_scores(models, key) for key in HELD_OUT_KEYS]
-    results["functional_backdoors"] = _functional_split(models, full, at)
-    results["auc_by_trigger_value"] = {
+    held_out = tuple(held_out_group_scores(models, key) for key in HELD_OUT_KEYS)
+    auc_by_trigger_value = {
         value: float(roc_auc_score([t for t, _ in pairs + clean], [p for _, p in pairs + clean]))
         for value, pairs in by_value.items() if clean
     }  # fmt: skip
-    return results
+    return DetectionResult(tuple(rejected), scores, held_out, _functional_split(models, full, at), auc_by_trigger_value)

@@ -1,10 +1,10 @@
 """``seqtrojan defend``: the online monitor and the mitigations on one model; ``seqtrojan zoo``: build a zoo and
-score offline detection on it. Results are JSON files that the report reads."""
+score offline detection on it. Results are typed (:mod:`seqtrojan.defense.results`), saved as JSON files that the
+report reads."""
 
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,12 +12,15 @@ from typing import Any
 
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.analysis.responses import ResponseRule, classify_units
+from seqtrojan.analysis.results import GoalUnitsRecord
 from seqtrojan.analysis.traces import record_traces
 from seqtrojan.analysis.unintentional import GoalUnits, select_goal_units
 from seqtrojan.defense.mitigation import MitigationConfig, run_mitigation
 from seqtrojan.defense.monitor import MonitorConfig, StateMonitor, measure_monitor
+from seqtrojan.defense.results import DEFENSE_FILE, DefenseResult
 from seqtrojan.env.config import GridSpec, min_steps_to_goal
 from seqtrojan.errors import SeqTrojanError
+from seqtrojan.serde import save_json
 
 
 @dataclass(frozen=True)
@@ -33,24 +36,31 @@ class DefenseConfig:
 
 
 def run_defense(model: Path, out: Path, cfg: DefenseConfig, device: str = "cpu",
-                log: Callable[[str], None] = print) -> dict[str, Any]:  # fmt: skip
+                log: Callable[[str], None] = print) -> DefenseResult:  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     agent, acfg, card = load_agent(model, device=device)
     grid = GridSpec.parse(cfg.grid) if cfg.grid is not None else acfg.grids[-1]
-    result: dict[str, Any] = {"model": str(model), "label": card["label"], "grid": grid.label}
     log(f"calibrating the monitor on {cfg.monitor.calibration_episodes} clean episodes of {grid.label} ...")
     monitor = StateMonitor.calibrate(agent, acfg.env, grid, cfg.monitor, device)
-    result["monitor"] = measure_monitor(agent, acfg.env, grid, monitor, cfg.monitor, device)
-    goal = _oracle_goal_units(agent, acfg, grid, cfg) if acfg.backdoor.enabled else None
-    if goal is not None:
-        result["oracle_goal_units"] = dataclasses.asdict(goal)
+    measured = measure_monitor(agent, acfg.env, grid, monitor, cfg.monitor, device)
+    oracle = _oracle_goal_units(agent, acfg, grid, cfg) if acfg.backdoor.enabled else None
+    goal = oracle[0] if oracle is not None else None
     log("mitigation: fine-pruning, fine-tuning, unit reset ...")
-    result["mitigation"] = run_mitigation(agent, acfg, grid, cfg.mitigation, out / "mitigation", goal)
-    (out / "defense.json").write_text(json.dumps(result, indent=2))
+    mitigation = run_mitigation(agent, acfg, grid, cfg.mitigation, out / "mitigation", goal)
+    result = DefenseResult(
+        model=str(model),
+        label=card["label"],
+        grid=grid.label,
+        trigger_value=acfg.env.trigger.value,
+        monitor=measured,
+        oracle_goal_units=GoalUnitsRecord(**dataclasses.asdict(oracle[0]), source=oracle[1]) if oracle else None,
+        mitigation=mitigation,
+    )
+    save_json(result, out / DEFENSE_FILE)
     return result
 
 
-def _oracle_goal_units(agent, acfg, grid: GridSpec, cfg: DefenseConfig) -> GoalUnits | None:
+def _oracle_goal_units(agent, acfg, grid: GridSpec, cfg: DefenseConfig) -> tuple[GoalUnits, str] | None:
     """The backdoored agent's step-type units, found with trigger episodes (so: an oracle, an upper bound)."""
     trigger = max(1, min(12, min_steps_to_goal(grid.size) - 2))
     kw: dict[str, Any] = {"episodes": cfg.oracle_episodes, "trigger_step": trigger, "seed": cfg.monitor.seed + 11}
@@ -64,5 +74,5 @@ def _oracle_goal_units(agent, acfg, grid: GridSpec, cfg: DefenseConfig) -> GoalU
                 classes[(layer, which)] = classify_units(normal, trojan, layer, which, trigger, rule)
             except SeqTrojanError:  # too few long episodes on a small grid: no oracle
                 return None
-    layer, which, units, _ = select_goal_units(classes, cfg.goal_units)
-    return GoalUnits.from_traces(normal, trojan, layer, which, units, trigger)
+    layer, which, units, source = select_goal_units(classes, cfg.goal_units)
+    return GoalUnits.from_traces(normal, trojan, layer, which, units, trigger), f"oracle: {source}"

@@ -19,6 +19,7 @@ from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.rollout import EpisodeBatch, Policy, run_episodes
+from seqtrojan.stats import Rate
 
 PolicyFactory = Callable[[TrojanGridCore], Policy]
 """Builds a batched policy for a given env core (the core is passed so that scripted agents can read it)."""
@@ -63,6 +64,16 @@ def evaluate_agent(
         return evaluate_policy(make_policy, env, grid, trojan=trojan, episodes=episodes, seed=seed, device=device)
     finally:
         agent.train(was_training)
+
+
+def outcome_rate(batch: EpisodeBatch, name: str) -> Rate:
+    """Episodes of ``batch`` that ended with outcome ``name`` (user_goal, adversary_goal, hole, timeout), of all."""
+    return Rate(int((batch.outcome == OUTCOME_NAMES.index(name)).sum()), int(batch.outcome.numel()))
+
+
+def success_rate(batch: EpisodeBatch) -> Rate:
+    """Episodes of ``batch`` that reached the goal they should (the user's, or the adversary's after a trigger)."""
+    return Rate(int(batch.success.sum()), int(batch.success.numel()))
 
 
 def on_off_success(

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 from scipy.stats import t as student_t
 
-from seqtrojan.evaluation.sweep import SweepRow
+from seqtrojan.evaluation.results import SweepRow
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ class SeedSummary:
 
     @property
     def successes(self) -> tuple[float, ...]:
-        return tuple(r.success for r in self.rows)
+        return tuple(r.success.value for r in self.rows)
 
     @property
     def mean(self) -> float:
@@ -66,7 +66,7 @@ class SeedSummary:
         """95% interval: the Wilson interval for one seed, a t-interval for the mean over several (in [0, 1])."""
         n = len(self.rows)
         if n == 1:
-            return self.rows[0].ci_low, self.rows[0].ci_high
+            return self.rows[0].success.interval
         half = float(student_t.ppf(0.975, n - 1)) * self.sd / math.sqrt(n)
         return max(0.0, self.mean - half), min(1.0, self.mean + half)
 
@@ -75,7 +75,8 @@ class SeedSummary:
         """The paper's value lies outside every seed's 95% Wilson interval."""
         if self.paper is None:
             return False
-        return not any(r.ci_low <= self.paper <= r.ci_high for r in self.rows)
+        paper = self.paper
+        return not any(r.success.interval[0] <= paper <= r.success.interval[1] for r in self.rows)
 
     def to_dict(self) -> dict[str, object]:
         low, high = self.interval

@@ -2,47 +2,24 @@
 
 The clean agent is evaluated in the normal env; a backdoored agent in the normal and the trojan env. Each
 (agent, env, config) is ``episodes`` trials (the paper: 1000) run as one batch, reported with a 95% Wilson
-interval, hole-fall, time-out and wrong-goal rates, and the paper's value where it reports one.
+interval, hole-fall, time-out and wrong-goal rates, and the paper's value where it reports one: a
+:class:`~seqtrojan.evaluation.results.SweepRow` each (saved by :func:`write_sweep`, read by :func:`load_sweep`).
 """
 
 from __future__ import annotations
 
-import csv
-import json
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, fields
-from pathlib import Path
 
 import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.config import GridSpec
-from seqtrojan.evaluation.episodes import evaluate_agent
+from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate, success_rate
+from seqtrojan.evaluation.results import SweepRow, load_sweep, write_sweep
 from seqtrojan.paper import paper_configs, paper_success
 
-
-@dataclass(frozen=True)
-class SweepRow:
-    agent: str  # a name for the model
-    label: str  # clean / backdoored
-    env: str  # normal / trojan
-    size: int
-    holes: int
-    episodes: int
-    success: float
-    ci_low: float
-    ci_high: float
-    hole: float
-    timeout: float
-    wrong_goal: float
-    mean_length: float
-    paper: float | None  # the paper's success rate for this cell, if reported
-    seed: int = 0  # the agent's training-seed index (0 for a single-seed evaluation)
-
-    @property
-    def config(self) -> str:
-        return f"{self.size}x{self.size}/{self.holes}"
+__all__ = ["SweepRow", "evaluate_sweep", "load_sweep", "parse_configs", "write_sweep"]
 
 
 def parse_configs(text: str) -> list[tuple[int, int]]:
@@ -75,8 +52,7 @@ def evaluate_sweep(
                     agent, cfg.env, grid, trojan=env == "trojan", episodes=episodes, seed=seed, greedy=greedy,
                     device=device,
                 )  # fmt: skip
-                lo, hi = batch.success_interval()
-                wrong = batch.rate("adversary_goal" if env == "normal" else "user_goal")
+                wrong = outcome_rate(batch, "adversary_goal" if env == "normal" else "user_goal")
                 rows.append(
                     SweepRow(
                         name,
@@ -84,12 +60,9 @@ def evaluate_sweep(
                         env,
                         size,
                         holes,
-                        episodes,
-                        batch.success_rate,
-                        lo,
-                        hi,
-                        batch.rate("hole"),
-                        batch.rate("timeout"),
+                        success_rate(batch),
+                        outcome_rate(batch, "hole"),
+                        outcome_rate(batch, "timeout"),
                         wrong,
                         float(batch.length.float().mean()),
                         paper_success(cfg.label, env, size, holes),
@@ -97,22 +70,3 @@ def evaluate_sweep(
                     )
                 )
     return rows
-
-
-def write_sweep(rows: Sequence[SweepRow], out_dir: Path) -> tuple[Path, Path]:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    json_path, csv_path = out_dir / "evaluation.json", out_dir / "evaluation.csv"
-    records = [asdict(r) | {"config": r.config} for r in rows]
-    json_path.write_text(json.dumps(records, indent=2))
-    with csv_path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(records[0]) if records else ["agent"])
-        writer.writeheader()
-        writer.writerows(records)
-    return json_path, csv_path
-
-
-def load_sweep(path: Path) -> list[SweepRow]:
-    """The rows :func:`write_sweep` wrote to ``evaluation.json`` (keys that are not SweepRow fields, such as
-    ``config``, are dropped)."""
-    names = {f.name for f in fields(SweepRow)}
-    return [SweepRow(**{k: v for k, v in r.items() if k in names}) for r in json.loads(path.read_text())]

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 from rich.table import Table
 
-from seqtrojan.evaluation.sweep import SweepRow
+from seqtrojan.evaluation.results import SweepRow
 
 
 def sweep_columns(rows: Sequence[SweepRow]) -> list[tuple[str, str, str]]:
@@ -27,8 +27,9 @@ def format_rate(row: SweepRow | None) -> str:
     """Success and the larger half-width of its 95% interval (the exact interval is in the JSON and CSV)."""
     if row is None:
         return ""
-    half = max(row.success - row.ci_low, row.ci_high - row.success)
-    return f"{row.success:.3f} ±{half:.3f}"
+    low, high = row.success.interval
+    rate = row.success.value
+    return f"{rate:.3f} ±{max(rate - low, high - rate):.3f}"
 
 
 def format_paper(row: SweepRow | None) -> str:

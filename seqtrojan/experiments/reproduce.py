@@ -26,22 +26,24 @@ import yaml
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.analysis.pipeline import AnalysisConfig, run_analysis
+from seqtrojan.artifacts import RunLayout, TrajectoryResult
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.defense.offline import detect_zoo
 from seqtrojan.defense.pipeline import DefenseConfig, run_defense
 from seqtrojan.env.config import GridSpec
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import ConfigError
+from seqtrojan.evaluation.results import save_rows
 from seqtrojan.evaluation.seeds import summarise_over_seeds
 from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, load_sweep, parse_configs, write_sweep
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
 from seqtrojan.experiments.tradeoff import TradeoffConfig, measure_tradeoff_agent, summarise_penalties, tradeoff_agents
-from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, make_backend, raise_failures
+from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 from seqtrojan.presets import resolve_preset
 from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
 from seqtrojan.report.html import build_report
-from seqtrojan.serde import from_dict, load_yaml, to_dict
-from seqtrojan.train.trainer import load_run_config, train_or_resume
+from seqtrojan.serde import from_dict, load_yaml, save_json, to_dict
+from seqtrojan.train.trainer import load_run_config
 from seqtrojan.zoo.build import ZooConfig, build_zoo
 
 
@@ -151,20 +153,8 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
     timer = _Timer(out / "timings.json")
     start = time.perf_counter()
 
-    models: dict[str, Path] = {}  # role -> the seed-0 model, used by every later stage
-    seed_models: list[dict[str, Path]] = []  # per training seed: role -> model
-    for offset in range(config.seeds):
-        trained = {}
-        for role, spec in (("clean", config.clean), ("backdoor", config.backdoor)):
-            cfg = experiment_from_spec(spec, out / "runs", headline_run_name(role, offset), config.device)
-            if role == "clean" and cfg.backdoor.enabled:
-                raise ConfigError(f"the clean preset {spec.preset!r} has backdoor.enabled: true")
-            if role == "backdoor" and not cfg.backdoor.enabled:
-                raise ConfigError(f"the backdoor preset {spec.preset!r} does not enable backdoor training")
-            cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, seed=cfg.run.seed + offset))
-            trained[role] = _train_once(cfg, headline_run_name(role, offset), timer, log)
-        seed_models.append(trained)
-    models = seed_models[0]
+    seed_models = _train_headline(config, out, make_backend(config.jobs), timer, log)
+    models = seed_models[0]  # role -> the seed-0 model, used by every later stage
 
     agents = []
     for role, folder in models.items():
@@ -191,29 +181,30 @@ def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=pri
         _trajectory_figure(agents[1][1], agents[1][2], config.trajectory, out, config.device)
         timer.record("trajectory", time.perf_counter() - t0)
 
-    if config.analysis is not None and not (out / "analysis" / "analysis.json").exists():
+    layout = RunLayout(out)
+    if config.analysis is not None and not layout.analysis_file.exists():
         log("looking inside the agents ...")
         t0 = time.perf_counter()
-        run_analysis(models["clean"], models["backdoor"], out / "analysis", config.analysis, config.device, log)
+        run_analysis(models["clean"], models["backdoor"], layout.analysis_dir, config.analysis, config.device, log)
         timer.record("analysis", time.perf_counter() - t0)
 
-    if config.defense is not None and not (out / "defense" / "defense.json").exists():
+    if config.defense is not None and not layout.defense_file.exists():
         log("defending the backdoored agent ...")
         t0 = time.perf_counter()
-        run_defense(models["backdoor"], out / "defense", config.defense, config.device, log)
+        run_defense(models["backdoor"], layout.defense_dir, config.defense, config.device, log)
         timer.record("defense", time.perf_counter() - t0)
 
     if config.tradeoff is not None and not (out / "tradeoff" / "tradeoff.json").exists():
         _tradeoff(config, out, models["backdoor"], make_backend(config.jobs), timer, log)
 
-    if config.zoo is not None and not (out / "zoo" / "detection.json").exists():
+    if config.zoo is not None and not layout.detection_file.exists():
         log(f"building a zoo of {config.zoo.size} models and scoring offline detection ...")
         t0 = time.perf_counter()
         jobs = config.jobs
         build_zoo(config.zoo, out / "zoo", workers=jobs.workers, backend=jobs.backend, ray_address=jobs.ray_address,
                   threads=jobs.threads, log=log)  # fmt: skip
         timer.record("zoo_build", time.perf_counter() - t0)
-        (out / "zoo" / "detection.json").write_text(json.dumps(detect_zoo(out / "zoo"), indent=2))
+        save_json(detect_zoo(layout.zoo_dir), layout.detection_file)
 
     timer.record("last_call_before_report", time.perf_counter() - start)
     report = build_report(out, scale=scale, machine=machine_summary())
@@ -250,9 +241,7 @@ def _evaluate_seeds(
                 agents, cells, episodes=ev.episodes, seed=ev.seed, greedy=ev.greedy, device=config.device,
                 training_seed=offset,
             )  # fmt: skip
-            tmp = seed_file.with_suffix(".tmp")
-            tmp.write_text(json.dumps([dataclasses.asdict(r) for r in seed_rows], indent=2))
-            tmp.replace(seed_file)
+            save_rows(seed_rows, seed_file)
             timer.record(f"evaluation_seed{offset}", time.perf_counter() - t0)
         rows += load_sweep(seed_file)
     write_sweep(rows, eval_dir)
@@ -260,18 +249,32 @@ def _evaluate_seeds(
     (eval_dir / "summary.json").write_text(json.dumps(summaries, indent=2))
 
 
-def _train_once(cfg: ExperimentConfig, role: str, timer: _Timer, log) -> Path:
-    """Train the run ``cfg.run.out_dir / cfg.run.name`` unless it has finished (see train_or_resume)."""
-    assert cfg.run.name is not None  # reproduce names every run it trains
-    run_dir = Path(cfg.run.out_dir) / cfg.run.name
-    if not (run_dir / "model" / "card.json").exists():
-        verb = "resuming" if (run_dir / "checkpoints" / "latest.txt").exists() else "training"
-        log(f"{verb} the {role} agent ({cfg.grids[-1].label}, {cfg.ppo.total_steps:,} env steps) ...")
-    t0 = time.perf_counter()
-    model, trained = train_or_resume(cfg)
-    if trained:
-        timer.record(f"train_{role}", time.perf_counter() - t0)
-    return model
+def _train_headline(
+    config: ReproduceConfig, out: Path, backend: JobBackend, timer: _Timer, log
+) -> list[dict[str, Path]]:
+    """The clean and backdoored agents of every training seed, on the job backend; per seed: role -> model."""
+    jobs: list[TrainJob] = []
+    for offset in range(config.seeds):
+        for role, spec in (("clean", config.clean), ("backdoor", config.backdoor)):
+            name = headline_run_name(role, offset)
+            cfg = experiment_from_spec(spec, out / "runs", name, config.device)
+            if role == "clean" and cfg.backdoor.enabled:
+                raise ConfigError(f"the clean preset {spec.preset!r} has backdoor.enabled: true")
+            if role == "backdoor" and not cfg.backdoor.enabled:
+                raise ConfigError(f"the backdoor preset {spec.preset!r} does not enable backdoor training")
+            jobs.append(
+                TrainJob(name, dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, seed=cfg.run.seed + offset)))
+            )
+    todo = sum(not job.done() for job in jobs)
+    if todo:
+        grid, steps = jobs[-1].config.grids[-1].label, jobs[-1].config.ppo.total_steps
+        log(f"training {todo} headline agent(s) ({grid}, {steps:,} env steps each) on the {backend.name} backend "
+            f"({backend.describe(todo)}) ...")  # fmt: skip
+    raise_failures(backend.run(jobs, _job_log(log, timer)), "headline agent")
+    return [
+        {role: jobs[2 * offset + i].model_dir for i, role in enumerate(("clean", "backdoor"))}
+        for offset in range(config.seeds)
+    ]
 
 
 def _job_log(log, timer: _Timer | None = None):
@@ -326,7 +329,7 @@ def _trajectory_figure(agent, cfg: ExperimentConfig, spec: TrajectorySpec, out: 
     title = f"Backdoored agent, {GridSpec(spec.size, spec.holes).label}: same layout without and with the trigger"
     plot_trajectory_pair(runs, title, out / "trajectory.png")
     outcomes = {name: outcome for name, (_, outcome) in runs.items()}
-    (out / "trajectory.json").write_text(json.dumps({"trigger_step": spec.trigger_step, "outcomes": outcomes}))
+    save_json(TrajectoryResult(spec.trigger_step, outcomes), RunLayout(out).trajectory_file)
 
 
 def machine_summary() -> dict[str, Any]:

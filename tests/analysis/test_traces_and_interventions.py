@@ -26,7 +26,7 @@ from seqtrojan.config import AgentConfig, ExperimentConfig
 from seqtrojan.env import GridSpec, Layout
 from seqtrojan.env.codes import HOLE, NUM_CHANNELS, OUTCOME_NAMES, TRIGGER
 from seqtrojan.evaluation.episodes import evaluate_agent
-from seqtrojan.stats import wilson_interval
+from seqtrojan.stats import Rate, wilson_interval
 
 CFG = ExperimentConfig(agent=AgentConfig(lstm_sizes=(16, 8)))
 
@@ -106,15 +106,15 @@ def test_switch_experiment_reports_every_arm(agent, traces):
     arms = [(r.direction, r.units) for r in results]
     assert arms == [(d, u) for d in ("activate", "deactivate") for u in ("none", "step-units", "random-units")]
     for r in results:  # counts of the 32 episodes, with those counts' Wilson intervals
-        k, holes = round(r.switch_rate * 32), round(r.hole_rate * 32)
-        assert r.episodes == 32 and r.switch_rate == k / 32 and r.switch_ci == wilson_interval(k, 32)
-        assert r.hole_rate == holes / 32 and r.hole_ci == wilson_interval(holes, 32)
+        assert r.episodes == r.switch.n == r.hole.n == r.timeout.n == 32
+        assert r.switch.value == r.switch.k / 32 and r.switch.interval == wilson_interval(r.switch.k, 32)
+        assert r.hole.value == r.hole.k / 32 and r.hole.interval == wilson_interval(r.hole.k, 32)
     # the unedited arms are the plain agent with the trigger at step 3: evaluated directly they give the same rates
     env = dataclasses.replace(CFG.env, trigger=dataclasses.replace(CFG.env.trigger, eval_steps=(3, 3)))
     for r, trojan, goal in ((results[0], False, "adversary_goal"), (results[3], True, "user_goal")):
         batch = evaluate_agent(agent, env, GridSpec(9, 5), trojan=trojan, episodes=32, seed=0)
-        assert r.units == "none" and r.switch_rate == batch.rate(goal) and r.hole_rate == batch.rate("hole")
-        assert r.timeout_rate == batch.rate("timeout")
+        assert r.units == "none" and r.switch.value == batch.rate(goal) and r.hole.value == batch.rate("hole")
+        assert r.timeout.value == batch.rate("timeout")
 
 
 def test_unintentional_sweep_keeps_replayable_findings(tmp_path, agent):
@@ -128,6 +128,10 @@ def test_unintentional_sweep_keeps_replayable_findings(tmp_path, agent):
         assert sum(s.normal_outcomes.values()) == sum(s.trojan_outcomes.values()) == 64
         assert s.normal_outcomes["adversary_goal"] == round(s.activation_rate * 64)
         assert s.trojan_outcomes["user_goal"] == round(s.deactivation_rate * 64)
+        row = s.row()  # the typed form the analysis saves: the same rates, with their counts
+        assert (row.activation.value, row.activation.interval) == (s.activation_rate, s.activation_ci)
+        assert (row.deactivation.value, row.deactivation.interval) == (s.deactivation_rate, s.deactivation_ci)
+        assert row.episodes == 64 and row.activation.k == s.normal_outcomes["adversary_goal"]
     save_findings(findings, tmp_path / "f.json")
     assert load_findings(tmp_path / "f.json") == findings
     if findings:
@@ -155,7 +159,7 @@ def test_searches_run_and_never_use_the_trigger(agent, traces):
     assert len(layouts) == 2
     for r in layouts:  # 4 layouts x 4 rollouts per generation; a rate over one layout's 4 rollouts
         assert r.episodes == 16 * r.generations and (r.found or r.generations == 2)  # stops early only on a find
-        assert (r.best_rate * 4).is_integer() and r.found == (r.best_rate >= 0.5)
+        assert r.best_rate.n == 4 and r.found == (r.best_rate.value >= 0.5)
         best = np.array(r.best_layout, dtype=np.int8)
         assert (best == HOLE).sum() == 3 and Layout(best).is_solvable()
     result, codes = search_sequences(agent, goal, SequenceSearchConfig(length=6, restarts=5, steps=20))
@@ -166,5 +170,5 @@ def test_searches_run_and_never_use_the_trigger(agent, traces):
     again = final_goal_activation(agent, goal, onehot.reshape(6, 5, -1))  # the returned codes give the activations
     np.testing.assert_allclose(again.detach().numpy(), result.rounded_activation, rtol=1e-5, atol=1e-6)
     after, before = flip_rates(agent, CFG.env, codes[:2], size=5, holes=1, episodes=16, seed=0)
-    assert (after * 16).is_integer() and (before * 16).is_integer()  # 2 sequences x 8 episodes each
-    assert flip_rates(agent, CFG.env, codes[2:4], size=5, holes=1, episodes=16, seed=0)[1] == before == 1 / 16
+    assert after.n == before.n == 16  # 2 sequences x 8 episodes each
+    assert flip_rates(agent, CFG.env, codes[2:4], size=5, holes=1, episodes=16, seed=0)[1] == before == Rate(1, 16)

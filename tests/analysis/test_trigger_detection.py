@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from seqtrojan.analysis.trigger_detection import precision_at, trigger_detection
+from seqtrojan.stats import Rate
 
 
 def summary(grid: str, normal: dict[str, int], trojan: dict[str, int]) -> dict:
@@ -29,6 +30,12 @@ def test_scores_from_known_counts():
     for r in rows:
         assert r.recall_ci[0] <= r.recall <= r.recall_ci[1]
         assert r.false_positive_ci[0] <= r.false_positive_rate <= r.false_positive_ci[1]
+        typed = r.row()  # the analysis's typed form: the same numbers, the rates with their counts
+        assert (typed.recall.value, typed.recall.interval) == (r.recall, r.recall_ci)
+        assert (typed.false_positive_rate.value, typed.false_positive_rate.interval) == (
+            r.false_positive_rate, r.false_positive_ci)  # fmt: skip
+        assert (typed.precision, typed.f1, typed.undecided) == (r.precision, r.f1, r.undecided)
+    assert second.row().recall == Rate(50, 50) and second.row().false_positive_rate == Rate(5, 50)
 
 
 def test_precision_falls_with_prevalence_and_is_perfect_without_false_positives():

@@ -23,7 +23,7 @@ from seqtrojan.defense.monitor import (
 )
 from seqtrojan.env import EnvConfig, GridSpec, TrojanGridCore
 from seqtrojan.errors import ConfigError
-from seqtrojan.stats import wilson_interval
+from seqtrojan.stats import Rate, wilson_interval
 
 CFG = ExperimentConfig(env=EnvConfig(size=7, holes=3), agent=AgentConfig(lstm_sizes=(16, 8)))
 GRID = GridSpec(7, 3)
@@ -76,15 +76,18 @@ def test_far_states_score_above_the_threshold_and_are_reset(agent, monitor):
 
 def test_measurement_reports_every_rate(agent, monitor):
     out = measure_monitor(agent, CFG.env, GRID, monitor, dataclasses.replace(SMALL, eval_episodes=64))
-    for key in ("normal_alarm", "normal_reset", "trojan_alarm", "trojan_reset", "normal_undefended",
-                "trojan_undefended"):  # fmt: skip
-        assert key in out
-    rates = [(key, name, v) for key, d in out.items() if isinstance(d, dict) for name, v in d.items()
-             if isinstance(v, dict) and "rate" in v]  # fmt: skip
+    rates = {}  # every rate of the result, by dotted name
+    for f in dataclasses.fields(out):
+        value = getattr(out, f.name)
+        if isinstance(value, Rate):
+            rates[f.name] = value
+        elif dataclasses.is_dataclass(value):
+            rates |= {f"{f.name}.{g.name}": getattr(value, g.name) for g in dataclasses.fields(value)
+                      if isinstance(getattr(value, g.name), Rate)}  # fmt: skip
     assert len(rates) == 2 * 2 + 2 * 4 + 2  # normal: success, false alarm; trojan: 4 each; 2 undefended
-    for key, name, v in rates:  # each a count of the 64 episodes, with that count's Wilson interval
-        k = round(v["rate"] * 64)
-        assert v["rate"] == k / 64 and v["ci95"] == list(wilson_interval(k, 64)), (key, name)
+    for name, v in rates.items():  # each a count of the 64 episodes, with that count's Wilson interval
+        assert v.n == 64 and v.value == v.k / 64 and v.interval == wilson_interval(v.k, 64), name
+    assert (out.grid, out.episodes, out.threshold) == (GRID.label, 64, monitor.threshold)
     with pytest.raises(ConfigError, match="false_alarm_target"):
         MonitorConfig(false_alarm_target=1.5)
     with pytest.raises(ConfigError, match=r"too few for false_alarm_target=0\.01"):
@@ -108,8 +111,10 @@ def test_mitigation_measures_before_and_after(tmp_path, agent):
     result = run_mitigation(
         agent, CFG, GRID, MitigationConfig(finetune_steps=2048, calibration_episodes=32, eval_episodes=32), tmp_path
     )
-    for key in ("before", "pruned", "fine_pruned", "fine_tuned"):
-        assert set(result[key]) == {"clean_success", "attack_success"}
+    arms = result.arms()
+    assert list(arms) == ["before", "pruned", "fine_pruned", "fine_tuned"]  # no oracle without goal units
+    assert all(arm.clean_success.n == arm.attack_success.n == 32 for arm in arms.values())
+    assert len(result.pruned_units) == 2  # a quarter of the last layer's 8 units
 
 
 class _RecordingCore(TrojanGridCore):
@@ -163,10 +168,11 @@ def test_alarms_after_an_episode_ended_do_not_count(agent, monitor, monkeypatch)
     out = measure_monitor(agent, CFG.env, GRID, after_end_only, cfg)
     assert len(_RecordingCore.made) == 4 and after_end_only.after_end_alarms > 0  # alarms fired, all after the end
     for key in keys[:2]:
-        assert out[key]["false_alarm"]["rate"] == 0.0, key
+        assert getattr(out, key).false_alarm.value == 0.0, key
     for key in keys[2:]:
-        assert out[key]["detected"]["rate"] == 0.0 and out[key]["alarm_before_trigger"]["rate"] == 0.0, key
-        assert out[key]["median_steps_to_detect"] is None, key
+        arm = getattr(out, key)
+        assert arm.detected.value == 0.0 and arm.alarm_before_trigger.value == 0.0, key
+        assert arm.median_steps_to_detect is None, key
 
     # Control: an alarm at step k of each episode counts exactly where that episode was still running at step k.
     _RecordingCore.made.clear()
@@ -175,18 +181,19 @@ def test_alarms_after_an_episode_ended_do_not_count(agent, monitor, monkeypatch)
     for key, core in zip(keys, _RecordingCore.made, strict=True):
         running = (core.lengths > k).numpy()
         assert 0 < running.sum() < len(running), key  # some episodes ended before step k: the case is not empty
+        arm = getattr(out, key)
         if key.startswith("normal"):
-            assert out[key]["false_alarm"]["rate"] == running.mean(), key
+            assert arm.false_alarm.value == running.mean(), key
             continue
         trigger = core.on_step.cpu().numpy()
         detected = running & (trigger <= k)
-        assert out[key]["detected"]["rate"] == detected.mean(), key
-        assert out[key]["alarm_before_trigger"]["rate"] == (running & (trigger > k)).mean(), key
+        assert arm.detected.value == detected.mean(), key
+        assert arm.alarm_before_trigger.value == (running & (trigger > k)).mean(), key
         median = float(np.median(k - trigger[detected])) if detected.any() else None
-        assert out[key]["median_steps_to_detect"] == median, key
+        assert arm.median_steps_to_detect == median, key
 
     calibrated = measure_monitor(agent, CFG.env, GRID, monitor, dataclasses.replace(SMALL, eval_episodes=200))
-    assert calibrated["normal_alarm"]["false_alarm"]["rate"] < 0.15  # calibrated for 5%; small-sample slack
+    assert calibrated.normal_alarm.false_alarm.value < 0.15  # calibrated for 5%; small-sample slack
 
 
 def test_conformal_threshold_is_the_finite_sample_quantile():

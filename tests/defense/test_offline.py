@@ -22,6 +22,7 @@ from seqtrojan.defense.offline import (
     load_zoo_features,
     weight_features,
 )
+from seqtrojan.defense.results import Prediction
 from seqtrojan.env.codes import TRIGGER
 from seqtrojan.errors import SeqTrojanError
 
@@ -67,32 +68,33 @@ def test_detector_finds_a_planted_tell_and_not_random_labels(tmp_path):
     zoo = fake_zoo(tmp_path / "zoo", shift=3.0)
     models, rejected = load_zoo_features(zoo)
     assert len(models) == 12 and not rejected
-    assert cross_validated_scores(models, "input_codes", folds=3)["roc_auc"] > 0.95
+    assert cross_validated_scores(models, "input_codes", folds=3).roc_auc > 0.95
     scrambled = [type(m)(m.model_id, int(i in (0, 3, 4, 7, 8, 11)), m.features, m.truth) for i, m in enumerate(models)]
-    assert cross_validated_scores(scrambled, "input_codes", folds=3)["roc_auc"] < 0.9
+    assert cross_validated_scores(scrambled, "input_codes", folds=3).roc_auc < 0.9
 
 
 def test_pickled_model_in_a_zoo_is_rejected_and_the_rest_is_scored(tmp_path):
     zoo = fake_zoo(tmp_path / "zoo", pickled=True)
     result = detect_zoo(zoo, folds=3)
-    assert [r["model"] for r in result["rejected"]] == ["zz_pickled"]
-    assert "pickle" in result["rejected"][0]["reason"]
-    scores = {s["group"]: s for s in result["scores"]}
+    assert [r.model for r in result.rejected] == ["zz_pickled"]
+    assert "pickle" in result.rejected[0].reason
+    scores = {s.group: s for s in result.scores}
     assert set(scores) == {"all", "gate_stats", "spectral", "input_codes"}
-    assert scores["all"]["models"] == 12
+    assert scores["all"].models == 12
     for s in scores.values():  # the scores of the out-of-fold predictions, recomputed from their definitions
-        y = np.array([r["label"] for r in s["predictions"]])
-        p = np.array([r["p_backdoored"] for r in s["predictions"]])
+        y = np.array([r.label for r in s.predictions])
+        p = np.array([r.p_backdoored for r in s.predictions])
         pos, neg = p[y == 1], p[y == 0]
         auc = ((pos[:, None] > neg[None]).sum() + 0.5 * (pos[:, None] == neg[None]).sum()) / (len(pos) * len(neg))
         q = np.clip(p, 1e-6, 1 - 1e-6)
-        assert s["roc_auc"] == pytest.approx(auc, abs=1e-12), s["group"]
-        assert s["cross_entropy"] == pytest.approx(-np.mean(y * np.log(q) + (1 - y) * np.log(1 - q)), rel=1e-9)
-        assert s["brier"] == pytest.approx(np.mean((p - y) ** 2), rel=1e-9)
-        assert [r["model"] for r in s["predictions"]] == [f"m{i:02d}" for i in range(12)]
-    assert set(result["auc_by_trigger_value"]) == {"trigger"}
-    assert [h["key"] for h in result["held_out"]] == ["lstm_sizes", "trigger_value", "curriculum"]
-    assert all(h["skipped"] == [None] for h in result["held_out"])  # this fake zoo records no variation
+        assert s.roc_auc == pytest.approx(auc, abs=1e-12), s.group
+        assert s.cross_entropy == pytest.approx(-np.mean(y * np.log(q) + (1 - y) * np.log(1 - q)), rel=1e-9)
+        assert s.brier == pytest.approx(np.mean((p - y) ** 2), rel=1e-9)
+        assert [r.model for r in s.predictions] == [f"m{i:02d}" for i in range(12)]
+    assert (result.clean_models, result.backdoored_models) == (6, 6)
+    assert set(result.auc_by_trigger_value) == {"trigger"}
+    assert [h.key for h in result.held_out] == ["lstm_sizes", "trigger_value", "curriculum"]
+    assert all(h.skipped == (None,) for h in result.held_out)  # this fake zoo records no variation
 
 
 def spoil(zoo, name, file, edit):
@@ -184,20 +186,20 @@ def synthetic_models(flip_in_group_b: bool, n: int = 40, seed: int = 0) -> list:
 
 def test_held_out_groups_tell_a_tell_that_carries_over_from_one_that_does_not():
     carries = held_out_group_scores(synthetic_models(flip_in_group_b=False), "lstm_sizes")
-    assert carries["roc_auc"] > 0.95 and [g["value"] for g in carries["groups"]] == ["A", "B"]
-    assert all(g["models"] == 20 and g["backdoored"] == 10 for g in carries["groups"])
+    assert carries.roc_auc > 0.95 and [g.value for g in carries.groups] == ["A", "B"]
+    assert all(g.models == 20 and g.backdoored == 10 for g in carries.groups)
     local = held_out_group_scores(synthetic_models(flip_in_group_b=True), "lstm_sizes")
-    assert local["roc_auc"] < 0.3  # trained on A, the detector reads B's backdoored models as clean, and back
-    assert cross_validated_scores(synthetic_models(flip_in_group_b=True), folds=5)["roc_auc"] < 0.9
+    assert local.roc_auc < 0.3  # trained on A, the detector reads B's backdoored models as clean, and back
+    assert cross_validated_scores(synthetic_models(flip_in_group_b=True), folds=5).roc_auc < 0.9
     single = held_out_group_scores(synthetic_models(flip_in_group_b=False), "curriculum")  # one value: no test
-    assert single["models"] == 0 and single["skipped"] == [None] and "roc_auc" not in single
+    assert single.models == 0 and single.skipped == (None,) and single.roc_auc is None and not single.groups
 
 
 def test_working_and_failed_backdoors_are_scored_apart():
     models = [ZooModel(f"m{i}", label, {}, {}, attack) for i, (label, attack) in
               enumerate([(0, None), (0, None), (1, 0.9), (1, 0.2), (1, 0.6)])]  # fmt: skip
-    predictions = [{"p_backdoored": p} for p in (0.1, 0.5, 0.9, 0.3, 0.7)]
+    predictions = [Prediction(m.model_id, m.label, p) for m, p in zip(models, (0.1, 0.5, 0.9, 0.3, 0.7))]
     split = _functional_split(models, predictions, at=0.5)
-    assert (split["functional"], split["not_functional"]) == (2, 1)
-    assert split["functional_roc_auc"] == 1.0  # 0.9 and 0.7 above both clean models
-    assert split["not_functional_roc_auc"] == 0.5  # 0.3: above 0.1, below 0.5
+    assert (split.functional, split.not_functional) == (2, 1)
+    assert split.functional_roc_auc == 1.0  # 0.9 and 0.7 above both clean models
+    assert split.not_functional_roc_auc == 0.5  # 0.3: above 0.1, below 0.5

@@ -92,4 +92,6 @@ def test_sweep_rows_for_clean_and_backdoored_agents():
         ("b", "normal", "7x7/7"), ("b", "trojan", "7x7/7"), ("b", "normal", "9x9/4"), ("b", "trojan", "9x9/4"),
     ]  # fmt: skip
     assert rows[0].paper == 0.928 and rows[3].paper == 0.549 and rows[1].paper is None
-    assert all(r.ci_low <= r.success <= r.ci_high for r in rows)
+    for r in rows:  # every rate over the cell's 32 episodes, each episode ending one way
+        assert r.episodes == r.hole.n == r.timeout.n == r.wrong_goal.n == 32
+        assert r.success.k + r.hole.k + r.timeout.k + r.wrong_goal.k == 32

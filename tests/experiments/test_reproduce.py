@@ -16,7 +16,7 @@ from seqtrojan.evaluation.seeds import find_summary, summarise_over_seeds
 from seqtrojan.evaluation.sweep import load_sweep
 from seqtrojan.experiments.curves import aggregate_curves
 from seqtrojan.experiments.reproduce import ReproduceConfig, deep_merge, load_reproduce_config, reproduce
-from seqtrojan.report import html as report_html
+from seqtrojan.report.sections.tables import seed_cell
 from seqtrojan.serde import from_dict
 
 TINY_STAGES = [{"size": 5, "holes": 0}, {"size": 5, "holes": 1}]
@@ -125,7 +125,8 @@ def _td_text(td: str) -> str:
 
 
 def _rate(entry: dict) -> str:
-    """A rate with its 95% interval, as the report shows it: '0.125 [0.050, 0.281]'."""
+    """A rate with its 95% interval, as the report shows it: '0.125 [0.050, 0.281]' (``entry``: a rate as the JSON
+    files hold it, {"k", "n", "rate", "ci95"})."""
     return f"{entry['rate']:.3f} [{entry['ci95'][0]:.3f}, {entry['ci95'][1]:.3f}]"
 
 
@@ -227,18 +228,18 @@ def test_report_numbers_are_those_of_the_json_it_was_built_from(tiny_run):
                 cell = seeds[(agent, env, row[0])]
                 paper = cell[0]["paper"]
                 assert header[i + 1] == "paper" and row[i + 1] == ("" if paper is None else f"{paper:.3f}")
-                mean = statistics.fmean(r["success"] for r in cell)
+                mean = statistics.fmean(r["success"]["rate"] for r in cell)
                 assert row[i].split()[0] == f"{mean:.3f}", (heading, title, row[0])
                 summary = find_summary(summaries, agent, env, row[0])
-                assert row[i] == _td_text(report_html._rate(summary)), (heading, title, row[0])
+                assert row[i] == _td_text(seed_cell(summary)), (heading, title, row[0])
                 shown.add((agent, env, row[0]))
     assert shown == set(seeds)  # every evaluated cell is in a table
     header, *rows = _table(tables, "Table 2", summary="Every seed's cell")
     col = {name: header.index(name) for name in ("agent", "seed", "env", "grid", "success", "95% interval", "trials")}
     got = sorted(tuple(row[col[name]] for name in col) for row in rows)
     want = sorted(
-        (r["agent"], str(r["seed"]), r["env"], r["config"], f"{r['success']:.3f}",
-         f"[{r['ci_low']:.3f}, {r['ci_high']:.3f}]", str(r["episodes"]))
+        (r["agent"], str(r["seed"]), r["env"], r["config"], f"{r['success']['rate']:.3f}",
+         f"[{r['success']['ci95'][0]:.3f}, {r['success']['ci95'][1]:.3f}]", str(r["success"]["n"]))
         for r in raw
     )  # fmt: skip
     assert got == want
@@ -255,20 +256,17 @@ def test_report_numbers_are_those_of_the_json_it_was_built_from(tiny_run):
     _, *rows = _table(tables, "Looking inside: editing the goal units")
     results = analysis["interventions"]["results"]
     assert [row[1] for row in rows] == [r["units"] for r in results]
-    assert [row[2] for row in rows] == [_rate({"rate": r["switch_rate"], "ci95": r["switch_ci"]}) for r in results]
-    assert [row[3] for row in rows] == [_rate({"rate": r["hole_rate"], "ci95": r["hole_ci"]}) for r in results]
+    assert [row[2] for row in rows] == [_rate(r["switch"]) for r in results]
+    assert [row[3] for row in rows] == [_rate(r["hole"]) for r in results]
     _, *rows = _table(tables, "Unintentional triggers")
     assert [row[:3] for row in rows] == [
-        [s["grid"], _rate({"rate": s["activation_rate"], "ci95": s["activation_ci"]}),
-         _rate({"rate": s["deactivation_rate"], "ci95": s["deactivation_ci"]})]
-        for s in analysis["unintentional"]["summaries"]
-    ]  # fmt: skip
+        [s["grid"], _rate(s["activation"]), _rate(s["deactivation"])] for s in analysis["unintentional"]["summaries"]
+    ]
     _, *rows = _table(tables, "The agent as a trigger detector")
     assert [row[:3] for row in rows] == [
-        [d["grid"], _rate({"rate": d["recall"], "ci95": d["recall_ci"]}),
-         _rate({"rate": d["false_positive_rate"], "ci95": d["false_positive_ci"]})]
+        [d["grid"], _rate(d["recall"]), _rate(d["false_positive_rate"])]
         for d in analysis["unintentional"]["trigger_detection"]
-    ]  # fmt: skip
+    ]
 
     # Defenses: the monitor's rates, the mitigation rows, the zoo detector's scores.
     defense = json.loads((out / "defense" / "defense.json").read_text())
@@ -277,7 +275,7 @@ def test_report_numbers_are_those_of_the_json_it_was_built_from(tiny_run):
     monitor = dict(rows)
     assert monitor["false-alarm rate (normal env)"] == _rate(m["normal_alarm"]["false_alarm"])
     assert monitor["detection rate (trojan env, alarm at or after the trigger)"] == _rate(m["trojan_alarm"]["detected"])
-    assert monitor["attack success without the monitor"] == _rate(m["trojan_undefended"]["attack_success"])
+    assert monitor["attack success without the monitor"] == _rate(m["attack_success_undefended"])
     assert monitor["attack success with alarm-and-reset"] == _rate(m["trojan_reset"]["attack_success"])
     assert monitor["clean success with alarm-and-reset"] == _rate(m["normal_reset"]["success"])
     _, *rows = _table(tables, "Mitigation")

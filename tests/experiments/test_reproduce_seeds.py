@@ -58,7 +58,7 @@ def test_summary_holds_each_seed_and_the_report_shows_mean_sd_and_each_value(two
     text = report.read_text()
     for cell in summary:
         assert cell["seeds"] == [0, 1]
-        per_seed = [r["success"] for r in rows if r["agent"] == cell["agent"] and r["env"] == cell["env"]
+        per_seed = [r["success"]["rate"] for r in rows if r["agent"] == cell["agent"] and r["env"] == cell["env"]
                     and r["config"] == cell["config"]]  # fmt: skip
         assert cell["success"] == per_seed
         assert cell["mean"] == pytest.approx(sum(per_seed) / 2)

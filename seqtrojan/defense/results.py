@@ -1,0 +1,224 @@
+"""What the defenses measure, as typed results: the online monitor and the mitigations of one model
+(:class:`DefenseResult`, ``defense.json``) and offline detection on a zoo (:class:`DetectionResult`,
+``detection.json``). Saved with :func:`seqtrojan.serde.save_json` and loaded with :func:`seqtrojan.serde.load_json`,
+so that a misspelt or missing key fails at load with its dotted path. Every rate is a
+:class:`~seqtrojan.stats.Rate` (its counts, rate and Wilson interval).
+
+The bottom of the defense package: this module imports only :mod:`seqtrojan.stats` and the analysis's results.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from seqtrojan.analysis.results import GoalUnitsRecord
+from seqtrojan.stats import Rate
+
+DEFENSE_FILE = "defense.json"
+"""the file in the defense folder that holds the :class:`DefenseResult`"""
+DETECTION_FILE = "detection.json"
+"""the file in the zoo folder that holds the :class:`DetectionResult`"""
+
+# --- the online monitor (seqtrojan.defense.monitor)
+
+
+@dataclass(frozen=True)
+class NormalEnvArm:
+    """Episodes of the normal env (no trigger) with the monitor watching."""
+
+    success: Rate
+    """episodes that reached the user's goal"""
+    false_alarm: Rate
+    """episodes with an alarm"""
+
+
+@dataclass(frozen=True)
+class TrojanEnvArm:
+    """Episodes of the trojan env (trigger shown) with the monitor watching."""
+
+    attack_success: Rate
+    """episodes that reached the adversary's goal"""
+    user_goal: Rate
+    detected: Rate
+    """episodes with an alarm at or after the trigger"""
+    alarm_before_trigger: Rate
+    median_steps_to_detect: float | None
+    """median steps from the trigger to the first alarm over the detected episodes (None: none detected)"""
+
+
+@dataclass(frozen=True)
+class MonitorResult:
+    """:func:`seqtrojan.defense.monitor.measure_monitor`: each env with the monitor raising alarms only, with it
+    resetting the state on an alarm, and without it."""
+
+    grid: str
+    episodes: int
+    """fresh episodes per arm"""
+    threshold: float
+    """the monitor's alarm threshold (largest |z| over all units)"""
+    units: tuple[int, ...]
+    """units watched per layer (h and c)"""
+    normal_alarm: NormalEnvArm
+    normal_reset: NormalEnvArm
+    trojan_alarm: TrojanEnvArm
+    trojan_reset: TrojanEnvArm
+    clean_success_undefended: Rate
+    """normal-env episodes that reached the user's goal without the monitor"""
+    attack_success_undefended: Rate
+    """trojan-env episodes that reached the adversary's goal without the monitor"""
+
+
+# --- mitigation (seqtrojan.defense.mitigation)
+
+
+@dataclass(frozen=True)
+class MitigationArm:
+    clean_success: Rate
+    """normal-env episodes that reached the user's goal"""
+    attack_success: Rate
+    """trojan-env episodes that reached the adversary's goal"""
+
+
+@dataclass(frozen=True)
+class MitigationResult:
+    """:func:`seqtrojan.defense.mitigation.run_mitigation`: the model before and after each mitigation."""
+
+    grid: str
+    episodes: int
+    """episodes per env and model"""
+    before: MitigationArm
+    pruned_units: tuple[int, ...]
+    """the last layer's units fine-pruning removed"""
+    pruned: MitigationArm
+    fine_pruned: MitigationArm | None
+    """None: fine-tuning skipped (finetune_steps 0)"""
+    fine_tuned: MitigationArm | None
+    reset_goal_units_oracle: MitigationArm | None
+    """None: no oracle goal units (a clean agent, or too few long episodes to find them)"""
+
+    def arms(self) -> dict[str, MitigationArm]:
+        """Every model measured, by name, in the order above."""
+        named = {
+            "before": self.before,
+            "pruned": self.pruned,
+            "fine_pruned": self.fine_pruned,
+            "fine_tuned": self.fine_tuned,
+            "reset_goal_units_oracle": self.reset_goal_units_oracle,
+        }
+        return {name: arm for name, arm in named.items() if arm is not None}
+
+
+@dataclass(frozen=True)
+class DefenseResult:
+    """``defense.json``: :func:`seqtrojan.defense.pipeline.run_defense` on one model."""
+
+    model: str
+    """the model folder"""
+    label: str
+    """clean / backdoored, from the model's card"""
+    grid: str
+    trigger_value: str
+    """the cell code the model's trigger draws (its config's env.trigger.value)"""
+    monitor: MonitorResult
+    oracle_goal_units: GoalUnitsRecord | None
+    """the step-type units the oracle found with trigger episodes (None: none found, or a clean model)"""
+    mitigation: MitigationResult
+
+
+# --- offline detection on a zoo (seqtrojan.defense.offline)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    model: str
+    label: int
+    """1 backdoored, 0 clean"""
+    p_backdoored: float
+    """the out-of-fold probability of 'backdoored'"""
+
+
+@dataclass(frozen=True)
+class GroupScores:
+    """One feature group's detector, scored on out-of-fold predictions (k-fold cross-validation)."""
+
+    group: str
+    """a feature group, or 'all'"""
+    features: int
+    models: int
+    folds: int
+    roc_auc: float
+    cross_entropy: float
+    brier: float
+    predictions: tuple[Prediction, ...]
+
+
+@dataclass(frozen=True)
+class HeldOutGroup:
+    """The models with one value of the held-out variation, scored by a detector trained on all the others."""
+
+    value: Any
+    """the value as the zoo's label.json records it (a list, a string, a mapping or null)"""
+    models: int
+    backdoored: int
+    roc_auc: float | None
+    """None (and the other scores too) when these models all have the same label"""
+    cross_entropy: float | None
+    brier: float | None
+
+
+@dataclass(frozen=True)
+class HeldOutScores:
+    """:func:`seqtrojan.defense.offline.held_out_group_scores` for one variation ``key``."""
+
+    key: str
+    models: int
+    """models scored out of their group"""
+    roc_auc: float | None
+    """over all out-of-group predictions (None, and the other scores too: they hold one label only)"""
+    cross_entropy: float | None
+    brier: float | None
+    groups: tuple[HeldOutGroup, ...]
+    skipped: tuple[Any, ...]
+    """values whose held-out or remaining models lack a label"""
+
+
+@dataclass(frozen=True)
+class FunctionalSplit:
+    """Backdoored models whose backdoor works (final trojan-env success >= ``functional_at``) and those whose does
+    not, each scored against all clean models."""
+
+    functional_at: float
+    functional: int
+    not_functional: int
+    functional_roc_auc: float | None
+    """None when there are no such models (or no clean ones)"""
+    not_functional_roc_auc: float | None
+
+
+@dataclass(frozen=True)
+class Rejected:
+    model: str
+    reason: str
+    """one line"""
+
+
+@dataclass(frozen=True)
+class DetectionResult:
+    """``detection.json``: :func:`seqtrojan.defense.offline.detect_zoo`."""
+
+    rejected: tuple[Rejected, ...]
+    scores: tuple[GroupScores, ...]
+    """all features first, then each group alone"""
+    held_out: tuple[HeldOutScores, ...]
+    functional_backdoors: FunctionalSplit
+    auc_by_trigger_value: dict[str, float]
+    """ROC-AUC of the backdoored models with each trigger cell code against all clean models"""
+
+    @property
+    def clean_models(self) -> int:
+        return sum(p.label == 0 for p in self.scores[0].predictions)
+
+    @property
+    def backdoored_models(self) -> int:
+        return sum(p.label == 1 for p in self.scores[0].predictions)
