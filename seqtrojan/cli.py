@@ -235,7 +235,7 @@ def _defend(argv: list[str]) -> None:
         f" -> {mon.trojan_reset.attack_success.value:.3f} with resets; clean success "
         f"{mon.clean_success_undefended.value:.3f} -> {mon.normal_reset.success.value:.3f}"
     )
-    for name, m in result.mitigation.arms().items():
+    for name, m in result.mitigation.items():
         print(f"  {name:<24} attack {m.attack_success.value:.3f}  clean {m.clean_success.value:.3f}")
     print(f"wrote {args.out}/{DEFENSE_FILE}")
 
@@ -299,6 +299,38 @@ def _zoo(argv: list[str]) -> None:
     print(f"wrote {args.zoo}/{DETECTION_FILE}")
 
 
+def _list_registered(family: Literal["attack", "defense"], first: tuple[Any, ...], argv: list[str]) -> None:
+    """One line per registered thing of ``family``: name, kind, description. The registries ``first`` lead, in that
+    order, then any other registry of the family that an imported module created."""
+    from seqtrojan.registry import registries
+
+    if argv:
+        print(f"usage: seqtrojan {family}s   (takes no options)", file=sys.stderr)
+        raise SystemExit(2)
+    order = [*first, *(r for r in registries(family) if r not in first)]
+    entries = [e for registry in order for e in registry.entries()]
+    name_width = max((len(e.name) for e in entries), default=0)
+    kind_width = max((len(e.kind) for e in entries), default=0)
+    for e in entries:
+        print(f"{e.name:<{name_width}}  {e.kind:<{kind_width}}  {e.description}")
+
+
+def _attacks(argv: list[str]) -> None:
+    from seqtrojan.env.config import REWARDS, TRIGGERS
+    from seqtrojan.train.mixing import MIXING_RULES
+
+    _list_registered("attack", (TRIGGERS, MIXING_RULES, REWARDS), argv)
+
+
+def _defenses(argv: list[str]) -> None:
+    import seqtrojan.defense.pipeline  # noqa: F401  (it imports any further module that registers a mitigation)
+    from seqtrojan.defense.mitigation import MITIGATIONS
+    from seqtrojan.defense.monitor import MONITORS
+    from seqtrojan.defense.offline import DETECTORS
+
+    _list_registered("defense", (MONITORS, DETECTORS, MITIGATIONS), argv)
+
+
 def _demo(argv: list[str]) -> None:
     from seqtrojan.demo import DemoArgs, run_demo
 
@@ -312,6 +344,8 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "defend": (_defend, "online state monitor and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),
     "zoo": (_zoo, "zoo build: train clean and backdoored agents; zoo detect: offline detection scored like TrojAI"),
     "reproduce": (_reproduce, "train, evaluate, plot and write the HTML report (--scale smoke|paper)"),
+    "attacks": (_attacks, "list the registered attacks: trigger kinds, mixing rules, rewards"),
+    "defenses": (_defenses, "list the registered defenses: monitors, detectors, mitigations"),
     "demo": (_demo, "build envs, run random and scripted agents, render episodes (text and PNG)"),
 }
 

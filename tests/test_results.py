@@ -38,7 +38,6 @@ from seqtrojan.defense.results import (
     HeldOutGroup,
     HeldOutScores,
     MitigationArm,
-    MitigationResult,
     MonitorResult,
     NormalEnvArm,
     Prediction,
@@ -186,8 +185,13 @@ def defense_result() -> DefenseResult:
     monitor = MonitorResult("5x5/1", 32, 4.5, (32, 16), normal, normal, trojan,
                             TrojanEnvArm(Rate(2, 32), Rate(29, 32), Rate(30, 32), Rate(1, 32), None),
                             Rate(31, 32), Rate(30, 32))  # fmt: skip
-    arm = MitigationArm(Rate(30, 32), Rate(25, 32))
-    mitigation = MitigationResult("5x5/1", 32, arm, (0, 7), arm, arm, None, MitigationArm(Rate(29, 32), Rate(2, 32)))
+    arm = MitigationArm("no mitigation", Rate(30, 32), Rate(25, 32), ())
+    mitigation = {
+        "before": arm,
+        "pruned": MitigationArm("pruned 2 least-active units", Rate(30, 32), Rate(25, 32), (0, 7)),
+        "fine_pruned": MitigationArm("fine-pruning", Rate(30, 32), Rate(25, 32), (0, 7)),
+        "reset_goal_units_oracle": MitigationArm("holding the step units", Rate(29, 32), Rate(2, 32), (0,)),
+    }
     goal = GoalUnitsRecord(1, "h", (0,), (0.0,), (1.0,), "oracle: ...")
     return DefenseResult("runs/backdoor/model", "backdoored", "5x5/1", "hole", monitor, goal, mitigation)
 
@@ -223,7 +227,7 @@ def test_derived_values_are_read_from_the_counts():
     assert a.search.sequences.restarts == 32 and a.search.walks[0].seconds_per_found is None
     assert a.search.walks[0].target_density == pytest.approx(3 / 46)
     d = defense_result().mitigation
-    assert list(d.arms()) == ["before", "pruned", "fine_pruned", "reset_goal_units_oracle"]
+    assert list(d) == ["before", "pruned", "fine_pruned", "reset_goal_units_oracle"]
     assert (detection_result().clean_models, detection_result().backdoored_models) == (1, 1)
 
 
@@ -242,8 +246,8 @@ def test_derived_values_are_read_from_the_counts():
          r"search\.sequences\.flip_rate\.rate=0\.5 is not k/n"),
         (defense_result(), lambda d: d["monitor"]["trojan_alarm"].pop("median_steps_to_detect"),
          r"missing key\(s\) \['median_steps_to_detect'\] in monitor\.trojan_alarm"),
-        (defense_result(), lambda d: d["mitigation"].update(fine_tuned={"x": 1}),
-         r"unknown config key\(s\) \['x'\] in mitigation\.fine_tuned"),
+        (defense_result(), lambda d: d["mitigation"]["pruned"].update(x=1),
+         r"unknown config key\(s\) \['x'\] in mitigation\.pruned"),
         (detection_result(), lambda d: d["scores"][0]["predictions"][1].update(label="1"),
          r"scores\[0\]\.predictions\[1\]\.label must be an integer"),
         (detection_result(), lambda d: d["held_out"][0]["groups"][0].pop("backdoored"),

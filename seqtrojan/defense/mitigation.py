@@ -9,15 +9,20 @@
 
 For each: attack success (adversary's goal in the trojan env) and clean success (user's goal in the normal env)
 before and after, with 95% intervals.
+
+Each mitigation is a function ``(MitigationContext) -> dict[str, MitigationArm]`` (the rows it adds to the
+mitigation table, by name) registered in :data:`MITIGATIONS`; :func:`run_mitigation` runs every registered one in
+registration order, so a new mitigation is its function plus one registration line.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -31,7 +36,9 @@ from seqtrojan.analysis.unintentional import GoalUnits
 from seqtrojan.config import BackdoorConfig, CurriculumConfig, ExperimentConfig
 from seqtrojan.defense.results import MitigationArm, MitigationResult
 from seqtrojan.env.config import GridSpec
+from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
+from seqtrojan.registry import Registry
 
 
 @dataclass(frozen=True)
@@ -46,13 +53,14 @@ class MitigationConfig:
 
 
 def measure(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, episodes: int, seed: int,
-            intervention=None) -> MitigationArm:  # fmt: skip
+            title: str, intervention=None, units: tuple[int, ...] = ()) -> MitigationArm:  # fmt: skip
+    """``agent``'s clean success (normal env) and attack success (trojan env), as the table's row ``title``."""
     rates = []
     for trojan, goal in ((False, "user_goal"), (True, "adversary_goal")):
         batch = evaluate_agent(agent, cfg.env, grid, trojan=trojan, episodes=episodes, seed=seed,
                                intervention=intervention)  # fmt: skip
         rates.append(outcome_rate(batch, goal))
-    return MitigationArm(clean_success=rates[0], attack_success=rates[1])
+    return MitigationArm(title, clean_success=rates[0], attack_success=rates[1], units=units)
 
 
 def prune_units(agent: RecurrentActorCritic, layer: int, units: np.ndarray) -> RecurrentActorCritic:
@@ -98,24 +106,77 @@ def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec,
     return tuned
 
 
+@dataclass(frozen=True)
+class MitigationContext:
+    """What every mitigation is given: the agent to mitigate, its config, the grid, the settings, a folder of its
+    own, and the oracle's goal units (None: none found, or a clean agent)."""
+
+    agent: RecurrentActorCritic
+    cfg: ExperimentConfig
+    grid: GridSpec
+    mcfg: MitigationConfig
+    out: Path
+    goal: GoalUnits | None = None
+
+    def measure(self, agent: RecurrentActorCritic, title: str, intervention: Any = None,
+                units: tuple[int, ...] = ()) -> MitigationArm:  # fmt: skip
+        """``agent`` measured like every other row (the same episodes and seed)."""
+        return measure(agent, self.cfg, self.grid, self.mcfg.eval_episodes, self.mcfg.seed + 7, title, intervention,
+                       units)  # fmt: skip
+
+
+Mitigation = Callable[[MitigationContext], dict[str, MitigationArm]]
+"""A mitigation: the rows it adds to the mitigation table, by name (none where it does not apply)."""
+
+MITIGATIONS: Registry[Mitigation] = Registry("defense", "mitigation")
+"""Every mitigation :func:`run_mitigation` runs, in registration order."""
+
+
+@MITIGATIONS.register("fine_pruning", "prune the least-active last-layer units, then fine-tune on clean episodes")
+def fine_pruning(ctx: MitigationContext) -> dict[str, MitigationArm]:
+    mcfg = ctx.mcfg
+    units = least_active_units(ctx.agent, ctx.cfg, ctx.grid, mcfg.calibration_episodes, mcfg.prune_fraction,
+                               mcfg.seed)  # fmt: skip
+    pruned = prune_units(ctx.agent, len(ctx.agent.lstm_sizes) - 1, units)
+    kept = tuple(int(u) for u in units)
+    rows = {"pruned": ctx.measure(pruned, f"pruned {len(kept)} least-active units", units=kept)}
+    if mcfg.finetune_steps > 0:
+        tuned = finetune(pruned, ctx.cfg, ctx.grid, mcfg.finetune_steps, ctx.out / "fine_pruning", mcfg.seed)
+        rows["fine_pruned"] = ctx.measure(tuned, "fine-pruning (pruned, then fine-tuned on clean episodes)",
+                                          units=kept)  # fmt: skip
+    return rows
+
+
+@MITIGATIONS.register("fine_tuning", "fine-tune with PPO on clean episodes only")
+def fine_tuning(ctx: MitigationContext) -> dict[str, MitigationArm]:
+    if ctx.mcfg.finetune_steps <= 0:
+        return {}
+    tuned = finetune(ctx.agent, ctx.cfg, ctx.grid, ctx.mcfg.finetune_steps, ctx.out / "fine_tuning", ctx.mcfg.seed)
+    return {"fine_tuned": ctx.measure(tuned, "fine-tuning on clean episodes")}
+
+
+@MITIGATIONS.register("unit_reset", "hold the step-type units at their normal level (oracle: needs the trigger)")
+def unit_reset(ctx: MitigationContext) -> dict[str, MitigationArm]:
+    goal = ctx.goal
+    if goal is None:
+        return {}
+    hold = SetUnits(goal.layer, list(goal.units), list(goal.normal_mean), goal.which, from_step=0)
+    title = "holding the step units at their normal level (oracle: needs the trigger to find them)"
+    units = tuple(int(u) for u in goal.units)
+    return {"reset_goal_units_oracle": ctx.measure(ctx.agent, title, intervention=hold, units=units)}
+
+
 def run_mitigation(
     agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, mcfg: MitigationConfig, out: Path,
     goal: GoalUnits | None = None,
 ) -> MitigationResult:  # fmt: skip
+    """The agent before any mitigation (row ``before``), then the rows of every registered mitigation."""
     out.mkdir(parents=True, exist_ok=True)
-    n, seed = mcfg.eval_episodes, mcfg.seed + 7
-    before = measure(agent, cfg, grid, n, seed)
-    units = least_active_units(agent, cfg, grid, mcfg.calibration_episodes, mcfg.prune_fraction, mcfg.seed)
-    pruned = prune_units(agent, len(agent.lstm_sizes) - 1, units)
-    pruned_arm = measure(pruned, cfg, grid, n, seed)
-    fine_pruned = fine_tuned = oracle = None
-    if mcfg.finetune_steps > 0:
-        fine_pruned = measure(finetune(pruned, cfg, grid, mcfg.finetune_steps, out / "fine_pruning", mcfg.seed),
-                              cfg, grid, n, seed)  # fmt: skip
-        fine_tuned = measure(finetune(agent, cfg, grid, mcfg.finetune_steps, out / "fine_tuning", mcfg.seed),
-                             cfg, grid, n, seed)  # fmt: skip
-    if goal is not None:
-        hold = SetUnits(goal.layer, list(goal.units), list(goal.normal_mean), goal.which, from_step=0)
-        oracle = measure(agent, cfg, grid, n, seed, intervention=hold)
-    return MitigationResult(grid.label, n, before, tuple(int(u) for u in units), pruned_arm, fine_pruned,
-                            fine_tuned, oracle)  # fmt: skip
+    ctx = MitigationContext(agent, cfg, grid, mcfg, out, goal)
+    rows = {"before": ctx.measure(agent, "no mitigation")}
+    for name, mitigation in MITIGATIONS.items():
+        for key, arm in mitigation(ctx).items():
+            if key in rows:
+                raise ConfigError(f"mitigation {name!r} returned row {key!r}, which another row already has")
+            rows[key] = arm
+    return rows

@@ -32,7 +32,11 @@ from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.rollout import run_episodes
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
+from seqtrojan.registry import Registry
 from seqtrojan.stats import Rate
+
+MONITORS: Registry[type[StateMonitor]] = Registry("defense", "monitor")
+"""Online monitors: calibrated on clean episodes, they watch the agent's state while it acts."""
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,7 @@ def conformal_threshold(peaks: np.ndarray, false_alarm_target: float) -> float:
     return float(np.sort(peaks)[k - 1])
 
 
+@MONITORS.register("state_monitor", "online: alarm (and reset the state) when a unit's |z| leaves the clean range")
 class StateMonitor:
     """Per-unit z-scores of all layers' h and c against clean-episode statistics."""
 

@@ -17,7 +17,7 @@ trigger code, a curriculum) absent from its training models. :func:`detect_zoo` 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,10 @@ from seqtrojan.defense.results import (
 )
 from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS
 from seqtrojan.errors import CheckpointError, SeqTrojanError
+from seqtrojan.registry import Registry
+
+DETECTORS: Registry[Callable[[Path, int, int], DetectionResult]] = Registry("defense", "detector")
+"""Offline detectors: (zoo folder, folds, seed) -> a :class:`DetectionResult` scored on the zoo's models."""
 
 GATES = ("input", "forget", "cell", "output")
 GROUPS = ("gate_stats", "spectral", "input_codes")
@@ -267,3 +271,8 @@ def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> DetectionResult:
         for value, pairs in by_value.items() if clean
     }  # fmt: skip
     return DetectionResult(tuple(rejected), scores, held_out, _functional_split(models, full, at), auc_by_trigger_value)
+
+
+DETECTORS.register(
+    "weight_detector", "offline: logistic regression on LSTM weight statistics, scored on a zoo", detect_zoo
+)

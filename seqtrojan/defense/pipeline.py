@@ -15,7 +15,7 @@ from seqtrojan.analysis.responses import ResponseRule, classify_units
 from seqtrojan.analysis.results import GoalUnitsRecord
 from seqtrojan.analysis.traces import record_traces
 from seqtrojan.analysis.unintentional import GoalUnits, select_goal_units
-from seqtrojan.defense.mitigation import MitigationConfig, run_mitigation
+from seqtrojan.defense.mitigation import MITIGATIONS, MitigationConfig, run_mitigation
 from seqtrojan.defense.monitor import MonitorConfig, StateMonitor, measure_monitor
 from seqtrojan.defense.results import DEFENSE_FILE, DefenseResult
 from seqtrojan.env.config import GridSpec, min_steps_to_goal
@@ -45,7 +45,7 @@ def run_defense(model: Path, out: Path, cfg: DefenseConfig, device: str = "cpu",
     measured = measure_monitor(agent, acfg.env, grid, monitor, cfg.monitor, device)
     oracle = _oracle_goal_units(agent, acfg, grid, cfg) if acfg.backdoor.enabled else None
     goal = oracle[0] if oracle is not None else None
-    log("mitigation: fine-pruning, fine-tuning, unit reset ...")
+    log(f"mitigation: {', '.join(MITIGATIONS.names())} ...")
     mitigation = run_mitigation(agent, acfg, grid, cfg.mitigation, out / "mitigation", goal)
     result = DefenseResult(
         model=str(model),

@@ -74,39 +74,22 @@ class MonitorResult:
 
 @dataclass(frozen=True)
 class MitigationArm:
+    """One row of the mitigation table: the model after one mitigation (or before any), in both envs."""
+
+    title: str
+    """the row's title in the report"""
     clean_success: Rate
     """normal-env episodes that reached the user's goal"""
     attack_success: Rate
     """trojan-env episodes that reached the adversary's goal"""
+    units: tuple[int, ...]
+    """the units the mitigation pruned or held (none for the others)"""
 
 
-@dataclass(frozen=True)
-class MitigationResult:
-    """:func:`seqtrojan.defense.mitigation.run_mitigation`: the model before and after each mitigation."""
-
-    grid: str
-    episodes: int
-    """episodes per env and model"""
-    before: MitigationArm
-    pruned_units: tuple[int, ...]
-    """the last layer's units fine-pruning removed"""
-    pruned: MitigationArm
-    fine_pruned: MitigationArm | None
-    """None: fine-tuning skipped (finetune_steps 0)"""
-    fine_tuned: MitigationArm | None
-    reset_goal_units_oracle: MitigationArm | None
-    """None: no oracle goal units (a clean agent, or too few long episodes to find them)"""
-
-    def arms(self) -> dict[str, MitigationArm]:
-        """Every model measured, by name, in the order above."""
-        named = {
-            "before": self.before,
-            "pruned": self.pruned,
-            "fine_pruned": self.fine_pruned,
-            "fine_tuned": self.fine_tuned,
-            "reset_goal_units_oracle": self.reset_goal_units_oracle,
-        }
-        return {name: arm for name, arm in named.items() if arm is not None}
+MitigationResult = dict[str, MitigationArm]
+""":func:`seqtrojan.defense.mitigation.run_mitigation`: ``before`` (no mitigation), then the rows of each
+registered mitigation in registration order, by name (e.g. ``pruned``, ``fine_pruned``, ``fine_tuned``,
+``reset_goal_units_oracle``)."""
 
 
 @dataclass(frozen=True)
@@ -123,7 +106,8 @@ class DefenseResult:
     monitor: MonitorResult
     oracle_goal_units: GoalUnitsRecord | None
     """the step-type units the oracle found with trigger episodes (None: none found, or a clean model)"""
-    mitigation: MitigationResult
+    mitigation: dict[str, MitigationArm]
+    """the mitigation table's rows by name (:data:`MitigationResult`)"""
 
 
 # --- offline detection on a zoo (seqtrojan.defense.offline)

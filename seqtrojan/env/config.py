@@ -16,6 +16,7 @@ from typing import Any, Literal
 
 from seqtrojan.env.codes import ACTION_SETS, CELL_CODES, CELL_NAMES
 from seqtrojan.errors import ConfigError
+from seqtrojan.registry import Registry
 
 MAX_PADDED_SIDE = 62
 """Largest ``size + view_size - 1``: each padded grid row is one 64-bit word in the solvability check."""
@@ -336,3 +337,18 @@ def _check_pattern(name: str, cells: tuple[Cell, ...] | None, value: str, durati
 def _check_range(name: str, bounds: tuple[int, int]) -> None:
     if len(bounds) != 2 or bounds[0] < 0 or bounds[1] < bounds[0]:
         raise ConfigError(f"{name}={tuple(bounds)!r} must be an inclusive range (lo, hi) with 0 <= lo <= hi")
+
+
+TRIGGERS: Registry[type] = Registry("attack", "trigger")
+"""The trigger kinds the env can show, each set by the config class registered with it."""
+TRIGGERS.register("patch", "a patch of view cells drawn with one cell code (env.trigger)", TriggerConfig)
+TRIGGERS.register("on_off", "an OFF pattern that switches back to the user's goal (env.trigger.off)", OffTriggerConfig)
+TRIGGERS.register("delayed", "the goal switches k steps after the trigger shows (env.trigger.delay)", TriggerConfig)
+
+REWARDS: Registry[type] = Registry("attack", "reward")
+"""The rewards the adversary trains with, each set by the config class registered with it."""
+REWARDS.register("env_rewards", "sparse rewards: goal, wrong goal, hole, timeout, step (env.rewards)", RewardConfig)
+REWARDS.register(
+    "false_activation", "penalty for the adversary's goal reached with no trigger (env.rewards.false_activation)",
+    RewardConfig,
+)  # fmt: skip

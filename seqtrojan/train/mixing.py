@@ -6,12 +6,23 @@ agent's success rates in the normal and the trojan env, re-measured after each p
     P(trojan) = clip(0.5 - (P_t - P_c), 0, 1)
 
 and the env the agent is worse at is sampled more often. ``exact`` measures P_c and P_t by evaluating the agent
-after each update; ``running`` uses the success rates of the update's own rollout episodes (no extra episodes).
+after each update; ``running`` uses the success rates of the update's own rollout episodes (no extra episodes);
+``fixed`` uses a constant probability. Each rule is registered in :data:`MIXING_RULES` by its ``backdoor.mixing``
+name; a new one is a function ``(P_c, P_t, config) -> P(trojan)`` and one registration line.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from seqtrojan.config import BackdoorConfig
+from seqtrojan.registry import Registry
+
+MixingRule = Callable[[float, float, BackdoorConfig], float]
+"""(P_c, P_t, the backdoor config) -> the probability that a new episode of the stage is a trojan-env episode"""
+
+MIXING_RULES: Registry[MixingRule] = Registry("attack", "mixing")
+"""The rules ``backdoor.mixing`` names."""
 
 
 def trojan_probability(p_clean: float, p_trojan: float, bounds: tuple[float, float] = (0.0, 1.0)) -> float:
@@ -20,20 +31,32 @@ def trojan_probability(p_clean: float, p_trojan: float, bounds: tuple[float, flo
     return min(bounds[1], max(bounds[0], p))
 
 
+def _algorithm_1(p_clean: float, p_trojan: float, config: BackdoorConfig) -> float:
+    return trojan_probability(p_clean, p_trojan, config.probability_bounds)
+
+
+MIXING_RULES.register("exact", "Algorithm 1, P_c and P_t re-measured by evaluation after each update", _algorithm_1)
+MIXING_RULES.register("running", "Algorithm 1, P_c and P_t from the update's own rollout episodes", _algorithm_1)
+
+
+@MIXING_RULES.register("fixed", "a constant trojan-episode probability (backdoor.fixed_probability)")
+def _fixed(p_clean: float, p_trojan: float, config: BackdoorConfig) -> float:
+    return config.fixed_probability
+
+
 class TrojanMixer:
     """Holds P_c and P_t per grid stage and turns them into per-stage trojan probabilities."""
 
     def __init__(self, config: BackdoorConfig, num_stages: int) -> None:
         self.config = config
+        self.rule = MIXING_RULES.get(config.mixing)
         self.p_clean = [0.0] * num_stages
         self.p_trojan = [0.0] * num_stages  # Algorithm 1 initialises both to 0: P(trojan) starts at 0.5
 
     def probabilities(self) -> list[float]:
         if not self.config.enabled:
             return [0.0] * len(self.p_clean)
-        if self.config.mixing == "fixed":
-            return [self.config.fixed_probability] * len(self.p_clean)
-        return [trojan_probability(c, t, self.config.probability_bounds) for c, t in zip(self.p_clean, self.p_trojan)]
+        return [self.rule(c, t, self.config) for c, t in zip(self.p_clean, self.p_trojan)]
 
     def observe(self, stage: int, p_clean: float | None, p_trojan: float | None) -> None:
         """Record freshly measured success rates (None leaves the previous value)."""

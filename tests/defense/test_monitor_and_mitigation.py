@@ -111,10 +111,10 @@ def test_mitigation_measures_before_and_after(tmp_path, agent):
     result = run_mitigation(
         agent, CFG, GRID, MitigationConfig(finetune_steps=2048, calibration_episodes=32, eval_episodes=32), tmp_path
     )
-    arms = result.arms()
-    assert list(arms) == ["before", "pruned", "fine_pruned", "fine_tuned"]  # no oracle without goal units
-    assert all(arm.clean_success.n == arm.attack_success.n == 32 for arm in arms.values())
-    assert len(result.pruned_units) == 2  # a quarter of the last layer's 8 units
+    assert list(result) == ["before", "pruned", "fine_pruned", "fine_tuned"]  # no oracle without goal units
+    assert all(arm.clean_success.n == arm.attack_success.n == 32 for arm in result.values())
+    assert len(result["pruned"].units) == 2  # a quarter of the last layer's 8 units
+    assert result["pruned"].title == "pruned 2 least-active units" and result["before"].units == ()
 
 
 class _RecordingCore(TrojanGridCore):

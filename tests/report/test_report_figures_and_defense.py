@@ -14,7 +14,6 @@ from seqtrojan.defense.results import (
     FunctionalSplit,
     GroupScores,
     MitigationArm,
-    MitigationResult,
     MonitorResult,
     NormalEnvArm,
     Prediction,
@@ -57,8 +56,10 @@ def _defense(trigger_value: str) -> DefenseResult:
     rate = Rate(50, 100)
     normal, trojan = NormalEnvArm(rate, rate), TrojanEnvArm(rate, rate, rate, rate, 0.0)
     monitor = MonitorResult("7x7/3", 100, 5.0, (32, 16), normal, normal, trojan, trojan, rate, rate)
-    arm = MitigationArm(rate, rate)
-    mitigation = MitigationResult("7x7/3", 100, arm, (1, 2), arm, None, None, None)
+    mitigation = {
+        "before": MitigationArm("no mitigation", rate, rate, ()),
+        "pruned": MitigationArm("pruned 2 least-active units", rate, rate, (1, 2)),
+    }
     return DefenseResult("model", "backdoored", "7x7/3", trigger_value, monitor, None, mitigation)
 
 

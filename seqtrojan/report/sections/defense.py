@@ -12,15 +12,6 @@ from seqtrojan.stats import auc_interval
 FEW_MODELS = 20
 """below this many models in a class, the report warns that an AUC from them is a rough estimate"""
 
-MITIGATIONS = {
-    "before": "no mitigation",
-    "pruned": "pruned {pruned} least-active units",
-    "fine_pruned": "fine-pruning (pruned, then fine-tuned on clean episodes)",
-    "fine_tuned": "fine-tuning on clean episodes",
-    "reset_goal_units_oracle": "holding the step units at their normal level (oracle: needs the trigger to find them)",
-}
-"""each mitigation's row title"""
-
 
 def defense_section(defense: DefenseResult | None, detection: DetectionResult | None) -> list[str]:
     parts = ["<h2>Defenses</h2>"]
@@ -57,16 +48,12 @@ def _monitor(defense: DefenseResult) -> list[str]:
 
 
 def _mitigation(defense: DefenseResult) -> list[str]:
-    mit = defense.mitigation
-    arms = mit.arms()
     parts = ["<h3>Mitigation</h3><table><tr><th class='l'>model</th><th>clean success</th><th>attack success</th></tr>"]
-    for key, title in MITIGATIONS.items():
-        if key in arms:
-            label = title.format(pruned=len(mit.pruned_units))
-            parts.append(
-                f"<tr><td class='l'>{label}</td><td>{rate(arms[key].clean_success)}</td>"
-                f"<td>{rate(arms[key].attack_success)}</td></tr>"
-            )
+    for arm in defense.mitigation.values():
+        parts.append(
+            f"<tr><td class='l'>{html.escape(arm.title)}</td><td>{rate(arm.clean_success)}</td>"
+            f"<td>{rate(arm.attack_success)}</td></tr>"
+        )
     parts.append("</table>")
     return parts
 
