@@ -20,14 +20,17 @@ each stage's file is the matching type of :mod:`seqtrojan.analysis.results` (sav
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
 from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.analysis.config import AnalysisConfig
 from seqtrojan.analysis.interventions import switch_experiment
 from seqtrojan.analysis.plots import plot_finding, plot_heatmaps, plot_unit_responses
@@ -41,14 +44,17 @@ from seqtrojan.analysis.results import (
     ResponseCounts,
     ResponsesResult,
     SearchResult,
+    SequenceSearchResult,
     UnintentionalResult,
     UnitResponses,
+    WalkSearchResult,
 )
 from seqtrojan.analysis.search import evolve_layouts, flip_rates, search_sequences
 from seqtrojan.analysis.traces import StateTrace, record_traces
 from seqtrojan.analysis.trigger_detection import trigger_detection
 from seqtrojan.analysis.unintentional import GoalUnits, save_findings, select_goal_units, sweep_unintentional
 from seqtrojan.analysis.walks import is_walkable, search_walks
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.config import GridSpec
 from seqtrojan.env.core import EpisodeSnapshot
 from seqtrojan.env.layout import Layout
@@ -60,6 +66,15 @@ from seqtrojan.stats import Rate
 __all__ = ["ANALYSIS_FILE", "AnalysisConfig", "run_analysis"]
 
 ENVS = ("normal", "trojan")
+T = TypeVar("T")
+
+
+Agents = dict[str, tuple[RecurrentActorCritic, ExperimentConfig]]
+"""'clean' / 'backdoor' -> the agent and its config"""
+Traces = dict[tuple[str, str], StateTrace]
+"""(agent, env) -> its recorded states"""
+Classes = dict[tuple[str, int, str], Classification]
+"""(agent, layer, 'h' / 'c') -> every unit's response type"""
 
 
 def run_analysis(
@@ -70,33 +85,75 @@ def run_analysis(
     device: str = "cpu",
     log: Callable[[str], None] = print,
 ) -> AnalysisResult:
+    """Run every stage of the module docstring not yet done under ``out``; write and return ``analysis.json``."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "figures").mkdir(exist_ok=True)
-    agents = {
+    agents: Agents = {
         name: load_agent(path, device=device)[:2]
         for name, path in (("clean", clean_model), ("backdoor", backdoor_model))
     }
-    timings: dict[str, float] = (
-        json.loads((out / "timings.json").read_text()) if (out / "timings.json").exists() else {}
-    )
+    timer = _Timer(out / "timings.json")
+    traces = record_all_traces(agents, cfg, out, device, timer, log)
+    classes, responses = classify_responses(agents, traces, cfg)
+    save_json(responses, out / "responses.json")
+    plot_responses(agents, classes, traces, cfg, out)
+    goal, goal_source = _goal_units(classes, agents["backdoor"][0], traces, cfg)
+    goal_record = GoalUnitsRecord(**dataclasses.asdict(goal), source=goal_source)
+    save_json(goal_record, out / "goal_units.json")
+    backdoor = agents["backdoor"]
+    if not (out / "interventions.json").exists():
+        log("interventions ...")
+        save_json(run_interventions(backdoor, traces, goal, goal_record, cfg, timer), out / "interventions.json")
+    if not (out / "unintentional.json").exists():
+        log("unintentional triggers ...")
+        save_json(run_unintentional(backdoor, traces, goal, cfg, out, timer), out / "unintentional.json")
+    if not (out / "search.json").exists():
+        log("searching for goal-switching layouts and sequences ...")
+        save_json(run_searches(backdoor, goal, cfg, out, timer), out / "search.json")
 
-    def timed(stage: str, fn):
+    summary = AnalysisResult(
+        cfg,
+        responses,
+        goal_record,
+        load_json(InterventionsResult, out / "interventions.json"),
+        load_json(UnintentionalResult, out / "unintentional.json"),
+        load_json(SearchResult, out / "search.json"),
+        timer.times,
+    )
+    save_json(summary, out / ANALYSIS_FILE)
+    return summary
+
+
+class _Timer:
+    """Wall seconds per step, in ``timings.json`` (rewritten after each step) and in analysis.json."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.times: dict[str, float] = json.loads(path.read_text()) if path.exists() else {}
+
+    def timed(self, step: str, fn: Callable[[], T]) -> T:
         t0 = time.perf_counter()
         value = fn()
-        timings[stage] = time.perf_counter() - t0
-        (out / "timings.json").write_text(json.dumps(timings, indent=2))
+        self.times[step] = time.perf_counter() - t0
+        self.path.write_text(json.dumps(self.times, indent=2))
         return value
 
-    # 1. TRACES
-    traces: dict[tuple[str, str], StateTrace] = {}
+
+def record_all_traces(
+    agents: Agents, cfg: AnalysisConfig, out: Path, device: str, timer: _Timer, log: Callable[[str], None]
+) -> Traces:
+    """1. h and c of every layer at every step, each agent in each env (``traces/<agent>_<env>.safetensors``,
+    recorded when missing)."""
+    traces: Traces = {}
     for name, (agent, acfg) in agents.items():
         for env in ENVS:
             path = out / "traces" / f"{name}_{env}.safetensors"
             if not path.exists():
                 log(f"recording {name} agent, {env} env ...")
-                trace = timed(
+                trace = timer.timed(
                     f"trace_{name}_{env}",
-                    lambda agent=agent, acfg=acfg, env=env, name=name: record_traces(
+                    functools.partial(
+                        record_traces,
                         agent,
                         acfg.env,
                         cfg.grids,
@@ -110,9 +167,12 @@ def run_analysis(
                 )
                 trace.save(path)
             traces[(name, env)] = StateTrace.load(path)
+    return traces
 
-    # 2. RESPONSE TYPES
-    classes: dict[tuple[str, int, str], Classification] = {}
+
+def classify_responses(agents: Agents, traces: Traces, cfg: AnalysisConfig) -> tuple[Classes, ResponsesResult]:
+    """2. Every unit's response type (impulse / none / step), per agent, layer and state, and what they show."""
+    classes: Classes = {}
     per_agent: dict[str, dict[str, UnitResponses]] = {}
     for name, (agent, _) in agents.items():
         per_layer = per_agent.setdefault(name, {})
@@ -128,19 +188,22 @@ def run_analysis(
                     tuple(int(u) for u in cl.units("impulse")),
                 )
     step_totals = {n: sum(v.counts.step for v in per_agent[n].values()) for n in agents}
-    finding = (
-        "step responses only in the backdoored agent"
-        if step_totals["backdoor"] > 0 and step_totals["clean"] == 0
-        else "step responses in both agents"
-        if step_totals["clean"] > 0 and step_totals["backdoor"] > 0
-        else "step responses only in the clean agent"
-        if step_totals["clean"] > 0
-        else "no step responses in either agent"
-    )
-    responses = ResponsesResult(cfg.rule, per_agent, step_totals, finding)
-    save_json(responses, out / "responses.json")
+    return classes, ResponsesResult(cfg.rule, per_agent, step_totals, _step_finding(step_totals))
 
-    # 3. FIGURES
+
+def _step_finding(step_totals: dict[str, int]) -> str:
+    if step_totals["backdoor"] > 0 and step_totals["clean"] == 0:
+        return "step responses only in the backdoored agent"
+    if step_totals["clean"] > 0 and step_totals["backdoor"] > 0:
+        return "step responses in both agents"
+    if step_totals["clean"] > 0:
+        return "step responses only in the clean agent"
+    return "no step responses in either agent"
+
+
+def plot_responses(agents: Agents, classes: Classes, traces: Traces, cfg: AnalysisConfig, out: Path) -> None:
+    """3. Each agent's representative units and a heatmap of every layer's h and c (``figures/``, drawn when
+    missing)."""
     for name, (agent, _) in agents.items():
         figure = out / "figures" / f"responses_{name}.png"
         if not figure.exists():
@@ -167,96 +230,116 @@ def run_analysis(
                         f"{name} agent, layer {layer} {which}: mean over {cfg.episodes} episodes",
                     )
 
-    # 4. GOAL UNITS AND INTERVENTIONS
-    goal, goal_source = _goal_units(classes, agents["backdoor"][0], traces, cfg)
-    goal_record = GoalUnitsRecord(**dataclasses.asdict(goal), source=goal_source)
-    save_json(goal_record, out / "goal_units.json")
-    backdoor, bcfg = agents["backdoor"]
-    if not (out / "interventions.json").exists():
-        log("interventions ...")
-        grid = GridSpec(cfg.size, (cfg.holes[0] + cfg.holes[1]) // 2)
-        results = timed(
-            "interventions",
-            lambda: switch_experiment(
-                backdoor,
-                bcfg.env,
-                grid,
-                traces[("backdoor", "normal")],
-                traces[("backdoor", "trojan")],
-                layer=goal.layer,
-                which=goal.which,
-                units=list(goal.units),
-                trigger_step=cfg.trigger_step,
-                episodes=cfg.intervention_episodes,
-                seed=cfg.seed,
-            ),
-        )
-        save_json(InterventionsResult(grid.label, goal_record, tuple(results)), out / "interventions.json")
 
-    # 5. UNINTENTIONAL TRIGGERS
-    if not (out / "unintentional.json").exists():
-        log("unintentional triggers ...")
-        summaries, findings = timed(
-            "unintentional",
-            lambda: sweep_unintentional(
-                backdoor,
-                bcfg.env,
-                parse_configs(cfg.unintentional_configs),
-                episodes=cfg.unintentional_episodes,
-                seed=cfg.seed,
-            ),
-        )
-        save_findings(findings, out / "findings.json")
-        plotted = _plot_findings(findings, backdoor, bcfg, goal, traces, cfg, out)
-        flips = _goal_flips(findings, backdoor, bcfg, goal)
-        unintentional = UnintentionalResult(
-            tuple(s.row() for s in summaries),
-            tuple(d.row() for d in trigger_detection(summaries)),
-            len(findings),
-            flips,
-            tuple(plotted),
-        )
-        save_json(unintentional, out / "unintentional.json")
-
-    # 6. SEARCH
-    if not (out / "search.json").exists():
-        log("searching for goal-switching layouts and sequences ...")
-        layouts = timed("layout_search", lambda: evolve_layouts(backdoor, bcfg.env, goal, cfg.layout_search))
-        sequences, codes = timed("sequence_search", lambda: search_sequences(backdoor, goal, cfg.sequence_search))
-        found_codes = codes[np.asarray(sequences.rounded_activation) >= cfg.sequence_search.success_at]
-        if len(found_codes):
-            flip, base = flip_rates(backdoor, bcfg.env, found_codes, cfg.layout_search.size, cfg.layout_search.holes,
-                                    cfg.intervention_episodes, cfg.seed)  # fmt: skip
-            sequences = dataclasses.replace(sequences, flip_rate=flip, baseline_rate=base)
-        np.save(out / "sequence_codes.npy", codes)
-        sequences = dataclasses.replace(sequences, walkable=sum(is_walkable(c) for c in found_codes))
-        walks = []
-        for weight in cfg.walk_density_weights:
-            wcfg = dataclasses.replace(cfg.walk_search, density_weight=weight)
-            walk, walk_codes, walk_grids = timed(
-                f"walk_search{weight:g}", lambda w=wcfg: search_walks(backdoor, goal, w)
-            )
-            hits = np.asarray(walk.rounded_activation) >= wcfg.success_at
-            if hits.any():
-                flip, base = flip_rates(backdoor, bcfg.env, walk_codes[hits], cfg.layout_search.size,
-                                        cfg.layout_search.holes, cfg.intervention_episodes, cfg.seed)  # fmt: skip
-                walk = dataclasses.replace(walk, flip_rate=flip, baseline_rate=base)
-            np.savez(out / f"walks_weight{weight:g}.npz", codes=walk_codes, grids=walk_grids)
-            walks.append(walk)
-        search = SearchResult(LayoutSearch(cfg.layout_search, tuple(layouts)), sequences, tuple(walks))
-        save_json(search, out / "search.json")
-
-    summary = AnalysisResult(
-        cfg,
-        responses,
-        goal_record,
-        load_json(InterventionsResult, out / "interventions.json"),
-        load_json(UnintentionalResult, out / "unintentional.json"),
-        load_json(SearchResult, out / "search.json"),
-        timings,
+def run_interventions(
+    backdoor: tuple[RecurrentActorCritic, ExperimentConfig],
+    traces: Traces,
+    goal: GoalUnits,
+    goal_record: GoalUnitsRecord,
+    cfg: AnalysisConfig,
+    timer: _Timer,
+) -> InterventionsResult:
+    """4. Edit the backdoored agent's goal units: goal switches and hole avoidance."""
+    agent, bcfg = backdoor
+    grid = GridSpec(cfg.size, (cfg.holes[0] + cfg.holes[1]) // 2)
+    results = timer.timed(
+        "interventions",
+        lambda: switch_experiment(
+            agent,
+            bcfg.env,
+            grid,
+            traces[("backdoor", "normal")],
+            traces[("backdoor", "trojan")],
+            layer=goal.layer,
+            which=goal.which,
+            units=list(goal.units),
+            trigger_step=cfg.trigger_step,
+            episodes=cfg.intervention_episodes,
+            seed=cfg.seed,
+        ),
     )
-    save_json(summary, out / ANALYSIS_FILE)
-    return summary
+    return InterventionsResult(grid.label, goal_record, tuple(results))
+
+
+def run_unintentional(
+    backdoor: tuple[RecurrentActorCritic, ExperimentConfig],
+    traces: Traces,
+    goal: GoalUnits,
+    cfg: AnalysisConfig,
+    out: Path,
+    timer: _Timer,
+) -> UnintentionalResult:
+    """5. Sweep grid configs for unintentional activations and deactivations (``findings.json``, the first ones
+    plotted), check which findings switch the goal units, and score the agent as a trigger detector."""
+    agent, bcfg = backdoor
+    summaries, findings = timer.timed(
+        "unintentional",
+        lambda: sweep_unintentional(
+            agent,
+            bcfg.env,
+            parse_configs(cfg.unintentional_configs),
+            episodes=cfg.unintentional_episodes,
+            seed=cfg.seed,
+        ),
+    )
+    save_findings(findings, out / "findings.json")
+    plotted = _plot_findings(findings, agent, bcfg, goal, traces, cfg, out)
+    flips = _goal_flips(findings, agent, bcfg, goal)
+    return UnintentionalResult(
+        tuple(s.row() for s in summaries),
+        tuple(d.row() for d in trigger_detection(summaries)),
+        len(findings),
+        flips,
+        tuple(plotted),
+    )
+
+
+def run_searches(
+    backdoor: tuple[RecurrentActorCritic, ExperimentConfig], goal: GoalUnits, cfg: AnalysisConfig, out: Path,
+    timer: _Timer,
+) -> SearchResult:  # fmt: skip
+    """6. Goal-switching layouts, free observation sequences (``sequence_codes.npy``) and walks through grids, one
+    search per density weight (``walks_weight<w>.npz``)."""
+    agent, bcfg = backdoor
+    layouts = timer.timed("layout_search", lambda: evolve_layouts(agent, bcfg.env, goal, cfg.layout_search))
+    sequences = _sequence_search(backdoor, goal, cfg, out, timer)
+    walks = tuple(_walk_search(backdoor, goal, cfg, weight, out, timer) for weight in cfg.walk_density_weights)
+    return SearchResult(LayoutSearch(cfg.layout_search, tuple(layouts)), sequences, walks)
+
+
+def _sequence_search(
+    backdoor: tuple[RecurrentActorCritic, ExperimentConfig], goal: GoalUnits, cfg: AnalysisConfig, out: Path,
+    timer: _Timer,
+) -> SequenceSearchResult:  # fmt: skip
+    """Free observation sequences that switch the goal units: how often the found ones flip the goal in grids, and
+    how many are walkable."""
+    agent, bcfg = backdoor
+    sequences, codes = timer.timed("sequence_search", lambda: search_sequences(agent, goal, cfg.sequence_search))
+    found_codes = codes[np.asarray(sequences.rounded_activation) >= cfg.sequence_search.success_at]
+    if len(found_codes):
+        flip, base = flip_rates(agent, bcfg.env, found_codes, cfg.layout_search.size, cfg.layout_search.holes,
+                                cfg.intervention_episodes, cfg.seed)  # fmt: skip
+        sequences = dataclasses.replace(sequences, flip_rate=flip, baseline_rate=base)
+    np.save(out / "sequence_codes.npy", codes)
+    return dataclasses.replace(sequences, walkable=sum(is_walkable(c) for c in found_codes))
+
+
+def _walk_search(
+    backdoor: tuple[RecurrentActorCritic, ExperimentConfig], goal: GoalUnits, cfg: AnalysisConfig, weight: float,
+    out: Path, timer: _Timer,
+) -> WalkSearchResult:  # fmt: skip
+    """Walks through grids that switch the goal units, with density weight ``weight``, and how often the found
+    ones flip the goal."""
+    agent, bcfg = backdoor
+    wcfg = dataclasses.replace(cfg.walk_search, density_weight=weight)
+    walk, walk_codes, walk_grids = timer.timed(f"walk_search{weight:g}", lambda: search_walks(agent, goal, wcfg))
+    hits = np.asarray(walk.rounded_activation) >= wcfg.success_at
+    if hits.any():
+        flip, base = flip_rates(agent, bcfg.env, walk_codes[hits], cfg.layout_search.size,
+                                cfg.layout_search.holes, cfg.intervention_episodes, cfg.seed)  # fmt: skip
+        walk = dataclasses.replace(walk, flip_rate=flip, baseline_rate=base)
+    np.savez(out / f"walks_weight{weight:g}.npz", codes=walk_codes, grids=walk_grids)
+    return walk
 
 
 def _representatives(classes, name: str, layers: int, per_type: int = 2) -> list[tuple[str, int, int, str]]:

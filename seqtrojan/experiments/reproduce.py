@@ -5,8 +5,11 @@ unintentional triggers, searches), and a self-contained HTML report beside the p
     seqtrojan reproduce --scale smoke      # minutes on 2 cores: the README's main job
     seqtrojan reproduce --scale paper      # the paper's setting (17x17/30 agents, 1000 trials, 10 seeds)
 
-Each stage writes its outputs under ``--out`` and is skipped when they exist, so a stopped reproduction continues
-where it stopped (training runs resume from their last checkpoint).
+:func:`reproduce` is a list of stages (:func:`reproduce_stages`: headline training, evaluation, curves, trajectory,
+analysis, defense, trade-off, zoo, report; a section set to None in the config is not in the list) run by
+:func:`seqtrojan.experiments.stages.run_stages`. Each stage writes its outputs under ``--out`` at the paths of
+:class:`seqtrojan.artifacts.RunLayout` and is skipped when they exist, so a stopped reproduction continues where it
+stopped (training runs resume from their last checkpoint).
 """
 
 from __future__ import annotations
@@ -24,9 +27,10 @@ import torch
 import yaml
 
 from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.analysis.pipeline import AnalysisConfig, run_analysis
-from seqtrojan.artifacts import RunLayout, TrajectoryResult
+from seqtrojan.artifacts import HEADLINE_ROLES, RunLayout, TrajectoryResult
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.defense.offline import detect_zoo
 from seqtrojan.defense.pipeline import DefenseConfig, run_defense
@@ -37,6 +41,7 @@ from seqtrojan.evaluation.results import save_rows
 from seqtrojan.evaluation.seeds import summarise_over_seeds
 from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, load_sweep, parse_configs, write_sweep
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
+from seqtrojan.experiments.stages import Stage, StageContext, Timings, run_stages
 from seqtrojan.experiments.tradeoff import TradeoffConfig, measure_tradeoff_agent, summarise_penalties, tradeoff_agents
 from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 from seqtrojan.presets import resolve_preset
@@ -136,80 +141,49 @@ def load_reproduce_config(scale_or_path: str) -> ReproduceConfig:
     return from_dict(ReproduceConfig, load_yaml(path), "")
 
 
-class _Timer:
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.times: dict[str, float] = json.loads(path.read_text()) if path.exists() else {}
+@dataclass(frozen=True)
+class ReproduceContext(StageContext):
+    """A reproduction's stages run with its config, the scale's name (for the report) and when the call started."""
 
-    def record(self, stage: str, seconds: float) -> None:
-        self.times[stage] = seconds
-        self.path.write_text(json.dumps(self.times, indent=2))
+    config: ReproduceConfig
+    scale: str
+    start: float
+
+    def models(self, offset: int = 0) -> dict[str, Path]:
+        """role -> the model folder of training seed ``offset``'s headline agent (seed 0 feeds every later stage)."""
+        return {role: self.layout.model(headline_run_name(role, offset)) for role in HEADLINE_ROLES}
+
+    def backend(self) -> JobBackend:
+        return make_backend(self.config.jobs)
 
 
 def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=print) -> Path:
     """Run every stage not yet done; return the report's path."""
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "reproduce.yaml").write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
-    timer = _Timer(out / "timings.json")
-    start = time.perf_counter()
-
-    seed_models = _train_headline(config, out, make_backend(config.jobs), timer, log)
-    models = seed_models[0]  # role -> the seed-0 model, used by every later stage
-
-    agents = []
-    for role, folder in models.items():
-        agent, cfg, _ = load_agent(folder, device=config.device)
-        agents.append((role, agent, cfg))
-
-    _evaluate_seeds(config, seed_models, out / "evaluation", timer, log)
-
-    curves_dir = out / "curves"
-    if config.curves is not None and not (curves_dir / "curves.json").exists():
-        log("learning curves ...")
-        t0 = time.perf_counter()
-        base = load_run_config(out / "runs" / "backdoor")
-        csv_path = run_curves(base, config.curves, curves_dir, make_backend(config.jobs), _job_log(log))
-        curves = aggregate_curves(csv_path, config.curves.points)
-        plot_curves(curves, curves_dir / "curves.png")
-        (curves_dir / "curves.json").write_text(json.dumps(curves))
-        timer.record("curves", time.perf_counter() - t0)
-
-    traj_png = out / "trajectory.png"
-    if config.trajectory is not None and not traj_png.exists():
-        log("trajectory figure ...")
-        t0 = time.perf_counter()
-        _trajectory_figure(agents[1][1], agents[1][2], config.trajectory, out, config.device)
-        timer.record("trajectory", time.perf_counter() - t0)
-
     layout = RunLayout(out)
-    if config.analysis is not None and not layout.analysis_file.exists():
-        log("looking inside the agents ...")
-        t0 = time.perf_counter()
-        run_analysis(models["clean"], models["backdoor"], layout.analysis_dir, config.analysis, config.device, log)
-        timer.record("analysis", time.perf_counter() - t0)
+    out.mkdir(parents=True, exist_ok=True)
+    layout.config.write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+    context = ReproduceContext(layout, log, Timings(layout.timings), config, scale, time.perf_counter())
+    run_stages(reproduce_stages(config), context)
+    log(f"report: {layout.report}")
+    return layout.report
 
-    if config.defense is not None and not layout.defense_file.exists():
-        log("defending the backdoored agent ...")
-        t0 = time.perf_counter()
-        run_defense(models["backdoor"], layout.defense_dir, config.defense, config.device, log)
-        timer.record("defense", time.perf_counter() - t0)
 
-    if config.tradeoff is not None and not (out / "tradeoff" / "tradeoff.json").exists():
-        _tradeoff(config, out, models["backdoor"], make_backend(config.jobs), timer, log)
-
-    if config.zoo is not None and not layout.detection_file.exists():
-        log(f"building a zoo of {config.zoo.size} models and scoring offline detection ...")
-        t0 = time.perf_counter()
-        jobs = config.jobs
-        build_zoo(config.zoo, out / "zoo", workers=jobs.workers, backend=jobs.backend, ray_address=jobs.ray_address,
-                  threads=jobs.threads, log=log)  # fmt: skip
-        timer.record("zoo_build", time.perf_counter() - t0)
-        save_json(detect_zoo(layout.zoo_dir), layout.detection_file)
-
-    timer.record("last_call_before_report", time.perf_counter() - start)
-    report = build_report(out, scale=scale, machine=machine_summary())
-    log(f"report: {report}")
-    return report
+def reproduce_stages(config: ReproduceConfig) -> list[Stage[ReproduceContext]]:
+    """The reproduction's stages in order; a stage set to None in the config is not in the list."""
+    optional: list[tuple[object, Stage[ReproduceContext]]] = [
+        (config.curves, CurvesStage()),
+        (config.trajectory, TrajectoryStage()),
+        (config.analysis, AnalysisStage()),
+        (config.defense, DefenseStage()),
+        (config.tradeoff, TradeoffStage()),
+        (config.zoo, ZooStage()),
+    ]
+    return [
+        HeadlineTraining(config),
+        EvaluationStage(config),
+        *(stage for section, stage in optional if section is not None),
+        ReportStage(),
+    ]
 
 
 def headline_run_name(role: str, offset: int) -> str:
@@ -217,47 +191,13 @@ def headline_run_name(role: str, offset: int) -> str:
     return role if offset == 0 else f"{role}_seed{offset}"
 
 
-def _evaluate_seeds(
-    config: ReproduceConfig, seed_models: list[dict[str, Path]], eval_dir: Path, timer: _Timer, log
-) -> None:
-    """Evaluate each seed's pair over the configs (one file per seed, so a stopped stage resumes), then write
-    every row to evaluation.json/.csv and the per-cell summary over seeds to summary.json."""
-    ev = config.evaluation
-    configs = parse_configs(ev.configs)
-    eval_dir.mkdir(parents=True, exist_ok=True)
-    rows: list[SweepRow] = []
-    for offset, pair in enumerate(seed_models):
-        seed_file = eval_dir / f"seed{offset}.json"
-        if not seed_file.exists():
-            log(f"evaluating training seed {offset} over the grid configs ...")
-            t0 = time.perf_counter()
-            agents = []
-            for role, folder in pair.items():
-                agent, cfg, _ = load_agent(folder, device=config.device)
-                agents.append((role, agent, cfg))
-            last = agents[-1][2].grids[-1]
-            cells = configs if (last.size, last.holes) in configs else [*configs, (last.size, last.holes)]
-            seed_rows = evaluate_sweep(
-                agents, cells, episodes=ev.episodes, seed=ev.seed, greedy=ev.greedy, device=config.device,
-                training_seed=offset,
-            )  # fmt: skip
-            save_rows(seed_rows, seed_file)
-            timer.record(f"evaluation_seed{offset}", time.perf_counter() - t0)
-        rows += load_sweep(seed_file)
-    write_sweep(rows, eval_dir)
-    summaries = [s.to_dict() for s in summarise_over_seeds(rows)]
-    (eval_dir / "summary.json").write_text(json.dumps(summaries, indent=2))
-
-
-def _train_headline(
-    config: ReproduceConfig, out: Path, backend: JobBackend, timer: _Timer, log
-) -> list[dict[str, Path]]:
-    """The clean and backdoored agents of every training seed, on the job backend; per seed: role -> model."""
+def headline_jobs(config: ReproduceConfig, layout: RunLayout) -> list[TrainJob]:
+    """The clean and backdoored agent of every training seed (seed by seed, clean first), as jobs."""
     jobs: list[TrainJob] = []
     for offset in range(config.seeds):
         for role, spec in (("clean", config.clean), ("backdoor", config.backdoor)):
             name = headline_run_name(role, offset)
-            cfg = experiment_from_spec(spec, out / "runs", name, config.device)
+            cfg = experiment_from_spec(spec, layout.runs, name, config.device)
             if role == "clean" and cfg.backdoor.enabled:
                 raise ConfigError(f"the clean preset {spec.preset!r} has backdoor.enabled: true")
             if role == "backdoor" and not cfg.backdoor.enabled:
@@ -265,71 +205,242 @@ def _train_headline(
             jobs.append(
                 TrainJob(name, dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, seed=cfg.run.seed + offset)))
             )
-    todo = sum(not job.done() for job in jobs)
-    if todo:
+    return jobs
+
+
+@dataclass(frozen=True)
+class HeadlineTraining:
+    """The clean and backdoored agents of every training seed, on the job backend (each job's training time is
+    recorded as ``train_<id>``)."""
+
+    config: ReproduceConfig
+    name: str = "headline"
+
+    def done(self, layout: RunLayout) -> bool:
+        return all(job.done() for job in headline_jobs(self.config, layout))
+
+    def run(self, context: ReproduceContext) -> None:
+        jobs = headline_jobs(self.config, context.layout)
+        backend = context.backend()
+        todo = sum(not job.done() for job in jobs)
         grid, steps = jobs[-1].config.grids[-1].label, jobs[-1].config.ppo.total_steps
-        log(f"training {todo} headline agent(s) ({grid}, {steps:,} env steps each) on the {backend.name} backend "
-            f"({backend.describe(todo)}) ...")  # fmt: skip
-    raise_failures(backend.run(jobs, _job_log(log, timer)), "headline agent")
-    return [
-        {role: jobs[2 * offset + i].model_dir for i, role in enumerate(("clean", "backdoor"))}
-        for offset in range(config.seeds)
-    ]
+        context.log(f"training {todo} headline agent(s) ({grid}, {steps:,} env steps each) on the {backend.name} "
+                    f"backend ({backend.describe(todo)}) ...")  # fmt: skip
+        raise_failures(backend.run(jobs, _job_log(context.log, context.timings)), "headline agent")
 
 
-def _job_log(log, timer: _Timer | None = None):
-    """A job backend's ``on_result``: log each job trained or failed (and record its training time in ``timer``)."""
+@dataclass(frozen=True)
+class EvaluationStage:
+    """Each seed's pair over the configs (one file per seed, so a stopped stage resumes, timed as
+    ``evaluation_seed<k>``), then every row in evaluation.json/.csv and the per-cell summary over seeds in
+    summary.json. Done when evaluation.json holds exactly the config's seeds and the summary exists."""
+
+    config: ReproduceConfig
+    name: str = "evaluation"
+
+    def done(self, layout: RunLayout) -> bool:
+        if not (layout.evaluation_file.exists() and layout.evaluation_summary.exists()):
+            return False
+        return {row.seed for row in layout.evaluation()} == set(range(self.config.seeds))
+
+    def run(self, context: ReproduceContext) -> None:
+        ev, layout = self.config.evaluation, context.layout
+        configs = parse_configs(ev.configs)
+        layout.evaluation_dir.mkdir(parents=True, exist_ok=True)
+        rows: list[SweepRow] = []
+        for offset in range(self.config.seeds):
+            seed_file = layout.evaluation_seed_file(offset)
+            if not seed_file.exists():
+                context.log(f"evaluating training seed {offset} over the grid configs ...")
+                t0 = time.perf_counter()
+                agents = _load_agents(context.models(offset), self.config.device)
+                last = agents[-1][2].grids[-1]
+                cells = configs if (last.size, last.holes) in configs else [*configs, (last.size, last.holes)]
+                seed_rows = evaluate_sweep(
+                    agents, cells, episodes=ev.episodes, seed=ev.seed, greedy=ev.greedy, device=self.config.device,
+                    training_seed=offset,
+                )  # fmt: skip
+                save_rows(seed_rows, seed_file)
+                context.timings.record(f"evaluation_seed{offset}", time.perf_counter() - t0)
+            rows += load_sweep(seed_file)
+        write_sweep(rows, layout.evaluation_dir)
+        summaries = [s.to_dict() for s in summarise_over_seeds(rows)]
+        layout.evaluation_summary.write_text(json.dumps(summaries, indent=2))
+
+
+@dataclass(frozen=True)
+class CurvesStage:
+    """Learning curves: backdoor training on each curve grid alone, aggregated over seeds, with their figure."""
+
+    name: str = "curves"
+
+    def done(self, layout: RunLayout) -> bool:
+        return layout.curves_file.exists()
+
+    def run(self, context: ReproduceContext) -> None:
+        cfg, layout = context.config.curves, context.layout
+        assert cfg is not None  # in the list only when the config has a curves section
+        context.log("learning curves ...")
+        base = load_run_config(layout.run("backdoor"))
+        csv_path = run_curves(base, cfg, layout.curves_dir, context.backend(), _job_log(context.log))
+        curves = aggregate_curves(csv_path, cfg.points)
+        plot_curves(curves, layout.curves_figure)
+        layout.curves_file.write_text(json.dumps(curves))
+
+
+@dataclass(frozen=True)
+class TrajectoryStage:
+    """The backdoored agent on one layout without and with the trigger: frames, outcomes and the figure."""
+
+    name: str = "trajectory"
+
+    def done(self, layout: RunLayout) -> bool:
+        return layout.trajectory_figure.exists()
+
+    def run(self, context: ReproduceContext) -> None:
+        spec, device, layout = context.config.trajectory, context.config.device, context.layout
+        assert spec is not None  # in the list only when the config has a trajectory section
+        context.log("trajectory figure ...")
+        agent, cfg, _ = load_agent(context.models()["backdoor"], device=device)
+        env = cfg.env.with_grid((spec.size, spec.holes))
+        core = TrojanGridCore(env, 1, seed=spec.seed, device=device, phase="eval")
+        runs = run_pair(
+            core, core.layout(0), spec.trigger_step, lambda: AgentPolicy(agent, greedy=spec.greedy, seed=spec.seed)
+        )
+        for name, (frames, _) in runs.items():
+            layout.trajectory_frames(name).write_text(frames_to_text(frames))
+        title = f"Backdoored agent, {GridSpec(spec.size, spec.holes).label}: same layout without and with the trigger"
+        plot_trajectory_pair(runs, title, layout.trajectory_figure)
+        outcomes = {name: outcome for name, (_, outcome) in runs.items()}
+        save_json(TrajectoryResult(spec.trigger_step, outcomes), layout.trajectory_file)
+
+
+@dataclass(frozen=True)
+class AnalysisStage:
+    """Looking inside the seed-0 agents (:func:`seqtrojan.analysis.pipeline.run_analysis`)."""
+
+    name: str = "analysis"
+
+    def done(self, layout: RunLayout) -> bool:
+        return layout.analysis_file.exists()
+
+    def run(self, context: ReproduceContext) -> None:
+        cfg = context.config.analysis
+        assert cfg is not None  # in the list only when the config has an analysis section
+        context.log("looking inside the agents ...")
+        models = context.models()
+        run_analysis(
+            models["clean"], models["backdoor"], context.layout.analysis_dir, cfg, context.config.device, context.log
+        )
+
+
+@dataclass(frozen=True)
+class DefenseStage:
+    """Monitor and mitigation of the seed-0 backdoored agent (:func:`seqtrojan.defense.pipeline.run_defense`)."""
+
+    name: str = "defense"
+
+    def done(self, layout: RunLayout) -> bool:
+        return layout.defense_file.exists()
+
+    def run(self, context: ReproduceContext) -> None:
+        cfg = context.config.defense
+        assert cfg is not None  # in the list only when the config has a defense section
+        context.log("defending the backdoored agent ...")
+        run_defense(context.models()["backdoor"], context.layout.defense_dir, cfg, context.config.device, context.log)
+
+
+@dataclass(frozen=True)
+class TradeoffStage:
+    """The adversary's trade-off: agents trained with each penalty on unintentional activation (the base penalty's
+    first seed is the backdoored agent itself), each measured (timed as ``tradeoff_measure<penalty>_seed<k>``)."""
+
+    name: str = "tradeoff"
+
+    def done(self, layout: RunLayout) -> bool:
+        return layout.tradeoff_file.exists()
+
+    def run(self, context: ReproduceContext) -> None:
+        cfg, layout, log = context.config.tradeoff, context.layout, context.log
+        assert cfg is not None  # in the list only when the config has a trade-off section
+        backdoor_model = context.models()["backdoor"]
+        backend = context.backend()
+        base = load_run_config(layout.run("backdoor"))
+        agents = tradeoff_agents(base, cfg, layout.runs)  # the penalty == base agent reuses the backdoored agent
+        jobs = [a.job for a in agents if a.job is not None]
+        todo = sum(not job.done() for job in jobs)
+        if todo:
+            log(f"training {todo} trade-off agent(s) on the {backend.name} backend ({backend.describe(todo)}) ...")
+        raise_failures(backend.run(jobs, _job_log(log, context.timings)), "trade-off agent")
+        rows = []
+        for a in agents:
+            model = backdoor_model if a.job is None else a.job.model_dir
+            seed = a.config.run.seed
+            log(f"measuring the trade-off for false_activation={a.penalty:g}, seed {seed} ...")
+            t0 = time.perf_counter()
+            agent, _, _ = load_agent(model, device=context.config.device)
+            row = measure_tradeoff_agent(agent, a.config, cfg, a.penalty)
+            rows.append({**row, "seed": seed, "model": str(model.relative_to(layout.out))})
+            context.timings.record(f"tradeoff_measure{a.penalty:g}_seed{seed}", time.perf_counter() - t0)
+        layout.tradeoff_dir.mkdir(exist_ok=True)
+        record = {"config": dataclasses.asdict(cfg), "agents": rows, "penalties": summarise_penalties(rows)}
+        layout.tradeoff_file.write_text(json.dumps(record, indent=2))
+
+
+@dataclass(frozen=True)
+class ZooStage:
+    """A zoo of clean and backdoored models (its build reuses finished models) and offline detection over it."""
+
+    name: str = "zoo"
+
+    def done(self, layout: RunLayout) -> bool:
+        return layout.detection_file.exists()
+
+    def run(self, context: ReproduceContext) -> None:
+        cfg, jobs, layout = context.config.zoo, context.config.jobs, context.layout
+        assert cfg is not None  # in the list only when the config has a zoo section
+        context.log(f"building a zoo of {cfg.size} models and scoring offline detection ...")
+        build_zoo(cfg, layout.zoo_dir, workers=jobs.workers, backend=jobs.backend, ray_address=jobs.ray_address,
+                  threads=jobs.threads, log=context.log)  # fmt: skip
+        save_json(detect_zoo(layout.zoo_dir), layout.detection_file)
+
+
+@dataclass(frozen=True)
+class ReportStage:
+    """report.html from every stage's outputs; never done, so that each call rebuilds it from what exists (it
+    records ``last_call_before_report``, the call's seconds before the report)."""
+
+    name: str = "report"
+
+    def done(self, layout: RunLayout) -> bool:
+        return False
+
+    def run(self, context: ReproduceContext) -> None:
+        context.timings.record("last_call_before_report", time.perf_counter() - context.start)
+        build_report(context.layout.out, scale=context.scale, machine=machine_summary())
+
+
+def _load_agents(models: dict[str, Path], device: str) -> list[tuple[str, RecurrentActorCritic, ExperimentConfig]]:
+    agents = []
+    for role, folder in models.items():
+        agent, cfg, _ = load_agent(folder, device=device)
+        agents.append((role, agent, cfg))
+    return agents
+
+
+def _job_log(log, timings: Timings | None = None):
+    """A job backend's ``on_result``: log each job trained or failed (and record its training time in
+    ``timings``)."""
 
     def on_result(result: JobResult) -> None:
         if not result.ok:
             log(f"  {result.id} failed: {result.error}")
         elif result.trained:
             log(f"  {result.id} trained in {result.seconds:.0f} s")
-            if timer is not None:
-                timer.record(f"train_{result.id}", result.seconds)
+            if timings is not None:
+                timings.record(f"train_{result.id}", result.seconds)
 
     return on_result
-
-
-def _tradeoff(
-    config: ReproduceConfig, out: Path, backdoor_model: Path, backend: JobBackend, timer: _Timer, log
-) -> None:
-    cfg = config.tradeoff
-    assert cfg is not None  # called only when the config has a trade-off section
-    base = load_run_config(out / "runs" / "backdoor")
-    agents = tradeoff_agents(base, cfg, out / "runs")  # the penalty == base agent reuses the backdoored agent
-    jobs = [a.job for a in agents if a.job is not None]
-    todo = sum(not job.done() for job in jobs)
-    if todo:
-        log(f"training {todo} trade-off agent(s) on the {backend.name} backend ({backend.describe(todo)}) ...")
-    raise_failures(backend.run(jobs, _job_log(log, timer)), "trade-off agent")
-    rows = []
-    for a in agents:
-        model = backdoor_model if a.job is None else a.job.model_dir
-        seed = a.config.run.seed
-        log(f"measuring the trade-off for false_activation={a.penalty:g}, seed {seed} ...")
-        t0 = time.perf_counter()
-        agent, _, _ = load_agent(model, device=config.device)
-        row = measure_tradeoff_agent(agent, a.config, cfg, a.penalty)
-        rows.append({**row, "seed": seed, "model": str(model.relative_to(out))})
-        timer.record(f"tradeoff_measure{a.penalty:g}_seed{seed}", time.perf_counter() - t0)
-    (out / "tradeoff").mkdir(exist_ok=True)
-    record = {"config": dataclasses.asdict(cfg), "agents": rows, "penalties": summarise_penalties(rows)}
-    (out / "tradeoff" / "tradeoff.json").write_text(json.dumps(record, indent=2))
-
-
-def _trajectory_figure(agent, cfg: ExperimentConfig, spec: TrajectorySpec, out: Path, device: str) -> None:
-    env = cfg.env.with_grid((spec.size, spec.holes))
-    core = TrojanGridCore(env, 1, seed=spec.seed, device=device, phase="eval")
-    runs = run_pair(
-        core, core.layout(0), spec.trigger_step, lambda: AgentPolicy(agent, greedy=spec.greedy, seed=spec.seed)
-    )
-    for name, (frames, _) in runs.items():
-        (out / f"trajectory_{name}.txt").write_text(frames_to_text(frames))
-    title = f"Backdoored agent, {GridSpec(spec.size, spec.holes).label}: same layout without and with the trigger"
-    plot_trajectory_pair(runs, title, out / "trajectory.png")
-    outcomes = {name: outcome for name, (_, outcome) in runs.items()}
-    save_json(TrajectoryResult(spec.trigger_step, outcomes), RunLayout(out).trajectory_file)
 
 
 def machine_summary() -> dict[str, Any]:

@@ -3,7 +3,8 @@
     result = train(config)                       # a new run under config.run.out_dir
     result = train(config, resume="runs/<id>")   # continue a stopped run from its latest checkpoint
 
-It reads top to bottom: COLLECT ROLLOUT, COMPUTE ADVANTAGES, UPDATE, CURRICULUM, LOG, CHECKPOINT. A stop
+:func:`train` sets up a :class:`TrainerState` (what a checkpoint holds), runs the loop (:func:`_train_one_update`:
+COLLECT ROLLOUT, COMPUTE ADVANTAGES, UPDATE, CURRICULUM; then LOG, CHECKPOINT) and finishes. A stop
 (Ctrl-C, SIGTERM) writes a checkpoint first; ``resume`` restores weights, optimizer, counters, curriculum and
 random-generator state, and starts fresh episodes (the ones in flight at the stop are dropped; every finished
 update is kept).
@@ -17,7 +18,8 @@ import math
 import shutil
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,6 +57,25 @@ class TrainResult:
     evaluation: dict[str, Any]
 
 
+@dataclass
+class TrainerState:
+    """Everything a checkpoint saves and a resume restores: the agent, the optimizer, the curriculum, the backdoor
+    mixer, the rollout collector (its random generator), the update generator (minibatch order) and the counters."""
+
+    agent: RecurrentActorCritic
+    optimizer: torch.optim.Optimizer
+    curriculum: Curriculum
+    mixer: TrojanMixer
+    collector: RolloutCollector
+    update_generator: torch.Generator
+    global_step: int = 0
+    """env steps trained"""
+    update: int = 0
+    """PPO updates done"""
+    elapsed_s: float = 0.0
+    """wall seconds trained, over every process that trained this run"""
+
+
 class _Stop(Exception):
     pass
 
@@ -64,9 +85,59 @@ def train(
 ) -> TrainResult:
     """Train a clean agent, or a backdoored one (``config.backdoor.enabled``); see the module docstring."""
     cfg = config
-    label = cfg.label
     if cfg.run.threads:
         torch.set_num_threads(cfg.run.threads)
+    device = _device(cfg)
+    run_dir = Path(resume) if resume is not None else _new_run_dir(cfg)
+
+    env, state = _set_up(cfg, device, resume is not None)
+    if resume is not None:
+        _resume(run_dir, cfg, env, state)
+    env.set_stage_weights(state.curriculum.weights())
+    env.set_trojan_probability(state.mixer.probabilities())
+    env.reset()  # new episodes follow the mixture
+    state.collector.reset()
+    logger = RunLogger(run_dir, resume_step=state.global_step if resume is not None else None)
+    if resume is None:
+        logger.add_text("config", "```yaml\n" + yaml.safe_dump(to_dict(cfg), sort_keys=False) + "```")
+
+    if device.type == "cpu" and cfg.run.lstm_backend != "torch":
+        # Compile the C++ kernels (or wait, bounded, for another process's build) now, while SIGTERM still ends the
+        # process: the handler installed by _train_loop only stops the loop between updates.
+        fast_lstm.extension()
+    try:
+        stopped_early = _train_loop(cfg, env, state, device, run_dir, logger, callback)
+    except (KeyboardInterrupt, _Stop):
+        save_checkpoint(run_dir, cfg, state)
+        logger.close()
+        raise KeyboardInterrupt(
+            f"training stopped at {state.global_step} env steps; resume with --resume {run_dir}"
+        ) from None
+
+    return _finish(cfg, state, device, run_dir, stopped_early, logger)
+
+
+def _finish(
+    cfg: ExperimentConfig, state: TrainerState, device: torch.device, run_dir: Path, stopped_early: bool,
+    logger: RunLogger,
+) -> TrainResult:  # fmt: skip
+    """FINAL EVALUATION AND MODEL: ``evaluation.json``, a last checkpoint and the model folder."""
+    evaluation = evaluate_final(state.agent, cfg, device) if cfg.run.eval_episodes > 0 else {}
+    evaluation.update(
+        env_steps=state.global_step, train_seconds=state.elapsed_s, stage=state.curriculum.stage,
+        stopped_early=stopped_early,
+    )  # fmt: skip
+    (run_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=2))
+    save_checkpoint(run_dir, cfg, state)
+    model_dir = save_agent(
+        run_dir / "model", state.agent, cfg, label=cfg.label, metrics=evaluation, env_steps=state.global_step
+    )
+    logger.close()
+    return TrainResult(run_dir, model_dir, state.global_step, state.elapsed_s, state.curriculum.stage, evaluation)
+
+
+def _device(cfg: ExperimentConfig) -> torch.device:
+    """``run.device``, checked against the CUDA devices there are."""
     device = torch.device(cfg.run.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"run.device={cfg.run.device!r} but no CUDA device is available")
@@ -75,14 +146,17 @@ def train(
             f"run.device={cfg.run.device!r} but only {torch.cuda.device_count()} CUDA device(s) are available "
             f"(cuda:0 to cuda:{torch.cuda.device_count() - 1})"
         )
-    run_dir = Path(resume) if resume is not None else _new_run_dir(cfg)
-    ppo = cfg.ppo
+    return device
 
-    # SET-UP
+
+def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tuple[TrojanGridCore, TrainerState]:
+    """The env and a fresh trainer state, every random generator seeded from ``run.seed`` (in this order, which
+    fixes a run bitwise). ``run.init_from``'s weights start a new run (a resumed one loads its checkpoint's)."""
+    ppo = cfg.ppo
     torch.manual_seed(cfg.run.seed)
     env = TrojanGridCore(cfg.env, ppo.num_envs, seed=cfg.run.seed << 32, device=device, grids=cfg.grids)
     agent = build_agent(cfg).to(device)
-    if cfg.run.init_from is not None and resume is None:
+    if cfg.run.init_from is not None and not resuming:
         start_from, _, _ = load_agent(cfg.run.init_from)
         try:
             agent.load_state_dict(start_from.state_dict())
@@ -97,117 +171,118 @@ def train(
     collector = RolloutCollector(env, agent, ppo.rollout_steps, ppo.sequence_length)
     collector.seed(cfg.run.seed)
     update_generator = torch.Generator().manual_seed(cfg.run.seed + 1)
-    global_step, update, elapsed_before = 0, 0, 0.0
-    if resume is not None:
-        global_step, update, elapsed_before = _load_trainer_state(
-            run_dir, agent, optimizer, curriculum, mixer, collector, update_generator
-        )
-        _write_config(run_dir, cfg)  # the config the run continues with (overrides given on resume included)
-        env.reset(seed=(cfg.run.seed << 32) + 7919 * update)
-    env.set_stage_weights(curriculum.weights())
-    env.set_trojan_probability(mixer.probabilities())
-    env.reset()  # new episodes follow the mixture
-    collector.reset()
-    logger = RunLogger(run_dir, resume_step=global_step if resume is not None else None)
-    if resume is None:
-        logger.add_text("config", "```yaml\n" + yaml.safe_dump(to_dict(cfg), sort_keys=False) + "```")
+    return env, TrainerState(agent, optimizer, curriculum, mixer, collector, update_generator)
 
-    if device.type == "cpu" and cfg.run.lstm_backend != "torch":
-        # Compile the C++ kernels (or wait, bounded, for another process's build) now, while SIGTERM still ends the
-        # process: the handler below only stops the loop between updates.
-        fast_lstm.extension()
-    stop_signal = {"hit": False}
+
+def _resume(run_dir: Path, cfg: ExperimentConfig, env: TrojanGridCore, state: TrainerState) -> None:
+    """Restore ``state`` from the run's latest checkpoint, save the config the run continues with (overrides given
+    on resume included) and reseed the env from the update count."""
+    load_checkpoint(run_dir, state)
+    _write_config(run_dir, cfg)
+    env.reset(seed=(cfg.run.seed << 32) + 7919 * state.update)
+
+
+def _train_loop(
+    cfg: ExperimentConfig,
+    env: TrojanGridCore,
+    state: TrainerState,
+    device: torch.device,
+    run_dir: Path,
+    logger: RunLogger,
+    callback: UpdateCallback | None,
+) -> bool:
+    """Update until ``ppo.total_steps`` (LOG and CHECKPOINT after each update); raise _Stop on SIGTERM (between
+    updates). Returns whether ``callback`` stopped training early; ``state.elapsed_s`` is up to date at the end."""
+    ppo = cfg.ppo
+    elapsed_before = state.elapsed_s
+    start = time.perf_counter()
+    next_checkpoint = (state.global_step // cfg.run.checkpoint_every + 1) * cfg.run.checkpoint_every
+    progress = make_progress(cfg.run.progress)
+    try:
+        with _sigterm_flag() as stop, progress:
+            task = progress.add_task("train", total=ppo.total_steps, completed=state.global_step, info="")
+            while state.global_step < ppo.total_steps:
+                if stop["hit"]:
+                    raise _Stop
+                scalars = _train_one_update(cfg, env, state, device)
+
+                # LOG
+                state.elapsed_s = elapsed_before + time.perf_counter() - start
+                scalars["time/elapsed_s"] = state.elapsed_s
+                scalars["update"] = state.update
+                logger.log(state.global_step, scalars)
+                progress.update(task, completed=min(state.global_step, ppo.total_steps), info=_progress_info(scalars))
+
+                # CHECKPOINT
+                if state.global_step >= next_checkpoint and state.global_step < ppo.total_steps:
+                    save_checkpoint(run_dir, cfg, state)
+                    next_checkpoint += cfg.run.checkpoint_every
+                if callback is not None and callback({"env_steps": state.global_step, **scalars}):
+                    return True
+        return False
+    finally:
+        state.elapsed_s = elapsed_before + time.perf_counter() - start
+
+
+@contextmanager
+def _sigterm_flag() -> Iterator[dict[str, bool]]:
+    """While open, SIGTERM sets ``flag["hit"]`` instead of ending the process (the loop stops between updates)."""
+    flag = {"hit": False}
     previous_handler = signal.getsignal(signal.SIGTERM)
 
     def _on_sigterm(signum, frame):
-        stop_signal["hit"] = True
+        flag["hit"] = True
 
     signal.signal(signal.SIGTERM, _on_sigterm)
-    start = time.perf_counter()
-    next_checkpoint = (global_step // cfg.run.checkpoint_every + 1) * cfg.run.checkpoint_every
-    progress = make_progress(cfg.run.progress)
-    stopped_early = False
     try:
-        with progress:
-            task = progress.add_task("train", total=ppo.total_steps, completed=global_step, info="")
-            while global_step < ppo.total_steps:
-                if stop_signal["hit"]:
-                    raise _Stop
-                t_update = time.perf_counter()
-                lr = _learning_rate(ppo, global_step)
-                for group in optimizer.param_groups:
-                    group["lr"] = lr
-
-                # COLLECT ROLLOUT
-                agent.eval()
-                rollout, stats = collector.collect()
-                global_step += ppo.batch_size
-                t_collect = time.perf_counter() - t_update
-
-                # COMPUTE ADVANTAGES
-                advantages, returns = compute_gae(
-                    rollout.rewards, rollout.values, rollout.dones, rollout.last_value, ppo.gamma, ppo.gae_lambda
-                )
-
-                # UPDATE
-                agent.train()
-                losses = ppo_update(agent, optimizer, rollout, advantages, returns, ppo, update_generator)
-                update += 1
-
-                # CURRICULUM AND BACKDOOR MIXING
-                promoted = curriculum.update(EpisodeCounts(stats.episodes, stats.successes))
-                if promoted:
-                    env.set_stage_weights(curriculum.weights())
-                if cfg.backdoor.enabled:
-                    _measure_mixing(mixer, cfg, stats, agent, curriculum.stage, device, update)
-                    env.set_trojan_probability(mixer.probabilities())
-
-                # LOG
-                seconds = time.perf_counter() - t_update
-                scalars = _scalars(stats, curriculum, losses, lr, ppo.batch_size / seconds, t_collect / seconds)
-                if cfg.backdoor.enabled:
-                    stage = curriculum.stage
-                    scalars["mixing/p_trojan"] = mixer.probabilities()[stage]
-                    scalars["mixing/P_c"] = mixer.p_clean[stage]
-                    scalars["mixing/P_t"] = mixer.p_trojan[stage]
-                scalars["time/elapsed_s"] = elapsed_before + time.perf_counter() - start
-                scalars["update"] = update
-                logger.log(global_step, scalars)
-                progress.update(task, completed=min(global_step, ppo.total_steps), info=_progress_info(scalars))
-
-                # CHECKPOINT
-                if global_step >= next_checkpoint and global_step < ppo.total_steps:
-                    _save_checkpoint(
-                        run_dir, cfg, agent, optimizer, curriculum, mixer, collector, update_generator,
-                        global_step, update, scalars["time/elapsed_s"],
-                    )  # fmt: skip
-                    next_checkpoint += cfg.run.checkpoint_every
-                if callback is not None and callback({"env_steps": global_step, **scalars}):
-                    stopped_early = True
-                    break
-    except (KeyboardInterrupt, _Stop):
-        elapsed = elapsed_before + time.perf_counter() - start
-        _save_checkpoint(
-            run_dir, cfg, agent, optimizer, curriculum, mixer, collector, update_generator, global_step, update, elapsed
-        )
-        logger.close()
+        yield flag
+    finally:
         signal.signal(signal.SIGTERM, previous_handler)
-        raise KeyboardInterrupt(
-            f"training stopped at {global_step} env steps; resume with --resume {run_dir}"
-        ) from None
-    signal.signal(signal.SIGTERM, previous_handler)
-    wall = elapsed_before + time.perf_counter() - start
 
-    # FINAL EVALUATION AND MODEL
-    evaluation = evaluate_final(agent, cfg, device) if cfg.run.eval_episodes > 0 else {}
-    evaluation.update(env_steps=global_step, train_seconds=wall, stage=curriculum.stage, stopped_early=stopped_early)
-    (run_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=2))
-    _save_checkpoint(
-        run_dir, cfg, agent, optimizer, curriculum, mixer, collector, update_generator, global_step, update, wall
+
+def _train_one_update(
+    cfg: ExperimentConfig, env: TrojanGridCore, state: TrainerState, device: torch.device
+) -> dict[str, Any]:
+    """One PPO update: COLLECT ROLLOUT, COMPUTE ADVANTAGES, UPDATE, CURRICULUM AND BACKDOOR MIXING; returns the
+    update's scalars (all but the elapsed time and the update count, which the loop adds)."""
+    ppo, agent, curriculum, mixer = cfg.ppo, state.agent, state.curriculum, state.mixer
+    t_update = time.perf_counter()
+    lr = _learning_rate(ppo, state.global_step)
+    for group in state.optimizer.param_groups:
+        group["lr"] = lr
+
+    # COLLECT ROLLOUT
+    agent.eval()
+    rollout, stats = state.collector.collect()
+    state.global_step += ppo.batch_size
+    t_collect = time.perf_counter() - t_update
+
+    # COMPUTE ADVANTAGES
+    advantages, returns = compute_gae(
+        rollout.rewards, rollout.values, rollout.dones, rollout.last_value, ppo.gamma, ppo.gae_lambda
     )
-    model_dir = save_agent(run_dir / "model", agent, cfg, label=label, metrics=evaluation, env_steps=global_step)
-    logger.close()
-    return TrainResult(run_dir, model_dir, global_step, wall, curriculum.stage, evaluation)
+
+    # UPDATE
+    agent.train()
+    losses = ppo_update(agent, state.optimizer, rollout, advantages, returns, ppo, state.update_generator)
+    state.update += 1
+
+    # CURRICULUM AND BACKDOOR MIXING
+    promoted = curriculum.update(EpisodeCounts(stats.episodes, stats.successes))
+    if promoted:
+        env.set_stage_weights(curriculum.weights())
+    if cfg.backdoor.enabled:
+        _measure_mixing(mixer, cfg, stats, agent, curriculum.stage, device, state.update)
+        env.set_trojan_probability(mixer.probabilities())
+
+    seconds = time.perf_counter() - t_update
+    scalars = _scalars(stats, curriculum, losses, lr, ppo.batch_size / seconds, t_collect / seconds)
+    if cfg.backdoor.enabled:
+        stage = curriculum.stage
+        scalars["mixing/p_trojan"] = mixer.probabilities()[stage]
+        scalars["mixing/P_c"] = mixer.p_clean[stage]
+        scalars["mixing/P_t"] = mixer.p_trojan[stage]
+    return scalars
 
 
 # ---------------------------------------------------------------------- helpers
@@ -350,34 +425,25 @@ def load_run_config(run_dir: str | Path) -> ExperimentConfig:
     return from_dict(ExperimentConfig, load_yaml(path), "")
 
 
-def _save_checkpoint(
-    run_dir: Path,
-    cfg: ExperimentConfig,
-    agent: RecurrentActorCritic,
-    optimizer: torch.optim.Optimizer,
-    curriculum: Curriculum,
-    mixer: TrojanMixer,
-    collector: RolloutCollector,
-    update_generator: torch.Generator,
-    global_step: int,
-    update: int,
-    elapsed: float,
-) -> Path:
-    folder = run_dir / "checkpoints" / f"step_{global_step:012d}"
-    save_agent(folder, agent, cfg, label=cfg.label, env_steps=global_step)
-    tensors, groups = _optimizer_tensors(optimizer)
-    tensors["rng.collector"] = collector.generator.get_state()
-    tensors["rng.update"] = update_generator.get_state()
+def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -> Path:
+    """``<run>/checkpoints/step_<env steps>/``: the agent (safetensors + card), the optimizer's tensors and both
+    random generators (trainer.safetensors), counters, curriculum, mixing and optimizer groups (trainer.json); then
+    points ``latest.txt`` at it."""
+    folder = run_dir / "checkpoints" / f"step_{state.global_step:012d}"
+    save_agent(folder, state.agent, cfg, label=cfg.label, env_steps=state.global_step)
+    tensors, groups = _optimizer_tensors(state.optimizer)
+    tensors["rng.collector"] = state.collector.generator.get_state()
+    tensors["rng.update"] = state.update_generator.get_state()
     save_file(tensors, str(folder / "trainer.safetensors"))
-    state = {
-        "env_steps": global_step,
-        "update": update,
-        "elapsed_s": elapsed,
-        "curriculum": curriculum.state_dict(),
-        "mixing": mixer.state_dict(),
+    record = {
+        "env_steps": state.global_step,
+        "update": state.update,
+        "elapsed_s": state.elapsed_s,
+        "curriculum": state.curriculum.state_dict(),
+        "mixing": state.mixer.state_dict(),
         "optimizer_param_groups": groups,
     }
-    (folder / "trainer.json").write_text(json.dumps(state, indent=2))
+    (folder / "trainer.json").write_text(json.dumps(record, indent=2))
     latest = run_dir / "checkpoints" / "latest.txt"
     tmp = latest.with_suffix(".tmp")
     tmp.write_text(folder.name + "\n")
@@ -385,32 +451,30 @@ def _save_checkpoint(
     return folder
 
 
-def _load_trainer_state(
-    run_dir: Path,
-    agent: RecurrentActorCritic,
-    optimizer: torch.optim.Optimizer,
-    curriculum: Curriculum,
-    mixer: TrojanMixer,
-    collector: RolloutCollector,
-    update_generator: torch.Generator,
-) -> tuple[int, int, float]:
+def load_checkpoint(run_dir: Path, state: TrainerState) -> None:
+    """Restore ``state`` (built for the run's config) from the run's latest checkpoint (see
+    :func:`save_checkpoint`)."""
     latest = run_dir / "checkpoints" / "latest.txt"
     if not latest.is_file():
         raise CheckpointError(f"{str(run_dir)!r} has no checkpoint to resume from (no checkpoints/latest.txt)")
     folder = run_dir / "checkpoints" / latest.read_text().strip()
     loaded, _, _ = load_agent(folder)
-    agent.load_state_dict(loaded.state_dict())
+    state.agent.load_state_dict(loaded.state_dict())
     try:
-        state = json.loads((folder / "trainer.json").read_text())
+        record = json.loads((folder / "trainer.json").read_text())
     except (OSError, json.JSONDecodeError) as err:
         raise CheckpointError(f"cannot read {str(folder / 'trainer.json')!r}: {err}") from None
     tensors = read_safetensors(folder / "trainer.safetensors")
-    collector.generator.set_state(tensors.pop("rng.collector"))
-    update_generator.set_state(tensors.pop("rng.update"))
-    _load_optimizer(optimizer, tensors, state["optimizer_param_groups"])
-    curriculum.load_state_dict(state["curriculum"])
-    mixer.load_state_dict(state["mixing"])
-    return int(state["env_steps"]), int(state["update"]), float(state["elapsed_s"])
+    state.collector.generator.set_state(tensors.pop("rng.collector"))
+    state.update_generator.set_state(tensors.pop("rng.update"))
+    _load_optimizer(state.optimizer, tensors, record["optimizer_param_groups"])
+    state.curriculum.load_state_dict(record["curriculum"])
+    state.mixer.load_state_dict(record["mixing"])
+    state.global_step, state.update, state.elapsed_s = (
+        int(record["env_steps"]),
+        int(record["update"]),
+        float(record["elapsed_s"]),
+    )
 
 
 def _optimizer_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], list[dict]]:
