@@ -20,7 +20,11 @@ import statistics
 import tempfile
 from pathlib import Path
 
+# isort: off
+import seqtrojan  # noqa: F401  (first: it sets the OpenMP wait policy before torch loads its runtime)
 import torch
+
+# isort: on
 from rich.console import Console
 from rich.table import Table
 

@@ -25,7 +25,6 @@ float32 use inline approximations with about 3e-7 maximum error, the size of flo
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import importlib.util
 import os
@@ -42,6 +41,11 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from seqtrojan.errors import ConfigError, SeqTrojanError
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: no build lock, and the PyTorch path is used
+    fcntl = None  # type: ignore[assignment]
 
 _SOURCE = Path(__file__).parent / "csrc" / "fast_lstm.cpp"
 _NAME = "seqtrojan_fast_lstm"
@@ -118,6 +122,8 @@ def build_lock(path: Path, timeout: float):
     If another process holds it, say so in one line on stderr and poll for up to ``timeout`` seconds, then raise
     :class:`KernelBuildError`. The wait sleeps in short steps, so signals (SIGTERM, Ctrl-C) act at once. The lock
     cannot go stale: the kernel releases it when its holder exits, however it exits."""
+    if fcntl is None:
+        raise KernelBuildError("no fcntl.flock on this platform to guard the kernel build")
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
