@@ -30,6 +30,12 @@ __all__ = [
 ]
 
 
+MAX_LAYERS = 8
+"""most stacked recurrent layers a config or a model card may name"""
+MAX_WIDTH = 4096
+"""widest recurrent layer a config or a model card may name"""
+
+
 @dataclasses.dataclass(frozen=True)
 class AgentConfig:
     """The recurrent actor-critic: stacked LSTM layers, then a policy head and a value head."""
@@ -44,6 +50,12 @@ class AgentConfig:
     def __post_init__(self) -> None:
         if not self.lstm_sizes or any((not isinstance(w, int)) or w < 1 for w in self.lstm_sizes):
             raise ConfigError(f"agent.lstm_sizes must be positive integers, got {short_repr(self.lstm_sizes)}")
+        if len(self.lstm_sizes) > MAX_LAYERS or max(self.lstm_sizes) > MAX_WIDTH:
+            # the same bounds as a model card's: a run that could not save its model is refused before training
+            raise ConfigError(
+                f"agent.lstm_sizes must be 1 to {MAX_LAYERS} layers of at most {MAX_WIDTH} units, "
+                f"got {short_repr(self.lstm_sizes)}"
+            )
 
 
 @dataclasses.dataclass(frozen=True)

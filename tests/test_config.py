@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from seqtrojan.config import ExperimentConfig, RunConfig
+from seqtrojan.config import AgentConfig, ExperimentConfig, RunConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.serde import from_dict, load_yaml, parse_yaml, to_dict
 from tests.conftest import ROOT
@@ -118,3 +118,10 @@ def test_serde_names_are_still_importable_from_config():
 
     for name in ("from_dict", "to_dict", "load_yaml", "parse_yaml"):
         assert getattr(config, name) is getattr(serde, name)
+
+
+@pytest.mark.parametrize("sizes", [(4097,), (8,) * 9])
+def test_lstm_sizes_beyond_what_a_model_card_accepts_are_refused_before_training(sizes):
+    with pytest.raises(ConfigError, match="1 to 8 layers of at most 4096 units"):
+        AgentConfig(lstm_sizes=sizes)
+    AgentConfig(lstm_sizes=(4096,))  # the largest width still builds a config

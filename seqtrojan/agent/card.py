@@ -32,7 +32,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from seqtrojan.config import ExperimentConfig
+from seqtrojan.config import MAX_LAYERS, MAX_WIDTH, ExperimentConfig
 from seqtrojan.errors import CheckpointError, SeqTrojanError
 from seqtrojan.serde import from_dict
 
@@ -53,8 +53,6 @@ MAX_ITEMS = 4096
 """most entries in any one JSON list or object"""
 MAX_VALUES = 1 << 16
 """most list items and object entries in one card or header, all together (a real card has about a hundred)"""
-MAX_LAYERS = 8
-MAX_WIDTH = 4096
 MAX_OBS_DIM = 1 << 15
 """the largest view the env allows (57x57, 6 cell codes) has 19494 inputs"""
 MAX_ACTIONS = 64
