@@ -1,6 +1,7 @@
 import dataclasses
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import pytest
 import torch
 
@@ -26,3 +27,13 @@ def smoke_config(tmp_path) -> ExperimentConfig:
     """configs/smoke.yaml with its outputs under the test's tmp dir and no progress bar."""
     cfg = from_dict(ExperimentConfig, load_yaml(ROOT / "configs" / "smoke.yaml"), "")
     return dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, out_dir=str(tmp_path / "runs"), progress=False))
+
+
+@pytest.fixture
+def figures(monkeypatch):
+    """Figures the plotting functions close, kept open for inspection."""
+    kept, close = [], plt.close
+    monkeypatch.setattr(plt, "close", kept.append)
+    yield kept
+    for fig in kept:
+        close(fig)

@@ -21,11 +21,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
-import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TypeVar
 
 import numpy as np
 
@@ -62,11 +59,11 @@ from seqtrojan.env.render import render_rgb
 from seqtrojan.evaluation.sweep import parse_configs
 from seqtrojan.serde import load_json, save_json
 from seqtrojan.stats import Rate
+from seqtrojan.timings import Timings
 
 __all__ = ["ANALYSIS_FILE", "AnalysisConfig", "run_analysis"]
 
 ENVS = ("normal", "trojan")
-T = TypeVar("T")
 
 
 Agents = dict[str, tuple[RecurrentActorCritic, ExperimentConfig]]
@@ -92,7 +89,7 @@ def run_analysis(
         name: load_agent(path, device=device)[:2]
         for name, path in (("clean", clean_model), ("backdoor", backdoor_model))
     }
-    timer = _Timer(out / "timings.json")
+    timer = Timings(out / "timings.json")
     traces = record_all_traces(agents, cfg, out, device, timer, log)
     classes, responses = classify_responses(agents, traces, cfg)
     save_json(responses, out / "responses.json")
@@ -124,23 +121,8 @@ def run_analysis(
     return summary
 
 
-class _Timer:
-    """Wall seconds per step, in ``timings.json`` (rewritten after each step) and in analysis.json."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.times: dict[str, float] = json.loads(path.read_text()) if path.exists() else {}
-
-    def timed(self, step: str, fn: Callable[[], T]) -> T:
-        t0 = time.perf_counter()
-        value = fn()
-        self.times[step] = time.perf_counter() - t0
-        self.path.write_text(json.dumps(self.times, indent=2))
-        return value
-
-
 def record_all_traces(
-    agents: Agents, cfg: AnalysisConfig, out: Path, device: str, timer: _Timer, log: Callable[[str], None]
+    agents: Agents, cfg: AnalysisConfig, out: Path, device: str, timer: Timings, log: Callable[[str], None]
 ) -> Traces:
     """1. h and c of every layer at every step, each agent in each env (``traces/<agent>_<env>.safetensors``,
     recorded when missing)."""
@@ -237,7 +219,7 @@ def run_interventions(
     goal: GoalUnits,
     goal_record: GoalUnitsRecord,
     cfg: AnalysisConfig,
-    timer: _Timer,
+    timer: Timings,
 ) -> InterventionsResult:
     """4. Edit the backdoored agent's goal units: goal switches and hole avoidance."""
     agent, bcfg = backdoor
@@ -267,7 +249,7 @@ def run_unintentional(
     goal: GoalUnits,
     cfg: AnalysisConfig,
     out: Path,
-    timer: _Timer,
+    timer: Timings,
 ) -> UnintentionalResult:
     """5. Sweep grid configs for unintentional activations and deactivations (``findings.json``, the first ones
     plotted), check which findings switch the goal units, and score the agent as a trigger detector."""
@@ -296,7 +278,7 @@ def run_unintentional(
 
 def run_searches(
     backdoor: tuple[RecurrentActorCritic, ExperimentConfig], goal: GoalUnits, cfg: AnalysisConfig, out: Path,
-    timer: _Timer,
+    timer: Timings,
 ) -> SearchResult:  # fmt: skip
     """6. Goal-switching layouts, free observation sequences (``sequence_codes.npy``) and walks through grids, one
     search per density weight (``walks_weight<w>.npz``)."""
@@ -309,7 +291,7 @@ def run_searches(
 
 def _sequence_search(
     backdoor: tuple[RecurrentActorCritic, ExperimentConfig], goal: GoalUnits, cfg: AnalysisConfig, out: Path,
-    timer: _Timer,
+    timer: Timings,
 ) -> SequenceSearchResult:  # fmt: skip
     """Free observation sequences that switch the goal units: how often the found ones flip the goal in grids, and
     how many are walkable."""
@@ -326,7 +308,7 @@ def _sequence_search(
 
 def _walk_search(
     backdoor: tuple[RecurrentActorCritic, ExperimentConfig], goal: GoalUnits, cfg: AnalysisConfig, weight: float,
-    out: Path, timer: _Timer,
+    out: Path, timer: Timings,
 ) -> WalkSearchResult:  # fmt: skip
     """Walks through grids that switch the goal units, with density weight ``weight``, and how often the found
     ones flip the goal."""

@@ -41,13 +41,14 @@ from seqtrojan.evaluation.results import save_rows
 from seqtrojan.evaluation.seeds import summarise_over_seeds
 from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, load_sweep, parse_configs, write_sweep
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
-from seqtrojan.experiments.stages import Stage, StageContext, Timings, run_stages
+from seqtrojan.experiments.stages import Stage, StageContext, run_stages
 from seqtrojan.experiments.tradeoff import TradeoffConfig, measure_tradeoff_agent, summarise_penalties, tradeoff_agents
 from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 from seqtrojan.presets import resolve_preset
 from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
 from seqtrojan.report.html import build_report
 from seqtrojan.serde import from_dict, load_yaml, save_json, to_dict
+from seqtrojan.timings import Timings
 from seqtrojan.train.trainer import load_run_config
 from seqtrojan.zoo.build import ZooConfig, build_zoo
 

@@ -12,29 +12,15 @@ stopped pipeline continues where it stopped), every stage that runs has its wall
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Protocol, TypeVar
 
 from seqtrojan.artifacts import RunLayout
+from seqtrojan.timings import Timings
 
 Log = Callable[[str], None]
-
-
-class Timings:
-    """Wall seconds per stage (and per finer step a stage records), kept in a JSON file that every record rewrites,
-    so that a stopped pipeline keeps the timings of what it finished."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.times: dict[str, float] = json.loads(path.read_text()) if path.exists() else {}
-
-    def record(self, key: str, seconds: float) -> None:
-        self.times[key] = seconds
-        self.path.write_text(json.dumps(self.times, indent=2))
 
 
 @dataclass(frozen=True)

@@ -2,22 +2,10 @@
 
 from __future__ import annotations
 
-import matplotlib.pyplot as plt
 import numpy as np
-import pytest
 
 from seqtrojan.analysis.plots import plot_finding, plot_unit_responses
 from seqtrojan.analysis.traces import StateTrace
-
-
-@pytest.fixture
-def figures(monkeypatch):
-    """Figures the plotting functions close, kept open for inspection."""
-    kept, close = [], plt.close
-    monkeypatch.setattr(plt, "close", kept.append)
-    yield kept
-    for fig in kept:
-        close(fig)
 
 
 def _trace(seed: int, episodes: int = 40, steps: int = 12, units: int = 4) -> StateTrace:

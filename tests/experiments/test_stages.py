@@ -8,8 +8,9 @@ from dataclasses import dataclass
 
 from seqtrojan.artifacts import RunLayout
 from seqtrojan.experiments.reproduce import ReproduceConfig, reproduce_stages
-from seqtrojan.experiments.stages import StageContext, Timings, run_stages
+from seqtrojan.experiments.stages import StageContext, run_stages
 from seqtrojan.serde import from_dict
+from seqtrojan.timings import Timings
 
 
 @dataclass(frozen=True)

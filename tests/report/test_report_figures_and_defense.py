@@ -3,7 +3,6 @@ and the note on how unusual the trigger's cell code is."""
 
 from __future__ import annotations
 
-import matplotlib.pyplot as plt
 import pytest
 import torch
 from matplotlib.colors import to_rgb
@@ -24,16 +23,6 @@ from seqtrojan.env.render import COLORS
 from seqtrojan.report.figures import plot_trajectory_pair, run_pair
 from seqtrojan.report.sections.defense import defense_section
 from seqtrojan.stats import Rate
-
-
-@pytest.fixture
-def figures(monkeypatch):
-    """Figures the plotting functions close, kept open for inspection."""
-    kept, close = [], plt.close
-    monkeypatch.setattr(plt, "close", kept.append)
-    yield kept
-    for fig in kept:
-        close(fig)
 
 
 def test_the_trajectory_figure_has_a_colour_legend(tmp_path, figures):
