@@ -165,9 +165,10 @@ class BackdoorConfig:
 
     enabled: bool = False
     """train a backdoored agent (mixing normal and trojan episodes); False trains a clean agent (Env_C only)"""
-    mixing: Literal["exact", "running", "fixed"] = "running"
-    """exact: re-measure P_c and P_t by evaluation after each update (Algorithm 1); running: success rates of the
-    update's own rollout episodes (cheaper); fixed: a constant trojan probability"""
+    mixing: str = "running"
+    """a registered mixing rule (``seqtrojan attacks`` lists them): exact re-measures P_c and P_t by evaluation after
+    each update (Algorithm 1); running uses the success rates of the update's own rollout episodes (cheaper); fixed
+    is a constant trojan probability. The trainer refuses an unknown name before it builds anything"""
     eval_episodes: int = 256
     """exact mixing: episodes per env type evaluated after each update"""
     fixed_probability: float = 0.5
@@ -176,6 +177,8 @@ class BackdoorConfig:
     """clip the trojan probability to this range (Algorithm 1: 0 and 1)"""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.mixing, str) or not self.mixing.isidentifier():
+            raise ConfigError(f"backdoor.mixing must be a rule name, got {short_repr(self.mixing)}")
         lo, hi = self.probability_bounds
         if not 0.0 <= lo <= hi <= 1.0:
             raise ConfigError(f"backdoor.probability_bounds={self.probability_bounds} must satisfy 0 <= lo <= hi <= 1")

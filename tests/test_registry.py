@@ -22,7 +22,7 @@ from seqtrojan.report.markup import rate
 from seqtrojan.report.sections.defense import defense_section
 from seqtrojan.serde import load_json, save_json
 from seqtrojan.stats import Rate
-from seqtrojan.train.mixing import MIXING_RULES, TrojanMixer
+from seqtrojan.train.mixing import MIXING_RULES, MixingRule, TrojanMixer
 
 
 @pytest.fixture
@@ -78,12 +78,14 @@ def test_the_mixer_takes_its_rule_from_the_registry(monkeypatch):
     running.observe(1, 0.2, 0.6)
     assert running.probabilities() == pytest.approx([0.9, 0.1])
     monkeypatch.setattr(MIXING_RULES, "_entries", dict(MIXING_RULES._entries))
-    MIXING_RULES.register("halves", "a made-up rule for the test", lambda c, t, config: 0.5 * c)
-    halves = TrojanMixer(BackdoorConfig(enabled=True, mixing="halves"), 1)  # type: ignore[arg-type]
+    MIXING_RULES.register("halves", "a made-up rule for the test", MixingRule(lambda c, t, config: 0.5 * c))
+    halves = TrojanMixer(BackdoorConfig(enabled=True, mixing="halves"), 1)
     halves.observe(0, 0.8, 0.0)
     assert halves.probabilities() == [0.4]
     with pytest.raises(ConfigError, match=r"unknown mixing 'nope'; known: exact, running, fixed, halves"):
-        TrojanMixer(BackdoorConfig(enabled=True, mixing="nope"), 1)  # type: ignore[arg-type]
+        TrojanMixer(BackdoorConfig(enabled=True, mixing="nope"), 1)
+    with pytest.raises(ConfigError, match="backdoor.mixing must be a rule name"):
+        BackdoorConfig(mixing="not a name")
 
 
 def test_a_registered_mitigation_reaches_the_results_the_json_and_the_report(tmp_path, monkeypatch):

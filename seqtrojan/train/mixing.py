@@ -8,18 +8,29 @@ agent's success rates in the normal and the trojan env, re-measured after each p
 and the env the agent is worse at is sampled more often. ``exact`` measures P_c and P_t by evaluating the agent
 after each update; ``running`` uses the success rates of the update's own rollout episodes (no extra episodes);
 ``fixed`` uses a constant probability. Each rule is registered in :data:`MIXING_RULES` by its ``backdoor.mixing``
-name; a new one is a function ``(P_c, P_t, config) -> P(trojan)`` and one registration line.
+name; a new one is a :class:`MixingRule` (a function ``(P_c, P_t, config) -> P(trojan)`` and whether the trainer
+evaluates the agent after each update to measure P_c and P_t) and one registration line.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from seqtrojan.config import BackdoorConfig
 from seqtrojan.registry import Registry
 
-MixingRule = Callable[[float, float, BackdoorConfig], float]
-"""(P_c, P_t, the backdoor config) -> the probability that a new episode of the stage is a trojan-env episode"""
+
+@dataclass(frozen=True)
+class MixingRule:
+    """How P(trojan) of a stage's new episodes follows from P_c and P_t."""
+
+    probability: Callable[[float, float, BackdoorConfig], float]
+    """(P_c, P_t, the backdoor config) -> the probability that a new episode of the stage is a trojan-env episode"""
+    evaluates: bool = False
+    """measure P_c and P_t by evaluating the agent on the newest stage after each update (``backdoor.eval_episodes``
+    per env type) rather than only from the update's own rollout episodes"""
+
 
 MIXING_RULES: Registry[MixingRule] = Registry("attack", "mixing")
 """The rules ``backdoor.mixing`` names."""
@@ -35,13 +46,15 @@ def _algorithm_1(p_clean: float, p_trojan: float, config: BackdoorConfig) -> flo
     return trojan_probability(p_clean, p_trojan, config.probability_bounds)
 
 
-MIXING_RULES.register("exact", "Algorithm 1, P_c and P_t re-measured by evaluation after each update", _algorithm_1)
-MIXING_RULES.register("running", "Algorithm 1, P_c and P_t from the update's own rollout episodes", _algorithm_1)
-
-
-@MIXING_RULES.register("fixed", "a constant trojan-episode probability (backdoor.fixed_probability)")
 def _fixed(p_clean: float, p_trojan: float, config: BackdoorConfig) -> float:
     return config.fixed_probability
+
+
+MIXING_RULES.register(
+    "exact", "Algorithm 1, P_c and P_t re-measured by evaluation after each update", MixingRule(_algorithm_1, True)
+)
+MIXING_RULES.register("running", "Algorithm 1, P_c and P_t from the update's own rollout episodes", MixingRule(_algorithm_1))
+MIXING_RULES.register("fixed", "a constant trojan-episode probability (backdoor.fixed_probability)", MixingRule(_fixed))
 
 
 class TrojanMixer:
@@ -56,7 +69,7 @@ class TrojanMixer:
     def probabilities(self) -> list[float]:
         if not self.config.enabled:
             return [0.0] * len(self.p_clean)
-        return [self.rule(c, t, self.config) for c, t in zip(self.p_clean, self.p_trojan)]
+        return [self.rule.probability(c, t, self.config) for c, t in zip(self.p_clean, self.p_trojan)]
 
     def observe(self, stage: int, p_clean: float | None, p_trojan: float | None) -> None:
         """Record freshly measured success rates (None leaves the previous value)."""

@@ -39,7 +39,7 @@ from seqtrojan.serde import from_dict, load_yaml, to_dict
 from seqtrojan.train.curriculum import Curriculum, EpisodeCounts
 from seqtrojan.train.gae import compute_gae
 from seqtrojan.train.logger import RunLogger, make_progress
-from seqtrojan.train.mixing import TrojanMixer
+from seqtrojan.train.mixing import MIXING_RULES, TrojanMixer
 from seqtrojan.train.ppo import ppo_update
 from seqtrojan.train.rollout import EpisodeStats, RolloutCollector
 
@@ -88,6 +88,7 @@ def train(
     if cfg.run.threads:
         torch.set_num_threads(cfg.run.threads)
     device = _device(cfg)
+    MIXING_RULES.get(cfg.backdoor.mixing)  # an unknown rule is refused before the run folder exists
     run_dir = Path(resume) if resume is not None else _new_run_dir(cfg)
 
     env, state = _set_up(cfg, device, resume is not None)
@@ -323,7 +324,7 @@ def _measure_mixing(
             for k in (0, 1)
         ]
         mixer.observe(stage, *rates)
-    if cfg.backdoor.mixing == "exact":
+    if mixer.rule.evaluates:
         seed = (cfg.run.seed << 32) + 1_000_003 * (update + 1)
         grid = cfg.grids[newest]
         n = cfg.backdoor.eval_episodes

@@ -255,3 +255,11 @@ def test_a_cuda_index_past_the_available_devices_is_refused_before_anything_is_w
     with pytest.raises(ConfigError, match=r"run\.device='cuda:3' but only 1 CUDA device\(s\) are available"):
         train(cfg)
     assert not Path(cfg.run.out_dir).exists()
+
+
+def test_an_unknown_mixing_rule_is_refused_before_the_run_folder_exists(tmp_path, smoke_config):
+    run = dataclasses.replace(smoke_config.run, out_dir=str(tmp_path), name="refused")
+    cfg = dataclasses.replace(smoke_config, backdoor=BackdoorConfig(enabled=True, mixing="halves"), run=run)
+    with pytest.raises(ConfigError, match=r"unknown mixing 'halves'; known: exact, running, fixed"):
+        train(cfg)
+    assert not (tmp_path / "refused").exists()
