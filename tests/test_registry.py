@@ -84,7 +84,7 @@ def test_the_mixer_takes_its_rule_from_the_registry(monkeypatch):
     assert halves.probabilities() == [0.4]
     with pytest.raises(ConfigError, match=r"unknown mixing 'nope'; known: exact, running, fixed, halves"):
         TrojanMixer(BackdoorConfig(enabled=True, mixing="nope"), 1)
-    with pytest.raises(ConfigError, match="backdoor.mixing must be a rule name"):
+    with pytest.raises(ConfigError, match=r"backdoor\.mixing must be a rule name"):
         BackdoorConfig(mixing="not a name")
 
 

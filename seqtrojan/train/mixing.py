@@ -53,7 +53,9 @@ def _fixed(p_clean: float, p_trojan: float, config: BackdoorConfig) -> float:
 MIXING_RULES.register(
     "exact", "Algorithm 1, P_c and P_t re-measured by evaluation after each update", MixingRule(_algorithm_1, True)
 )
-MIXING_RULES.register("running", "Algorithm 1, P_c and P_t from the update's own rollout episodes", MixingRule(_algorithm_1))
+MIXING_RULES.register(
+    "running", "Algorithm 1, P_c and P_t from the update's own rollout episodes", MixingRule(_algorithm_1)
+)
 MIXING_RULES.register("fixed", "a constant trojan-episode probability (backdoor.fixed_probability)", MixingRule(_fixed))
 
 

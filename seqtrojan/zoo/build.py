@@ -152,7 +152,7 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
             agent=AgentConfig(lstm_sizes=tuple(sizes)),
             ppo=PPOConfig(total_steps=cfg.total_steps, num_envs=cfg.num_envs, rollout_steps=64),
             curriculum=CurriculumConfig(stages=tuple(stages)),
-            backdoor=BackdoorConfig(enabled=label == "backdoored", mixing=cfg.mixing),  # type: ignore[arg-type]
+            backdoor=BackdoorConfig(enabled=label == "backdoored", mixing=cfg.mixing),
             run=RunConfig(
                 out_dir=str(root / "work"), name=f"m{i:04d}", seed=seed, progress=False,
                 eval_episodes=cfg.eval_episodes, checkpoint_every=max(cfg.total_steps // 4, 1),
