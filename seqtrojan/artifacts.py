@@ -7,7 +7,7 @@ and reads each stage's results back typed (one method per stage), for the report
 
 The stages write through the same paths (:mod:`seqtrojan.experiments.reproduce`). A result file with a misspelt,
 missing or ill-typed key (one written by an older version, or edited by hand) is a ConfigError naming the file
-and the key's dotted path. The learning curves and the trade-off are read as plain JSON (untyped for now).
+and the key's dotted path.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from typing import Any, TypeVar
 from seqtrojan.analysis.results import ANALYSIS_FILE, AnalysisResult
 from seqtrojan.defense.results import DEFENSE_FILE, DETECTION_FILE, DefenseResult, DetectionResult
 from seqtrojan.evaluation.results import EVALUATION_FILE, SweepRow, load_sweep
+from seqtrojan.experiments.results import CURVES_FILE, TRADEOFF_FILE, CurvesResult, TradeoffResult
 from seqtrojan.serde import load_json
 
 T = TypeVar("T")
@@ -102,7 +103,7 @@ class RunLayout:
 
     @property
     def curves_file(self) -> Path:
-        return self.curves_dir / "curves.json"
+        return self.curves_dir / CURVES_FILE
 
     @property
     def curves_figure(self) -> Path:
@@ -145,7 +146,7 @@ class RunLayout:
 
     @property
     def tradeoff_file(self) -> Path:
-        return self.tradeoff_dir / "tradeoff.json"
+        return self.tradeoff_dir / TRADEOFF_FILE
 
     @property
     def zoo_dir(self) -> Path:
@@ -171,12 +172,11 @@ class RunLayout:
     def trajectory(self) -> TrajectoryResult | None:
         return _load(TrajectoryResult, self.trajectory_file)
 
-    def curves(self) -> dict[str, Any]:
-        """grid -> its learning curve over seeds (see seqtrojan.experiments.curves.aggregate_curves)."""
-        return _json(self.curves_file) or {}
+    def curves(self) -> CurvesResult | None:
+        return _load(CurvesResult, self.curves_file)
 
-    def tradeoff(self) -> dict[str, Any] | None:
-        return _json(self.tradeoff_file)
+    def tradeoff(self) -> TradeoffResult | None:
+        return _load(TradeoffResult, self.tradeoff_file)
 
     def stage_seconds(self) -> dict[str, float]:
         """Wall seconds per stage (``timings.json``)."""

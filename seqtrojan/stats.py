@@ -143,3 +143,59 @@ def _close(value: Any, expected: float) -> bool:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return False
     return math.isclose(value, expected, rel_tol=1e-9, abs_tol=1e-12)
+
+
+@dataclass(frozen=True)
+class OverSeeds:
+    """One figure measured once per training seed: each seed's value, their mean and sample standard deviation."""
+
+    values: tuple[float, ...]
+    """one per training seed, in seed order"""
+
+    def __post_init__(self) -> None:
+        if not self.values:
+            raise ConfigError("a figure over seeds needs at least one seed's value")
+
+    @property
+    def seeds(self) -> int:
+        return len(self.values)
+
+    @property
+    def mean(self) -> float:
+        return sum(self.values) / len(self.values)
+
+    @property
+    def sd(self) -> float:
+        """Sample standard deviation (ddof=1); 0.0 for one seed, where no spread can be measured."""
+        n = len(self.values)
+        if n < 2:
+            return 0.0
+        mean = self.mean
+        return math.sqrt(sum((v - mean) ** 2 for v in self.values) / (n - 1))
+
+    def text(self, digits: int = 3) -> str:
+        """``'0.912 ± 0.031'`` (no spread claimed for one seed)."""
+        return f"{self.mean:.{digits}f}" + (f" ± {self.sd:.{digits}f}" if self.seeds > 1 else "")
+
+    def serde_dump(self) -> dict[str, Any]:
+        return {"mean": self.mean, "sd": self.sd, "values": list(self.values)}
+
+    @classmethod
+    def serde_load(cls, data: Any, path: str) -> OverSeeds:
+        """The :meth:`serde_dump` form back; mean and sd must be what the values give."""
+        where = path or "over_seeds"
+        if not isinstance(data, dict) or set(data) != {"mean", "sd", "values"}:
+            raise ConfigError(f"{where} must be a mapping with exactly the keys mean, sd and values")
+        values = data["values"]
+        if not isinstance(values, list) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in values
+        ):
+            raise ConfigError(f"{where}.values must be a list of numbers")
+        try:
+            summary = cls(tuple(float(v) for v in values))
+        except ConfigError as err:
+            raise ConfigError(f"{where}: {err}") from None
+        for name in ("mean", "sd"):
+            if not _close(data[name], getattr(summary, name)):
+                raise ConfigError(f"{where}.{name}={data[name]!r} is not what its values give")
+        return summary

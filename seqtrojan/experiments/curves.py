@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from seqtrojan.config import BackdoorConfig, CurriculumConfig, ExperimentConfig
+from seqtrojan.experiments.results import Curve, CurvesResult
 from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 
 
@@ -91,7 +92,7 @@ def run_curves(
     return path
 
 
-def aggregate_curves(path: Path, points: int = 40) -> dict[str, dict[str, list[float]]]:
+def aggregate_curves(path: Path, points: int = 40) -> CurvesResult:
     """Per config: a common step grid and the mean and standard deviation of the score over seeds there.
 
     Each seed's curve is interpolated linearly onto the grid (its updates need not line up with others').
@@ -100,34 +101,34 @@ def aggregate_curves(path: Path, points: int = 40) -> dict[str, dict[str, list[f
     with path.open() as fh:
         for r in csv.DictReader(fh):
             by_run.setdefault((r["config"], int(r["seed"])), []).append((int(r["env_steps"]), float(r["score"])))
-    out: dict[str, dict[str, list[float]]] = {}
+    curves = []
     for config in dict.fromkeys(c for c, _ in by_run):
         runs = [sorted(v) for (c, _), v in by_run.items() if c == config]
         last = min(run[-1][0] for run in runs)
         grid = np.linspace(min(run[0][0] for run in runs), last, points)
         values = np.stack([np.interp(grid, [s for s, _ in run], [v for _, v in run]) for run in runs])
-        out[config] = {
-            "env_steps": grid.tolist(),
-            "mean": values.mean(0).tolist(),
-            "std": values.std(0).tolist(),
-            "seeds": [float(len(runs))],
-        }
-    return out
+        curves.append(
+            Curve(
+                config, len(runs), tuple(grid.tolist()), tuple(values.mean(0).tolist()), tuple(values.std(0).tolist())
+            )
+        )
+    return CurvesResult(tuple(curves))
 
 
-def plot_curves(curves: dict[str, dict[str, list[float]]], path: Path) -> Path:
+def plot_curves(result: CurvesResult, path: Path) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    curves = result.curves
     fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.4), squeeze=False)
-    for ax, (config, data) in zip(axes[0], curves.items()):
-        steps = np.array(data["env_steps"]) / 1e6
-        mean, std = np.array(data["mean"]), np.array(data["std"])
+    for ax, curve in zip(axes[0], curves):
+        steps = np.array(curve.env_steps) / 1e6
+        mean, std = np.array(curve.mean), np.array(curve.std)
         ax.plot(steps, mean, color="C3")
         ax.fill_between(steps, np.clip(mean - std, 0, 2), np.clip(mean + std, 0, 2), color="C3", alpha=0.25)
-        ax.set_title(f"{config} ({int(data['seeds'][0])} seeds)")
+        ax.set_title(f"{curve.grid} ({curve.seeds} seeds)")
         ax.set_xlabel("env steps (millions)")
         ax.set_ylim(0, 2.05)
         ax.grid(alpha=0.3)

@@ -41,8 +41,10 @@ from seqtrojan.evaluation.results import save_rows
 from seqtrojan.evaluation.seeds import summarise_over_seeds
 from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, load_sweep, parse_configs, write_sweep
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
+from seqtrojan.experiments.results import TradeoffResult
 from seqtrojan.experiments.stages import Stage, StageContext, run_stages
 from seqtrojan.experiments.tradeoff import TradeoffConfig, measure_tradeoff_agent, summarise_penalties, tradeoff_agents
+from seqtrojan.experiments.tradeoff import settings as tradeoff_settings
 from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 from seqtrojan.presets import resolve_preset
 from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
@@ -286,7 +288,7 @@ class CurvesStage:
         csv_path = run_curves(base, cfg, layout.curves_dir, context.backend(), _job_log(context.log))
         curves = aggregate_curves(csv_path, cfg.points)
         plot_curves(curves, layout.curves_figure)
-        layout.curves_file.write_text(json.dumps(curves))
+        save_json(curves, layout.curves_file)
 
 
 @dataclass(frozen=True)
@@ -373,19 +375,18 @@ class TradeoffStage:
         if todo:
             log(f"training {todo} trade-off agent(s) on the {backend.name} backend ({backend.describe(todo)}) ...")
         raise_failures(backend.run(jobs, _job_log(log, context.timings)), "trade-off agent")
-        rows = []
+        measured = []
         for a in agents:
             model = backdoor_model if a.job is None else a.job.model_dir
             seed = a.config.run.seed
             log(f"measuring the trade-off for false_activation={a.penalty:g}, seed {seed} ...")
             t0 = time.perf_counter()
             agent, _, _ = load_agent(model, device=context.config.device)
-            row = measure_tradeoff_agent(agent, a.config, cfg, a.penalty)
-            rows.append({**row, "seed": seed, "model": str(model.relative_to(layout.out))})
+            measured.append(measure_tradeoff_agent(agent, a.config, cfg, a.penalty, str(model.relative_to(layout.out))))
             context.timings.record(f"tradeoff_measure{a.penalty:g}_seed{seed}", time.perf_counter() - t0)
         layout.tradeoff_dir.mkdir(exist_ok=True)
-        record = {"config": dataclasses.asdict(cfg), "agents": rows, "penalties": summarise_penalties(rows)}
-        layout.tradeoff_file.write_text(json.dumps(record, indent=2))
+        result = TradeoffResult(tradeoff_settings(cfg), tuple(measured), summarise_penalties(measured))
+        save_json(result, layout.tradeoff_file)
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,8 @@ adversary's goal while the user's goal is correct (``env.rewards.false_activatio
   the agent's precision and recall as a trigger detector (:mod:`seqtrojan.analysis.trigger_detection`).
 
 This module plans the agents (:func:`tradeoff_agents`: one training job per agent that is not the backdoored agent
-itself), measures them, and summarises each penalty over its training seeds (mean and standard deviation): the
+itself), measures them (:class:`~seqtrojan.experiments.results.TradeoffAgentResult`), and summarises each penalty
+over its training seeds (:class:`~seqtrojan.experiments.results.PenaltySummary`: mean and standard deviation): the
 confidence intervals of one agent cover the evaluation's sampling, the seeds the training's spread. The caller runs
 the jobs on a job backend (:mod:`seqtrojan.jobs`; ``seqtrojan reproduce`` uses its ``jobs:`` backend).
 """
@@ -17,11 +18,9 @@ the jobs on a job backend (:mod:`seqtrojan.jobs`; ``seqtrojan reproduce`` uses i
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import numpy as np
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.analysis.trigger_detection import trigger_detection
@@ -29,8 +28,9 @@ from seqtrojan.analysis.unintentional import sweep_unintentional
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.sweep import parse_configs
+from seqtrojan.experiments.results import PenaltySummary, TradeoffAgentResult, TradeoffSettings
 from seqtrojan.jobs import TrainJob
-from seqtrojan.stats import wilson_interval
+from seqtrojan.stats import OverSeeds, Rate
 
 
 @dataclass(frozen=True)
@@ -109,50 +109,47 @@ def tradeoff_agents(base: ExperimentConfig, cfg: TradeoffConfig, runs_dir: Path)
     return agents
 
 
-SUMMARISED = {
-    "normal_success": lambda row: row["normal_success"],
-    "trojan_success": lambda row: row["trojan_success"],
-    "activation_rate": lambda row: row["activation_rate"],
-    "recall": lambda row: row["detection"]["recall"],
-}
-
-
-def summarise_penalties(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per penalty, over its training seeds: mean and standard deviation of success, activation and recall."""
+def summarise_penalties(agents: Sequence[TradeoffAgentResult]) -> tuple[PenaltySummary, ...]:
+    """Per penalty (in order of first appearance), over its training seeds: success, activation and recall."""
     out = []
-    for penalty in dict.fromkeys(r["penalty"] for r in rows):
-        mine = [r for r in rows if r["penalty"] == penalty]
-        entry: dict[str, Any] = {"penalty": penalty, "seeds": len(mine)}
-        for key, value in SUMMARISED.items():
-            values = np.array([value(r) for r in mine])
-            entry[key] = {"mean": float(values.mean()), "std": float(values.std(ddof=1)) if len(values) > 1 else 0.0}
-        out.append(entry)
-    return out
+    for penalty in dict.fromkeys(a.penalty for a in agents):
+        mine = [a for a in agents if a.penalty == penalty]
+        out.append(
+            PenaltySummary(
+                penalty=penalty,
+                normal_success=OverSeeds(tuple(a.normal_success.value for a in mine)),
+                trojan_success=OverSeeds(tuple(a.trojan_success.value for a in mine)),
+                activation=OverSeeds(tuple(a.activation.value for a in mine)),
+                recall=OverSeeds(tuple(a.detection.recall.value for a in mine)),
+            )
+        )
+    return tuple(out)
+
+
+def settings(cfg: TradeoffConfig) -> TradeoffSettings:
+    return TradeoffSettings(cfg.penalties, cfg.total_steps, cfg.configs, cfg.episodes, cfg.seed, cfg.seeds)
 
 
 def measure_tradeoff_agent(
-    agent: RecurrentActorCritic, train_cfg: ExperimentConfig, cfg: TradeoffConfig, penalty: float
-) -> dict[str, Any]:
-    """Attack success on the training grid and stealth over the sweep configs, for one agent."""
+    agent: RecurrentActorCritic, train_cfg: ExperimentConfig, cfg: TradeoffConfig, penalty: float, model: str
+) -> TradeoffAgentResult:
+    """Attack success on the training grid and stealth over the sweep configs, for one agent (``model``: its
+    folder, as the result names it)."""
     grid = train_cfg.grids[-1]
     (home,), _ = sweep_unintentional(agent, train_cfg.env, [(grid.size, grid.holes)], episodes=cfg.episodes,
                                      seed=cfg.seed, keep=0)  # fmt: skip
     summaries, _ = sweep_unintentional(
         agent, train_cfg.env, parse_configs(cfg.configs), episodes=cfg.episodes, seed=cfg.seed, keep=0
     )
-    activations = sum(s.normal_outcomes.get("adversary_goal", 0) for s in summaries)
-    episodes = cfg.episodes * len(summaries)
-    normal_ok, trojan_ok = home.normal_outcomes.get("user_goal", 0), home.trojan_outcomes.get("adversary_goal", 0)
-    detection = trigger_detection(summaries)
-    return {
-        "penalty": penalty,
-        "training_grid": grid.label,
-        "normal_success": normal_ok / cfg.episodes,
-        "normal_ci": wilson_interval(normal_ok, cfg.episodes),
-        "trojan_success": trojan_ok / cfg.episodes,
-        "trojan_ci": wilson_interval(trojan_ok, cfg.episodes),
-        "activation_rate": activations / episodes,
-        "activation_ci": wilson_interval(activations, episodes),
-        "detection": dataclasses.asdict(detection[-1]),
-        "per_config": [dataclasses.asdict(s) for s in summaries],
-    }
+    rows = tuple(s.row() for s in summaries)
+    return TradeoffAgentResult(
+        penalty=penalty,
+        seed=train_cfg.run.seed,
+        model=model,
+        training_grid=grid.label,
+        normal_success=Rate(home.normal_outcomes.get("user_goal", 0), cfg.episodes),
+        trojan_success=Rate(home.trojan_outcomes.get("adversary_goal", 0), cfg.episodes),
+        activation=Rate(sum(r.activation.k for r in rows), sum(r.activation.n for r in rows)),
+        detection=trigger_detection(summaries)[-1].row(),
+        per_config=rows,
+    )

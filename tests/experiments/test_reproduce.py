@@ -16,8 +16,9 @@ from seqtrojan.evaluation.seeds import find_summary, summarise_over_seeds
 from seqtrojan.evaluation.sweep import load_sweep
 from seqtrojan.experiments.curves import aggregate_curves
 from seqtrojan.experiments.reproduce import ReproduceConfig, deep_merge, load_reproduce_config, reproduce
+from seqtrojan.experiments.results import CurvesResult, TradeoffResult
 from seqtrojan.report.sections.tables import seed_cell
-from seqtrojan.serde import from_dict
+from seqtrojan.serde import from_dict, load_json
 
 TINY_STAGES = [{"size": 5, "holes": 0}, {"size": 5, "holes": 1}]
 TINY_SET = {
@@ -166,18 +167,20 @@ def test_every_stage_writes_its_outputs(tiny_run):
     assert ("backdoor", "trojan", "7x7/7") in cells and ("clean", "normal", "5x5/1") in cells  # + training grid
     assert next(r for r in rows if r["config"] == "7x7/7" and r["agent"] == "clean")["paper"] == 0.928
     assert set(json.loads((out / "timings.json").read_text())) >= {"train_clean", "train_backdoor", "curves"}
-    tradeoff = json.loads((out / "tradeoff" / "tradeoff.json").read_text())
-    agents = [(a["penalty"], a["seed"], a["model"]) for a in tradeoff["agents"]]
+    tradeoff = load_json(TradeoffResult, out / "tradeoff" / "tradeoff.json")
+    agents = [(a.penalty, a.seed, a.model) for a in tradeoff.agents]
     assert agents == [
         (-1.0, 0, "runs/backdoor/model"),
         (-1.0, 1, "runs/backdoor_penalty-1_seed1/model"),
         (-4.0, 0, "runs/backdoor_penalty-4/model"),
         (-4.0, 1, "runs/backdoor_penalty-4_seed1/model"),
     ]
-    summary = tradeoff["penalties"]  # the backdoored agent itself is the -1 baseline's first seed
-    assert [(p["penalty"], p["seeds"]) for p in summary] == [(-1.0, 2), (-4.0, 2)]
-    rates = [a["trojan_success"] for a in tradeoff["agents"][:2]]
-    assert summary[0]["trojan_success"]["mean"] == pytest.approx(sum(rates) / 2)
+    summary = tradeoff.penalties  # the backdoored agent itself is the -1 baseline's first seed
+    assert [(p.penalty, p.seeds) for p in summary] == [(-1.0, 2), (-4.0, 2)]
+    rates = [a.trojan_success.value for a in tradeoff.agents[:2]]
+    assert summary[0].trojan_success.mean == pytest.approx(sum(rates) / 2)
+    assert summary[0].trojan_success.sd == pytest.approx(statistics.stdev(rates))
+    assert all(a.activation.n == 2 * 16 and len(a.per_config) == 2 for a in tradeoff.agents)
     card = json.loads((out / "runs/backdoor_penalty-4/model/card.json").read_text())
     assert card["config"]["env"]["rewards"]["false_activation"] == -4.0 and card["label"] == "backdoored"
     analysis = json.loads((out / "analysis" / "analysis.json").read_text())
@@ -248,7 +251,7 @@ def test_report_numbers_are_those_of_the_json_it_was_built_from(tiny_run):
     curves = json.loads((out / "curves" / "curves.json").read_text())
     _, *rows = _table(tables, "Learning curves")
     assert {row[0]: row[1] for row in rows} == {
-        c: f"{d['mean'][-1]:.3f} ± {d['std'][-1]:.3f}" for c, d in curves.items()
+        c["grid"]: f"{c['mean'][-1]:.3f} ± {c['std'][-1]:.3f}" for c in curves["curves"]
     }
 
     # Analysis: the goal-unit edits, unintentional triggers and the agent as a trigger detector.
@@ -295,7 +298,8 @@ def test_report_numbers_are_those_of_the_json_it_was_built_from(tiny_run):
     header, *rows = _table(tables, "The adversary's trade-off")
     i = header.index("trojan success")
     assert [row[i] for row in rows] == [
-        f"{p['trojan_success']['mean']:.3f}" + (f" ± {p['trojan_success']['std']:.3f}" if p["seeds"] > 1 else "")
+        f"{p['trojan_success']['mean']:.3f}"
+        + (f" ± {p['trojan_success']['sd']:.3f}" if len(p["trojan_success"]["values"]) > 1 else "")
         for p in tradeoff["penalties"]
     ]
 
@@ -310,9 +314,10 @@ def test_a_second_call_reuses_finished_stages(tiny_run):
 def test_curves_are_aggregated_over_seeds(tiny_run):
     out, _ = tiny_run
     curves = aggregate_curves(out / "curves" / "curves.csv", points=5)
-    assert set(curves) == {"5x5/0", "5x5/1"}
-    data = curves["5x5/0"]
-    assert data["seeds"] == [2.0] and len(data["mean"]) == 5
+    assert [c.grid for c in curves.curves] == ["5x5/0", "5x5/1"]
+    assert load_json(CurvesResult, out / "curves" / "curves.json") == curves  # the stage saved the same
+    data = curves.curves[0]
+    assert data.seeds == 2 and len(data.mean) == 5
     runs: dict[int, list[tuple[int, float]]] = {}  # seed -> (env steps, score) from the CSV, recomputed by hand
     with (out / "curves" / "curves.csv").open() as fh:
         for r in csv.DictReader(fh):
@@ -321,7 +326,7 @@ def test_curves_are_aggregated_over_seeds(tiny_run):
                 runs.setdefault(int(r["seed"]), []).append((int(r["env_steps"]), float(r["score"])))
     assert sorted(runs) == [0, 1]
     start, end = min(run[0][0] for run in runs.values()), min(run[-1][0] for run in runs.values())
-    assert data["env_steps"] == pytest.approx([start + (end - start) * i / 4 for i in range(5)])
+    assert data.env_steps == pytest.approx([start + (end - start) * i / 4 for i in range(5)])
 
     def at(run, x):  # the seed's curve, linear between its logged points (flat before its first)
         if x <= run[0][0]:
@@ -329,7 +334,7 @@ def test_curves_are_aggregated_over_seeds(tiny_run):
         (x0, y0), (x1, y1) = next((a, b) for a, b in itertools.pairwise(run) if a[0] <= x <= b[0])
         return y0 + (y1 - y0) * (x - x0) / (x1 - x0)
 
-    for x, mean, std in zip(data["env_steps"], data["mean"], data["std"], strict=True):
+    for x, mean, std in zip(data.env_steps, data.mean, data.std, strict=True):
         values = [at(run, x) for run in runs.values()]
         assert mean == pytest.approx(statistics.fmean(values)) and std == pytest.approx(statistics.pstdev(values))
 

@@ -1,21 +1,21 @@
-"""The learning curves of backdoor training (read as plain JSON: curves.json is not typed yet)."""
+"""The learning curves of backdoor training."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
+from seqtrojan.experiments.results import CurvesResult
 from seqtrojan.report.markup import img
 
 
-def curves_section(curves: dict[str, Any], figure: Path) -> list[str]:
-    """``curves``: grid -> its curve over seeds (seqtrojan.experiments.curves.aggregate_curves), may be empty."""
+def curves_section(result: CurvesResult | None, figure: Path) -> list[str]:
+    """The figure, and a table of each grid's final score (no table before the curves stage has run)."""
     parts = ["<h2>Learning curves (backdoor training)</h2>", img(figure)]
-    if curves:
+    if result is not None and result.curves:
         items = "".join(
-            f"<tr><td class='l'>{c}</td><td>{d['mean'][-1]:.3f} &plusmn; {d['std'][-1]:.3f}</td>"
-            f"<td>{int(d['seeds'][0])}</td><td>{d['env_steps'][-1]:,.0f}</td></tr>"
-            for c, d in curves.items()
+            f"<tr><td class='l'>{c.grid}</td><td>{c.mean[-1]:.3f} &plusmn; {c.std[-1]:.3f}</td>"
+            f"<td>{c.seeds}</td><td>{c.env_steps[-1]:,.0f}</td></tr>"
+            for c in result.curves
         )
         parts.append(
             "<table><tr><th class='l'>grid</th><th>final score (mean &plusmn; sd)</th><th>seeds</th>"
