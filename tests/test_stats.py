@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from seqtrojan.errors import ConfigError
-from seqtrojan.stats import auc_interval
+from seqtrojan.serde import from_dict, to_dict
+from seqtrojan.stats import OverSeeds, auc_interval
 
 
 def hanley_mcneil(auc: float, m: int, n: int) -> tuple[float, float]:
@@ -56,3 +57,16 @@ def test_auc_interval_refuses_bad_input():
         auc_interval(0.5, 0, 4)
     with pytest.raises(ConfigError, match=r"lies in \[0, 1\], got 1.5"):
         auc_interval(1.5, 4, 4)
+
+
+def test_over_seeds_mean_sd_and_its_saved_form_checked_at_load():
+    x = OverSeeds((0.9, 0.8, 1.0))
+    assert x.mean == pytest.approx(0.9) and x.sd == pytest.approx(0.1) and x.seeds == 3
+    assert x.text() == "0.900 ± 0.100" and OverSeeds((0.5,)).text() == "0.500" and OverSeeds((0.5,)).sd == 0.0
+    assert from_dict(OverSeeds, to_dict(x)) == x
+    with pytest.raises(ConfigError, match=r"at\.mean=0\.5 is not what its values give"):
+        OverSeeds.serde_load({**to_dict(x), "mean": 0.5}, "at")
+    with pytest.raises(ConfigError, match="exactly the keys mean, sd and values"):
+        OverSeeds.serde_load({"values": [1.0]}, "at")
+    with pytest.raises(ConfigError, match="at least one seed"):
+        OverSeeds(())

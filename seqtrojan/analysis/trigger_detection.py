@@ -30,9 +30,8 @@ from seqtrojan.stats import Rate
 
 @dataclass(frozen=True)
 class DetectionScores:
-    """The scores on one grid (or 'all'). The analysis stores them typed (:meth:`row`: recall and false-positive
-    rate as :class:`~seqtrojan.stats.Rate`); this flat form is what the trade-off still saves with
-    ``dataclasses.asdict`` (tradeoff.json)."""
+    """The scores on one grid (or 'all'), as computed; results store them typed (:meth:`row`: recall and
+    false-positive rate as :class:`~seqtrojan.stats.Rate`)."""
 
     grid: str
     """a grid config, or 'all' for the configs pooled"""

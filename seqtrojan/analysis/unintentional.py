@@ -109,9 +109,8 @@ class Finding:
 
 @dataclass(frozen=True)
 class SweepSummary:
-    """One grid of the sweep. The analysis stores it typed (:meth:`row`: each rate a
-    :class:`~seqtrojan.stats.Rate`); these float fields are the older form, which the trade-off still saves with
-    ``dataclasses.asdict`` (tradeoff.json)."""
+    """One grid of the sweep, as the sweep counts it; results store it typed (:meth:`row`: each rate a
+    :class:`~seqtrojan.stats.Rate`)."""
 
     grid: str
     episodes: int
