@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from seqtrojan.errors import ConfigError
-from seqtrojan.serde import from_dict, to_dict
+from seqtrojan.serde import to_dict
 from seqtrojan.stats import OverSeeds, auc_interval
 
 
@@ -63,7 +63,7 @@ def test_over_seeds_mean_sd_and_its_saved_form_checked_at_load():
     x = OverSeeds((0.9, 0.8, 1.0))
     assert x.mean == pytest.approx(0.9) and x.sd == pytest.approx(0.1) and x.seeds == 3
     assert x.text() == "0.900 ± 0.100" and OverSeeds((0.5,)).text() == "0.500" and OverSeeds((0.5,)).sd == 0.0
-    assert from_dict(OverSeeds, to_dict(x)) == x
+    assert OverSeeds.serde_load(to_dict(x), "at") == x
     with pytest.raises(ConfigError, match=r"at\.mean=0\.5 is not what its values give"):
         OverSeeds.serde_load({**to_dict(x), "mean": 0.5}, "at")
     with pytest.raises(ConfigError, match="exactly the keys mean, sd and values"):
