@@ -78,7 +78,8 @@ def test_reproduce_finds_its_scales_and_presets_outside_the_repository(installed
     bin_dir, work = installed
     assert "--scale" in run(bin_dir / "seqtrojan", "reproduce", "--help", cwd=work).stdout
     check = (
-        "from seqtrojan.experiments.reproduce import experiment_from_spec, load_reproduce_config\n"
+        "from seqtrojan.experiments.reproduce import load_reproduce_config\n"
+        "from seqtrojan.experiments.specs import experiment_from_spec\n"
         "for scale in ('smoke', 'paper'):\n"
         "    c = load_reproduce_config(scale)\n"
         "    for role, spec in (('clean', c.clean), ('backdoor', c.backdoor)):\n"

@@ -14,7 +14,6 @@ stopped (training runs resume from their last checkpoint).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import platform
@@ -42,6 +41,7 @@ from seqtrojan.evaluation.seeds import summarise_over_seeds
 from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, load_sweep, parse_configs, write_sweep
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
 from seqtrojan.experiments.results import TradeoffResult
+from seqtrojan.experiments.specs import AgentSpec, experiment_from_spec
 from seqtrojan.experiments.stages import Stage, StageContext, run_stages
 from seqtrojan.experiments.tradeoff import TradeoffConfig, measure_tradeoff_agent, summarise_penalties, tradeoff_agents
 from seqtrojan.experiments.tradeoff import settings as tradeoff_settings
@@ -53,14 +53,6 @@ from seqtrojan.serde import from_dict, load_yaml, save_json, to_dict
 from seqtrojan.timings import Timings
 from seqtrojan.train.trainer import load_run_config
 from seqtrojan.zoo.build import ZooConfig, build_zoo
-
-
-@dataclass(frozen=True)
-class AgentSpec:
-    """A training preset (a name in configs/ or a path) and overrides merged into it."""
-
-    preset: str = "clean_s17_h30"
-    set: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -121,22 +113,6 @@ class ReproduceConfig:
                 )
             object.__setattr__(self, "jobs", dataclasses.replace(self.jobs, workers=self.zoo_workers))
             object.__setattr__(self, "zoo_workers", None)
-
-
-def deep_merge(base: dict, update: dict) -> dict:
-    out = copy.deepcopy(base)
-    for key, value in update.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = deep_merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
-
-
-def experiment_from_spec(spec: AgentSpec, out_dir: Path, name: str, device: str) -> ExperimentConfig:
-    data = deep_merge(load_yaml(resolve_preset(spec.preset)), spec.set)
-    data = deep_merge(data, {"run": {"out_dir": str(out_dir), "name": name, "device": device}})
-    return from_dict(ExperimentConfig, data, "")
 
 
 def load_reproduce_config(scale_or_path: str) -> ReproduceConfig:
