@@ -21,7 +21,7 @@ from typing import Any, TypeVar
 from seqtrojan.analysis.results import ANALYSIS_FILE, AnalysisResult
 from seqtrojan.defense.results import DEFENSE_FILE, DETECTION_FILE, DefenseResult, DetectionResult
 from seqtrojan.evaluation.results import EVALUATION_FILE, SweepRow, load_sweep
-from seqtrojan.experiments.results import CURVES_FILE, TRADEOFF_FILE, CurvesResult, TradeoffResult
+from seqtrojan.experiment_results import CURVES_FILE, TRADEOFF_FILE, CurvesResult, TradeoffResult
 from seqtrojan.serde import load_json
 
 T = TypeVar("T")

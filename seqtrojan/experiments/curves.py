@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from seqtrojan.config import BackdoorConfig, CurriculumConfig, ExperimentConfig
-from seqtrojan.experiments.results import Curve, CurvesResult
+from seqtrojan.experiment_results import Curve, CurvesResult
 from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 
 

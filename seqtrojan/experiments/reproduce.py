@@ -39,8 +39,8 @@ from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.results import save_rows
 from seqtrojan.evaluation.seeds import summarise_over_seeds
 from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, load_sweep, parse_configs, write_sweep
+from seqtrojan.experiment_results import TradeoffResult
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
-from seqtrojan.experiments.results import TradeoffResult
 from seqtrojan.experiments.specs import AgentSpec, experiment_from_spec
 from seqtrojan.experiments.stages import Stage, StageContext, run_stages
 from seqtrojan.experiments.tradeoff import TradeoffConfig, measure_tradeoff_agent, summarise_penalties, tradeoff_agents

@@ -9,8 +9,8 @@ adversary's goal while the user's goal is correct (``env.rewards.false_activatio
   the agent's precision and recall as a trigger detector (:mod:`seqtrojan.analysis.trigger_detection`).
 
 This module plans the agents (:func:`tradeoff_agents`: one training job per agent that is not the backdoored agent
-itself), measures them (:class:`~seqtrojan.experiments.results.TradeoffAgentResult`), and summarises each penalty
-over its training seeds (:class:`~seqtrojan.experiments.results.PenaltySummary`: mean and standard deviation): the
+itself), measures them (:class:`~seqtrojan.experiment_results.TradeoffAgentResult`), and summarises each penalty
+over its training seeds (:class:`~seqtrojan.experiment_results.PenaltySummary`: mean and standard deviation): the
 confidence intervals of one agent cover the evaluation's sampling, the seeds the training's spread. The caller runs
 the jobs on a job backend (:mod:`seqtrojan.jobs`; ``seqtrojan reproduce`` uses its ``jobs:`` backend).
 """
@@ -28,7 +28,7 @@ from seqtrojan.analysis.unintentional import sweep_unintentional
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.sweep import parse_configs
-from seqtrojan.experiments.results import PenaltySummary, TradeoffAgentResult, TradeoffSettings
+from seqtrojan.experiment_results import PenaltySummary, TradeoffAgentResult, TradeoffSettings
 from seqtrojan.jobs import TrainJob
 from seqtrojan.stats import OverSeeds, Rate
 

@@ -14,9 +14,9 @@ import pytest
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.seeds import find_summary, summarise_over_seeds
 from seqtrojan.evaluation.sweep import load_sweep
+from seqtrojan.experiment_results import CurvesResult, TradeoffResult
 from seqtrojan.experiments.curves import aggregate_curves
 from seqtrojan.experiments.reproduce import ReproduceConfig, load_reproduce_config, reproduce
-from seqtrojan.experiments.results import CurvesResult, TradeoffResult
 from seqtrojan.experiments.specs import deep_merge
 from seqtrojan.report.sections.tables import seed_cell
 from seqtrojan.serde import from_dict, load_json

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from seqtrojan.experiments.results import CurvesResult
+from seqtrojan.experiment_results import CurvesResult
 from seqtrojan.report.markup import img
 
 

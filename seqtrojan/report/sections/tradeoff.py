@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import html
 
-from seqtrojan.experiments.results import TradeoffResult
+from seqtrojan.experiment_results import TradeoffResult
 from seqtrojan.report.markup import rate
 from seqtrojan.stats import OverSeeds
 
