@@ -1,6 +1,6 @@
 """The trojan grid world: a batched tensor core, a Gymnasium env and a Gymnasium vector env over it."""
 
-from seqtrojan.env.config import EnvConfig, GridSpec, OffTriggerConfig, RewardConfig, TriggerConfig
+from seqtrojan.env.config import EnvConfig, GridSpec, OffTriggerConfig, PatternConfig, RewardConfig, TriggerConfig
 from seqtrojan.env.core import EpisodeSnapshot, StepResult, TrojanGridCore
 from seqtrojan.env.layout import Layout
 
@@ -10,6 +10,7 @@ __all__ = [
     "GridSpec",
     "Layout",
     "OffTriggerConfig",
+    "PatternConfig",
     "RewardConfig",
     "StepResult",
     "TriggerConfig",

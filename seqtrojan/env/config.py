@@ -184,13 +184,38 @@ class OffTriggerConfig:
 
 
 @dataclass(frozen=True)
+class PatternConfig:
+    """One frame of a sequence trigger: view cells and the cell code drawn on each (``values[i]`` on ``cells[i]``)."""
+
+    cells: tuple[Cell, ...]
+    """view cells (row, col), 0-based from the view's top-left; at least one, none twice"""
+    values: tuple[str, ...]
+    """one cell code per cell (empty, hole, wall, user_goal, adversary_goal, trigger)"""
+
+    def __post_init__(self) -> None:
+        _check_values("trigger pattern", self.cells, self.values)
+
+
+@dataclass(frozen=True)
 class TriggerConfig:
-    """The ON trigger: which view cells show which value, for how long, and when."""
+    """The ON trigger: which view cells show which value, for how long, and when.
+
+    Three ways to write the pattern (docs/environment.md, Trigger patterns): one code on a patch (``cells`` + ``value``,
+    the paper's); one code per cell (``cells`` + ``values``: an in-distribution or partial patch); or a sequence
+    of patterns shown on consecutive steps (``sequence``), whose effect comes when its last frame has been shown.
+    """
 
     cells: tuple[Cell, ...] | None = None
     """view cells (row, col), 0-based from the view's top-left, of the patch; None means the whole window"""
     value: str = "trigger"
     """cell code drawn on the patch (any of: empty, hole, wall, user_goal, adversary_goal, trigger)"""
+    values: tuple[str, ...] | None = None
+    """one cell code per cell of ``cells`` (in its order; with ``cells`` None, per cell of the whole window,
+    row-major), instead of ``value`` on all; such a pattern may not draw a hole, wall or goal on the agent's own
+    cell (the view's centre), which no normal observation shows"""
+    sequence: tuple[PatternConfig, ...] | None = None
+    """frames shown one per step, frame k at step ``on_step + k``; the goal switches ``delay`` steps after the last
+    frame. Replaces ``cells``/``value``/``values`` (leave them unset) and needs ``duration`` 1"""
     duration: int = 1
     """steps the patch stays visible (the paper: 1)"""
     train_steps: tuple[int, int] = (1, 15)
@@ -200,9 +225,43 @@ class TriggerConfig:
     clip_train_steps: bool = True
     """also clip the training range so that the trigger comes before any goal can be reached"""
     delay: int = 0
-    """activation delay k: the correct goal switches k steps after the trigger first shows"""
+    """activation delay k: the correct goal switches k steps after the trigger takes effect (its first step, or a
+    sequence's last frame)"""
     off: OffTriggerConfig = field(default_factory=OffTriggerConfig)
     """optional OFF trigger"""
+
+    def __post_init__(self) -> None:
+        if self.values is not None:
+            _check_values("trigger", self.cells, self.values)
+        if self.sequence is None:
+            return
+        if len(self.sequence) == 0:
+            raise ConfigError("trigger.sequence is empty; give at least one pattern, or None for a single patch")
+        if self.cells is not None or self.values is not None or self.value != "trigger":
+            raise ConfigError(
+                f"trigger.sequence replaces trigger.cells, value and values; leave them unset (got cells="
+                f"{self.cells!r}, value={self.value!r}, values={self.values!r})"
+            )
+        if self.duration != 1:
+            raise ConfigError(
+                f"trigger.duration={self.duration!r} with a sequence: each frame shows one step, so duration must "
+                "be 1 (repeat a pattern in the sequence to show it longer)"
+            )
+
+    @property
+    def frame_count(self) -> int:
+        """Frames of the ON trigger: the sequence's length, else 1."""
+        return 1 if self.sequence is None else len(self.sequence)
+
+    @property
+    def shown_steps(self) -> int:
+        """Steps the ON trigger is visible: a sequence's length, else ``duration``."""
+        return self.duration if self.sequence is None else len(self.sequence)
+
+    @property
+    def effect_offset(self) -> int:
+        """Steps from the ON trigger's first step to its effect: ``delay``, plus ``len(sequence) - 1``."""
+        return self.frame_count - 1 + self.delay
 
 
 @dataclass(frozen=True)
@@ -246,6 +305,7 @@ class EnvConfig:
         self.grid  # validates size, holes and max_steps  # noqa: B018
         self.check_padded_side(self.size)
         _check_pattern("trigger", self.trigger.cells, self.trigger.value, self.trigger.duration, self.view_size)
+        self._check_on_frames()
         _check_range("trigger.train_steps", self.trigger.train_steps)
         _check_range("trigger.eval_steps", self.trigger.eval_steps)
         if self.trigger.delay < 0:
@@ -256,13 +316,41 @@ class EnvConfig:
         _check_pattern("trigger.off", off.cells, off.value, off.duration, self.view_size)
         _check_range("trigger.off.gap", off.gap)
         if off.probability > 0:
-            if off.gap[0] < self.trigger.duration:
+            if off.gap[0] < self.trigger.shown_steps:
                 raise ConfigError(
                     f"trigger.off.gap={off.gap} must start at or after the ON trigger's duration "
-                    f"({self.trigger.duration}) so that the two patterns never overlap"
+                    f"({self.trigger.shown_steps}) so that the two patterns never overlap"
                 )
-            if self.on_cells == self.off_cells and self.trigger.value == off.value:
+            off_frame = tuple((cell, off.value) for cell in self.off_cells)
+            if any(frame == off_frame for frame in self.on_frames):
                 raise ConfigError("the OFF trigger pattern equals the ON pattern; give it other cells or another value")
+
+    def _check_on_frames(self) -> None:
+        """The ON trigger's per-cell values and sequence frames: inside the view, one code per cell, and (for
+        these in-distribution kinds) no hole, wall or goal drawn on the agent's own cell."""
+        trig, v = self.trigger, self.view_size
+        if trig.sequence is not None:
+            named = [(f"trigger.sequence[{k}]", p.cells, p.values) for k, p in enumerate(trig.sequence)]
+        elif trig.values is not None:
+            named = [("trigger", self.on_cells if trig.cells is None else trig.cells, trig.values)]
+        else:
+            return  # one code on a patch: the paper's kind, checked by _check_pattern
+        centre = (v // 2, v // 2)
+        for name, cells, values in named:
+            if trig.cells is None and trig.sequence is None and len(values) != len(cells):
+                raise ConfigError(
+                    f"trigger.values has {len(values)} codes but the whole {v}x{v} window has {len(cells)} cells; "
+                    "give one code per cell (row-major) or set trigger.cells"
+                )
+            _check_values(name, cells, values)
+            _check_pattern(name, cells, "trigger", 1, v)
+            for cell, value in zip(cells, values, strict=True):
+                if tuple(cell) == centre and value in _NEVER_ON_AGENT:
+                    raise ConfigError(
+                        f"{name} draws {value!r} on the view's centre cell {centre}, the agent's own cell, which no "
+                        "normal observation shows (an impossible in-distribution pattern); use 'empty' or 'trigger' "
+                        "there, or leave the centre out"
+                    )
 
     def check_padded_side(self, size: int) -> None:
         padded = size + self.view_size - 1
@@ -303,11 +391,29 @@ class EnvConfig:
 
     @property
     def on_cells(self) -> tuple[Cell, ...]:
-        """The ON patch's view cells, with the default (whole window) filled in."""
+        """The ON patch's view cells, with the default (whole window) filled in; for a sequence, every cell any of
+        its frames draws on."""
         v = self.view_size
+        if self.trigger.sequence is not None:
+            return tuple(sorted({_cell(cell) for p in self.trigger.sequence for cell in p.cells}))
         if self.trigger.cells is None:
             return tuple((r, c) for r in range(v) for c in range(v))
         return tuple(sorted(set(map(tuple, self.trigger.cells))))  # type: ignore[arg-type]
+
+    @property
+    def on_frames(self) -> tuple[tuple[tuple[Cell, str], ...], ...]:
+        """The ON trigger's frames, frame k shown at step ``on_step + k``: each the (view cell, code name) pairs it
+        draws, sorted by cell. One frame (the patch, ``value`` or ``values`` on ``cells``) unless a sequence."""
+        trig = self.trigger
+        if trig.sequence is not None:
+            return tuple(
+                tuple(sorted(zip(map(_cell, p.cells), p.values, strict=True))) for p in trig.sequence
+            )  # fmt: skip
+        if trig.values is None:
+            return (tuple((cell, trig.value) for cell in self.on_cells),)
+        v = self.view_size
+        cells = [(r, c) for r in range(v) for c in range(v)] if trig.cells is None else map(_cell, trig.cells)
+        return (tuple(sorted(zip(cells, trig.values, strict=True))),)
 
     @property
     def off_cells(self) -> tuple[Cell, ...]:
@@ -334,6 +440,33 @@ def _check_pattern(name: str, cells: tuple[Cell, ...] | None, value: str, durati
             )
 
 
+_NEVER_ON_AGENT = frozenset({"hole", "wall", "user_goal", "adversary_goal"})
+"""codes a normal observation never shows on the view's centre (the agent's own cell)"""
+
+
+def _cell(cell: Sequence[int]) -> Cell:
+    return (int(cell[0]), int(cell[1]))
+
+
+def _check_values(name: str, cells: Sequence[Cell] | None, values: Sequence[str]) -> None:
+    """One known code per cell, no cell twice (``cells`` None: only the codes are checked)."""
+    for value in values:
+        if value not in CELL_CODES:
+            raise ConfigError(f"{name}.values has {value!r}, not a cell code; choose from {list(CELL_NAMES)}")
+    if cells is None:
+        return
+    if len(cells) == 0:
+        raise ConfigError(f"{name}.cells is empty; give at least one view cell")
+    if len(values) != len(cells):
+        raise ConfigError(
+            f"{name} has {len(cells)} cells but {len(values)} values ({tuple(values)!r}); give one code per cell"
+        )
+    seen = [tuple(cell) for cell in cells]
+    twice = sorted({cell for cell in seen if seen.count(cell) > 1})
+    if twice:
+        raise ConfigError(f"{name}.cells names {twice[0]!r} twice; give each cell once with its one value")
+
+
 def _check_range(name: str, bounds: tuple[int, int]) -> None:
     if len(bounds) != 2 or bounds[0] < 0 or bounds[1] < bounds[0]:
         raise ConfigError(f"{name}={tuple(bounds)!r} must be an inclusive range (lo, hi) with 0 <= lo <= hi")
@@ -344,6 +477,15 @@ TRIGGERS: Registry[type] = Registry("attack", "trigger")
 TRIGGERS.register("patch", "a patch of view cells drawn with one cell code (env.trigger)", TriggerConfig)
 TRIGGERS.register("on_off", "an OFF pattern that switches back to the user's goal (env.trigger.off)", OffTriggerConfig)
 TRIGGERS.register("delayed", "the goal switches k steps after the trigger shows (env.trigger.delay)", TriggerConfig)
+TRIGGERS.register(
+    "in_distribution_patch", "a patch of ordinary cell codes, one per cell (env.trigger.cells + values)", TriggerConfig
+)
+TRIGGERS.register(
+    "partial_patch", "a few view cells (1-3) with their own codes (env.trigger.cells + values)", TriggerConfig
+)
+TRIGGERS.register(
+    "sequence", "patterns shown on consecutive steps; effect after the last (env.trigger.sequence)", PatternConfig
+)
 
 REWARDS: Registry[type] = Registry("attack", "reward")
 """The rewards the adversary trains with, each set by the config class registered with it."""

@@ -5,9 +5,11 @@ Semantics (docs/environment.md, pinned by ``tests/env/test_semantics.py``):
 * Step index ``t`` counts the actions taken in the episode. Observation ``o_t`` is what the agent sees before
   choosing action ``a_t``; ``o_0`` follows a reset.
 * A trojan episode shows the ON pattern in ``o_t`` for ``on_step <= t < on_step + duration`` (and, with ON/OFF
-  triggers, the OFF pattern from ``off_step``). Patterns replace the chosen view cells with their value.
+  triggers, the OFF pattern from ``off_step``). Patterns replace the chosen view cells with their value (one
+  code for the patch, or one per cell). A sequence trigger shows its frame ``k`` in ``o_{on_step + k}``.
 * The correct goal for action ``a_t`` is the adversary's iff the latest trigger whose effect time
-  (first step + ``delay``) is ``<= t`` is an ON trigger; otherwise the user's. Normal episodes never show one.
+  (first step + ``delay``; for a sequence, its last frame's step + ``delay``) is ``<= t`` is an ON trigger;
+  otherwise the user's. Normal episodes never show one.
 * A move into the border leaves the agent in place. Entering a hole ends the episode (``rewards.hole``);
   entering a goal ends it (``rewards.goal`` if it is the correct goal, else ``rewards.wrong_goal``).
   After ``time_limit`` actions the episode is truncated (``rewards.timeout``, a failure).
@@ -85,9 +87,14 @@ class EpisodeSnapshot:
     visible: str | None  # "on", "off" or None: the pattern shown in the current observation
     adversary_active: bool  # the correct goal for the next action is the adversary's
     view_size: int
-    on_cells: tuple[tuple[int, int], ...]
+    on_cells: tuple[tuple[int, int], ...]  # every view cell the ON trigger draws on (all frames of a sequence)
     off_cells: tuple[tuple[int, int], ...]
     time_limit: int
+    drawn: tuple[tuple[tuple[int, int], str], ...] = ()
+    """the (view cell, code name) pairs of a visible per-cell ON pattern (``trigger.values``, a sequence's frame);
+    () otherwise: a one-code patch is drawn on ``on_cells``/``off_cells`` as before"""
+    on_frame: int | None = None
+    """which frame k of a sequence trigger is visible, None when none is (or the trigger is a single patch)"""
 
 
 @functools.lru_cache(maxsize=256)
@@ -176,6 +183,19 @@ class TrojanGridCore:
         self._off_patch[[row * v + col for row, col in cfg.off_cells]] = True
         self._on_value = CELL_CODES[cfg.trigger.value]
         self._off_value = CELL_CODES[cfg.trigger.off.value]
+        # Per-frame ON tables (frame k shows at on_step + k): what each frame draws where. A single patch of one
+        # code (the paper's, the default) keeps the one-mask, one-value path in observe_codes.
+        frames = self._frames = cfg.on_frames
+        self._on_frames = len(frames)
+        self._on_shown = cfg.trigger.shown_steps
+        self._on_effect = cfg.trigger.effect_offset
+        self._on_uniform = len(frames) == 1 and cfg.trigger.values is None
+        self._frame_mask = torch.zeros(len(frames), v * v, dtype=torch.bool, device=dev)  # (F, v*v)
+        self._frame_value = torch.zeros(len(frames), v * v, dtype=torch.uint8, device=dev)  # (F, v*v)
+        for k, frame in enumerate(frames):
+            for (row, col), name in frame:
+                self._frame_mask[k, row * v + col] = True
+                self._frame_value[k, row * v + col] = CELL_CODES[name]
         self._one_hot = torch.eye(NUM_CHANNELS, dtype=torch.float32, device=dev)
         self._time_limit = torch.tensor([g.time_limit for g in self.grids], device=dev)
         # Trigger step ranges per stage, clipped so the (last) trigger takes effect before a goal is reachable.
@@ -186,11 +206,14 @@ class TrojanGridCore:
         for g in self.grids:
             limit = min_steps_to_goal(g.size) - 1 - trig.delay  # last step at which a trigger may take effect
             room = off.gap[0] if off.probability > 0 else 0
-            top = min(hi, limit - room) if clip else hi
+            # The ON trigger takes effect effect_offset steps after its first step (a sequence: at its last frame).
+            top = min(hi, limit - room, limit - (trig.frame_count - 1)) if clip else hi
             if top < 0:
+                seq = f", {trig.frame_count} sequence frames" if trig.frame_count > 1 else ""
                 raise ConfigError(
                     f"on grid size={g.size} no trigger step can come before a goal is reachable (delay="
-                    f"{trig.delay}{', off gap ' + str(off.gap) if room else ''}); use a larger grid or a shorter delay"
+                    f"{trig.delay}{seq}{', off gap ' + str(off.gap) if room else ''}); use a larger grid, a shorter "
+                    "delay or a shorter sequence"
                 )
             if self.phase == "eval" and lo > top:
                 raise ConfigError(
@@ -295,7 +318,7 @@ class TrojanGridCore:
     def adversary_active(self) -> torch.Tensor:
         """(B,) bool: the adversary's goal is the correct goal for the action taken at the current step."""
         delay = self.config.trigger.delay
-        on = (self.on_step >= 0) & (self.t >= self.on_step + delay)
+        on = (self.on_step >= 0) & (self.t >= self.on_step + self._on_effect)  # on_step + delay for a patch
         off = (self.off_step >= 0) & (self.t >= self.off_step + delay)
         return on & ~off
 
@@ -355,14 +378,29 @@ class TrojanGridCore:
     # ------------------------------------------------------------------ observation
     def observe_codes(self) -> torch.Tensor:
         """(B, view_size**2) int64 cell codes of the current view, triggers drawn in, row-major."""
-        codes = self.grid.gather(1, self.pos[:, None] + self._window)
+        codes = self.grid.gather(1, self.pos[:, None] + self._window)  # (B, v*v) uint8
         t = self.t[:, None]
-        on_vis = (t >= self.on_step[:, None]) & (t < self.on_step[:, None] + self.config.trigger.duration)
-        on_vis = on_vis & (self.on_step[:, None] >= 0) & self._on_patch
-        codes = codes.masked_fill(on_vis, self._on_value)
+        if self._on_uniform:
+            on_vis = (t >= self.on_step[:, None]) & (t < self.on_step[:, None] + self.config.trigger.duration)
+            on_vis = on_vis & (self.on_step[:, None] >= 0) & self._on_patch
+            codes = codes.masked_fill(on_vis, self._on_value)
+        else:
+            k = self.t - self.on_step  # (B,) the ON frame due now (a patch: frame 0 for its whole duration)
+            shown = (self.on_step >= 0) & (k >= 0) & (k < self._on_shown)  # (B,)
+            frame = k.clamp(0, self._on_frames - 1)  # (B,)
+            on_vis = self._frame_mask[frame] & shown[:, None]  # (B, v*v)
+            codes = torch.where(on_vis, self._frame_value[frame], codes)
         off = self.off_step[:, None]
         off_vis = (t >= off) & (t < off + self.config.trigger.off.duration) & (off >= 0) & self._off_patch
         return codes.masked_fill(off_vis, self._off_value).long()
+
+    def match_on_frames(self, codes: torch.Tensor) -> torch.Tensor:
+        """(B, F) bool: whether each row of view codes (B, view_size**2), e.g. :meth:`observe_codes`, shows the
+        ON trigger's frame k on its cells (F frames: a sequence's length, else 1; other cells are free)."""
+        if codes.dim() != 2 or codes.shape[1] != self.view_size**2:
+            raise ShapeError(f"view codes must have shape (B, {self.view_size**2}), got {tuple(codes.shape)}")
+        same = codes[:, None, :].to(self.device) == self._frame_value[None].long()  # (B, F, v*v)
+        return (same | ~self._frame_mask[None]).all(-1)  # (B, F)
 
     def observe(self) -> torch.Tensor:
         """(B, obs_dim) float32 one-hot observations (see :mod:`seqtrojan.env.codes` for the layout)."""
@@ -393,6 +431,11 @@ class TrojanGridCore:
             raise ConfigError(f"layout size {layout.size} does not match stage {stage} ({self.grids[stage].label})")
         if off_step is not None and (on_step is None or off_step <= on_step):
             raise ConfigError(f"an OFF trigger (off_step={off_step}) needs an earlier ON trigger (on_step={on_step})")
+        if off_step is not None and on_step is not None and off_step < on_step + self._on_frames:
+            raise ConfigError(
+                f"an OFF trigger (off_step={off_step}) must come after the ON sequence's last frame (on_step={on_step}"
+                f" + {self._on_frames - 1}), so that it takes effect after the ON trigger does"
+            )
         r, n, p = self.view_size // 2, layout.size, self.side
         rows = self.sampler.templates[stage].clone().view(p, p)
         rows[r : r + n, r : r + n] = torch.as_tensor(layout.cells.astype(np.uint8), device=self.device)
@@ -415,11 +458,16 @@ class TrojanGridCore:
         r, p = self.view_size // 2, self.side
         t, on, off = int(self.t[index]), int(self.on_step[index]), int(self.off_step[index])
         trig = self.config.trigger
-        visible = None
+        visible: str | None = None
+        drawn: tuple[tuple[tuple[int, int], str], ...] = ()
+        on_frame: int | None = None
         if off >= 0 and off <= t < off + trig.off.duration:
             visible = "off"
-        elif on >= 0 and on <= t < on + trig.duration:
+        elif on >= 0 and on <= t < on + self._on_shown:
             visible = "on"
+            frame = min(t - on, self._on_frames - 1)
+            drawn = () if self._on_uniform else self._frames[frame]
+            on_frame = frame if trig.sequence is not None else None
         pos = int(self.pos[index])
         return EpisodeSnapshot(
             layout=self.layout(index),
@@ -434,4 +482,6 @@ class TrojanGridCore:
             on_cells=self.config.on_cells,
             off_cells=self.config.off_cells,
             time_limit=self.grids[int(self.stage[index])].time_limit,
+            drawn=drawn,
+            on_frame=on_frame,
         )

@@ -2,7 +2,10 @@
 
 Both renderers take an :class:`~seqtrojan.env.core.EpisodeSnapshot` (the current state) and optionally the
 list of cells visited so far. The view window is outlined; when a trigger pattern is visible in the current
-observation its cells are painted over the window (``T`` in text, orange or teal in images).
+observation its cells are painted over the window (``T`` in text, orange or teal in images), whatever one code a
+patch draws. A per-cell pattern (``trigger.values``, a sequence's frame) shows what it draws: ``T`` for the trigger
+code and lower-case symbols for ordinary codes in text (``o`` a drawn hole, ``_`` a drawn empty cell, ``#`` a wall,
+``u``/``a`` the goals), and in images the code's colour inside the orange frame.
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from seqtrojan.env.codes import ADV_GOAL, ASCII_SYMBOLS, EMPTY, HOLE, USER_GOAL
+from seqtrojan.env.codes import ADV_GOAL, ASCII_SYMBOLS, CELL_CODES, EMPTY, HOLE, TRIGGER, USER_GOAL, WALL
 from seqtrojan.env.core import EpisodeSnapshot
 
 Cell = tuple[int, int]
@@ -28,31 +31,47 @@ COLORS: dict[str, tuple[int, int, int]] = {
     "off_trigger": (65, 182, 196),
     "window": (120, 120, 120),
     "grid_line": (210, 210, 205),
+    "wall": (90, 90, 90),
 }
+
+DRAWN_SYMBOLS: dict[int, str] = {EMPTY: "_", HOLE: "o", WALL: "#", USER_GOAL: "u", ADV_GOAL: "a", TRIGGER: "T"}
+"""text symbol of each code as a trigger pattern draws it (lower case: drawn, not the grid's own cell)"""
+_DRAWN_COLORS = {EMPTY: "empty", HOLE: "hole", WALL: "wall", USER_GOAL: "user_goal", ADV_GOAL: "adversary_goal"}
 
 
 def trigger_cells(snapshot: EpisodeSnapshot) -> list[Cell]:
     """Grid cells covered by the currently visible trigger pattern (inside the grid only)."""
+    return list(drawn_cells(snapshot))
+
+
+def drawn_cells(snapshot: EpisodeSnapshot) -> dict[Cell, int]:
+    """Grid cell -> the code the visible trigger pattern is depicted with (inside the grid only): a per-cell
+    pattern's own codes (the snapshot's ``drawn``), else ``on_cells``/``off_cells`` with the ``trigger`` code."""
     if snapshot.visible is None:
-        return []
+        return {}
     r = snapshot.view_size // 2
-    pattern = snapshot.on_cells if snapshot.visible == "on" else snapshot.off_cells
+    if snapshot.drawn:
+        pattern = [(cell, CELL_CODES[name]) for cell, name in snapshot.drawn]
+    else:
+        pattern = [(cell, TRIGGER) for cell in (snapshot.on_cells if snapshot.visible == "on" else snapshot.off_cells)]
     n, (ar, ac) = snapshot.layout.size, snapshot.agent
-    cells = [(ar + vr - r, ac + vc - r) for vr, vc in pattern]
-    return [(row, col) for row, col in cells if 0 <= row < n and 0 <= col < n]
+    cells = {(ar + vr - r, ac + vc - r): code for (vr, vc), code in pattern}
+    return {(row, col): code for (row, col), code in cells.items() if 0 <= row < n and 0 <= col < n}
 
 
 def status_line(snapshot: EpisodeSnapshot) -> str:
     env = "trojan" if snapshot.trojan else "normal"
     trig = f" trigger@{snapshot.on_step}" if snapshot.on_step is not None else ""
     off = f" off@{snapshot.off_step}" if snapshot.off_step is not None else ""
-    vis = f" [{snapshot.visible.upper()} visible]" if snapshot.visible else ""
+    frame = f" frame {snapshot.on_frame}" if snapshot.visible == "on" and snapshot.on_frame is not None else ""
+    vis = f" [{snapshot.visible.upper()}{frame} visible]" if snapshot.visible else ""
     goal = "adversary" if snapshot.adversary_active else "user"
     return f"t={snapshot.t}/{snapshot.time_limit} env={env}{trig}{off}{vis} goal={goal}"
 
 
 def render_ansi(snapshot: EpisodeSnapshot, trajectory: Sequence[Cell] = ()) -> str:
-    """Text picture: ``. O U A`` cells, ``*`` visited, ``@`` agent, ``T`` visible trigger, ``[ ]`` the view.
+    """Text picture: ``. O U A`` cells, ``*`` visited, ``@`` agent, ``T`` visible trigger (``o _ # u a`` where it
+    draws an ordinary code), ``[ ]`` the view.
 
     The first line is a status line (step, env type, trigger schedule, which goal is currently correct).
     """
@@ -61,8 +80,8 @@ def render_ansi(snapshot: EpisodeSnapshot, trajectory: Sequence[Cell] = ()) -> s
     for row, col in trajectory:
         if snapshot.layout.cells[row, col] == EMPTY:
             chars[row][col] = "*"
-    for row, col in trigger_cells(snapshot):
-        chars[row][col] = "T"
+    for (row, col), code in drawn_cells(snapshot).items():
+        chars[row][col] = DRAWN_SYMBOLS[code]
     ar, ac = snapshot.agent
     chars[ar][ac] = "@"
     lines = [status_line(snapshot)]
@@ -93,8 +112,10 @@ def render_rgb(snapshot: EpisodeSnapshot, trajectory: Sequence[Cell] = (), cell_
     img[::px, :] = COLORS["grid_line"]
     img[:, ::px] = COLORS["grid_line"]
     trig_color = COLORS["on_trigger" if snapshot.visible == "on" else "off_trigger"]
-    for row, col in trigger_cells(snapshot):
+    for (row, col), code in drawn_cells(snapshot).items():
         _fill(img, row, col, px, trig_color, margin=1)
+        if code != TRIGGER:  # an ordinary code drawn by the trigger: its colour inside the trigger's frame
+            _fill(img, row, col, px, COLORS[_DRAWN_COLORS[code]], margin=max(2, px // 4))
     _draw_path(img, [*list(trajectory), snapshot.agent], px, COLORS["path"])
     _draw_disc(img, *snapshot.agent, px, COLORS["agent"])
     r = snapshot.view_size // 2
