@@ -17,6 +17,7 @@ from seqtrojan.defense.results import DefenseResult, MitigationArm, MonitorResul
 from seqtrojan.env import EnvConfig, GridSpec
 from seqtrojan.env.config import REWARDS, TRIGGERS, OffTriggerConfig, TriggerConfig
 from seqtrojan.errors import ConfigError
+from seqtrojan.experiments.attacks import ATTACKS
 from seqtrojan.registry import Registry, registries
 from seqtrojan.report.markup import rate
 from seqtrojan.report.sections.defense import defense_section
@@ -62,11 +63,16 @@ def test_a_duplicate_name_and_a_bad_entry_are_refused(scratch):
 
 
 def test_what_exists_is_registered():
+    assert ATTACKS.names() == (
+        "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence",
+    )  # fmt: skip
     assert MIXING_RULES.names() == ("exact", "running", "fixed")
     assert TRIGGERS.get("patch") is TriggerConfig and TRIGGERS.get("on_off") is OffTriggerConfig
-    assert "delayed" in TRIGGERS and REWARDS.names() == ("env_rewards", "false_activation")
+    assert TRIGGERS.names() == ("patch", "on_off", "delayed", "in_distribution_patch", "partial_patch", "sequence")
+    assert REWARDS.names() == ("env_rewards", "false_activation")
     assert MITIGATIONS.names() == ("fine_pruning", "fine_tuning", "unit_reset")
-    assert MONITORS.names() == ("state_monitor",) and DETECTORS.names() == ("weight_detector",)
+    assert MONITORS.names() == ("state_monitor", "multivariate_monitor", "input_novelty")
+    assert DETECTORS.names() == ("weight_detector", "behaviour_detector")
 
 
 def test_the_mixer_takes_its_rule_from_the_registry(monkeypatch):
@@ -136,7 +142,7 @@ def test_a_mitigation_that_returns_a_taken_row_name_is_refused(tmp_path, monkeyp
 
 @pytest.mark.parametrize(
     ("command", "registered"),
-    [("attacks", (TRIGGERS, MIXING_RULES, REWARDS)), ("defenses", (MONITORS, DETECTORS, MITIGATIONS))],
+    [("attacks", (ATTACKS, TRIGGERS, MIXING_RULES, REWARDS)), ("defenses", (MONITORS, DETECTORS, MITIGATIONS))],
 )
 def test_the_listing_commands_print_every_registered_name(capsys, command, registered):
     assert main([command]) == 0

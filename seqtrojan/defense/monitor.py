@@ -12,11 +12,14 @@ zeroes that env's state before the next step (as at an episode start).
 the detection rate (trojan env, an alarm at or after the trigger), alarms before the trigger, the steps from
 trigger to alarm, the attack success (adversary's goal in the trojan env) without and with the monitor's reset,
 and the clean success without and with it.
+
+:class:`MonitoredPolicy` and :func:`measure_monitor` take any :class:`~seqtrojan.defense.online.OnlineDetector`:
+this module's :class:`StateMonitor`, the :class:`~seqtrojan.defense.multivariate.MultivariateMonitor` and the
+:class:`~seqtrojan.defense.novelty.InputNovelty` baseline, all registered in :data:`MONITORS` and calibrated the
+same way (:mod:`seqtrojan.defense.online`); the measurement is the same typed :class:`MonitorResult` for each.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -25,59 +28,21 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
+from seqtrojan.defense.multivariate import MultivariateMonitor
+from seqtrojan.defense.novelty import InputNovelty
+from seqtrojan.defense.online import MonitorConfig, OnlineDetector, conformal_threshold
 from seqtrojan.defense.results import MonitorResult, NormalEnvArm, TrojanEnvArm
 from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.rollout import run_episodes
-from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
 from seqtrojan.registry import Registry
 from seqtrojan.stats import Rate
 
-MONITORS: Registry[type[StateMonitor]] = Registry("defense", "monitor")
-"""Online monitors: calibrated on clean episodes, they watch the agent's state while it acts."""
-
-
-@dataclass(frozen=True)
-class MonitorConfig:
-    calibration_episodes: int = 1000
-    """clean episodes of the deployed agent used to calibrate (half for statistics, half for the threshold). Few
-    episodes make the per-unit statistics noisy and the threshold conservative: on the smoke agents 200 gave a
-    detection rate of 0.02, 1000 gave 0.99 (both under 1% false alarms). Episodes are batched, so this is cheap"""
-    false_alarm_target: float = 0.01
-    """per-episode false-alarm rate the threshold is set for"""
-    eval_episodes: int = 1000
-    """fresh episodes per measurement"""
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if not 0 < self.false_alarm_target < 1:
-            raise ConfigError(f"false_alarm_target must be in (0, 1), got {self.false_alarm_target}")
-        if self.calibration_episodes < 20:
-            raise ConfigError(f"calibration_episodes must be >= 20, got {self.calibration_episodes}")
-        held_out = self.calibration_episodes - self.calibration_episodes // 2
-        if held_out + 1 < 1.0 / self.false_alarm_target - 1e-9:
-            raise ConfigError(
-                f"calibration_episodes={self.calibration_episodes} holds out {held_out} episodes for the threshold, "
-                f"too few for false_alarm_target={self.false_alarm_target:g} (needs at least "
-                f"{int(np.ceil(1 / self.false_alarm_target)) - 1})"
-            )
-
-
-def conformal_threshold(peaks: np.ndarray, false_alarm_target: float) -> float:
-    """The split-conformal threshold: the ceil((n + 1)(1 - target))-th smallest of n held-out clean peaks. When
-    deployment episodes are exchangeable with the calibration ones, an episode's false-alarm probability, averaged
-    over calibrations, is at most ``target`` (a plain empirical quantile undershoots it for small n). With too few
-    peaks for the target (n + 1 < 1 / target) no finite threshold guarantees it: a clear error."""
-    n = len(peaks)
-    k = int(np.ceil((n + 1) * (1.0 - false_alarm_target)))
-    if k > n:
-        raise ConfigError(
-            f"{n} held-out calibration episodes cannot give a {false_alarm_target:g} false-alarm rate; "
-            f"use calibration_episodes >= {2 * int(np.ceil(1 / false_alarm_target - 1))}"
-        )
-    return float(np.sort(peaks)[k - 1])
+MONITORS: Registry[type[OnlineDetector]] = Registry("defense", "monitor")
+"""Online detectors (:class:`~seqtrojan.defense.online.OnlineDetector`): calibrated on the agent's clean episodes,
+they score every step while it acts; :class:`MonitoredPolicy` raises their alarms (and resets the state)."""
 
 
 @MONITORS.register("state_monitor", "online: alarm (and reset the state) when a unit's |z| leaves the clean range")
@@ -128,17 +93,39 @@ class StateMonitor:
             scores.append(((x - m.to(x.device)) / s.to(x.device)).abs().amax(-1))
         return torch.stack(scores).amax(0)
 
+    def score_step(self, obs: torch.Tensor, state: RecurrentState, t: torch.Tensor) -> torch.Tensor:
+        """(B,) :meth:`score` of the state after the step (the :class:`OnlineDetector` call)."""
+        return self.score(state)
+
+    @property
+    def units(self) -> tuple[int, ...]:
+        return tuple(int(m.numel()) for m in self.mean)
+
+
+MONITORS.register(
+    "multivariate_monitor",
+    "online: alarm (and reset) when the whole state's step-conditioned Mahalanobis distance leaves the clean range",
+    MultivariateMonitor,
+)
+MONITORS.register(
+    "input_novelty",
+    "online baseline: alarm (and reset) when the agent sees a view pattern that is rare in clean episodes",
+    InputNovelty,
+)
+
 
 class MonitoredPolicy(AgentPolicy):
-    """A batched agent policy (sampled actions) with the monitor watching (and, with ``reset=True``, resetting) its
-    state: after each step the new state is scored; an alarm is counted and, with ``reset``, that env's state is
+    """A batched agent policy (sampled actions) with an online detector (any :class:`OnlineDetector`: the state
+    monitors, the input-novelty baseline) watching (and, with ``reset=True``, resetting) its state: after each step
+    the observation and the new state are scored; an alarm is counted and, with ``reset``, that env's state is
     zeroed before the next step. The action is the agent's own either way (the reset acts from the next step on)."""
 
     def __init__(
-        self, agent: RecurrentActorCritic, monitor: StateMonitor, core: TrojanGridCore, reset: bool, seed: int = 0
+        self, agent: RecurrentActorCritic, monitor: OnlineDetector, core: TrojanGridCore, reset: bool, seed: int = 0
     ) -> None:
         super().__init__(agent, seed=seed)
         self.monitor, self.core, self.reset_on_alarm = monitor, core, reset
+        self.obs: torch.Tensor | None = None  # (B, obs_dim) the observation of the step being taken
         self.first_alarm = torch.full((core.num_envs,), -1, dtype=torch.int64)
         self.alarms = torch.zeros(core.num_envs, dtype=torch.int64)
 
@@ -147,9 +134,15 @@ class MonitoredPolicy(AgentPolicy):
         self.first_alarm.fill_(-1)
         self.alarms.zero_()
 
+    @torch.no_grad()
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        self.obs = obs
+        return super().__call__(obs)
+
     def next_state(self, state: RecurrentState) -> RecurrentState:
-        alarm = (self.monitor.score(state) > self.monitor.threshold).cpu()
+        assert self.obs is not None  # __call__ sets it before the step
         t = self.core.t.cpu()
+        alarm = (self.monitor.score_step(self.obs, state, self.core.t) > self.monitor.threshold).cpu()
         self.first_alarm = torch.where(alarm & (self.first_alarm < 0), t, self.first_alarm)
         self.alarms += alarm.long()
         if self.reset_on_alarm and bool(alarm.any()):
@@ -164,7 +157,7 @@ def _rate(flags: np.ndarray) -> Rate:
 
 
 def measure_monitor(
-    agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, monitor: StateMonitor, cfg: MonitorConfig,
+    agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, monitor: OnlineDetector, cfg: MonitorConfig,
     device: str | torch.device = "cpu",
 ) -> MonitorResult:  # fmt: skip
     env_cfg = env.with_grid(grid)
@@ -204,7 +197,7 @@ def measure_monitor(
         grid=grid.label,
         episodes=cfg.eval_episodes,
         threshold=monitor.threshold,
-        units=tuple(int(m.numel()) for m in monitor.mean),
+        units=monitor.units,
         normal_alarm=normal["alarm"],
         normal_reset=normal["reset"],
         trojan_alarm=trojan_arms["alarm"],

@@ -24,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from seqtrojan.agent.checkpoint import WEIGHTS
+from seqtrojan.agent.checkpoint import WEIGHTS, load_agent
+from seqtrojan.defense.behaviour import BehaviourDetector
 from seqtrojan.defense.results import (
     DetectionResult,
     FunctionalSplit,
@@ -38,8 +39,10 @@ from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS
 from seqtrojan.errors import CheckpointError, SeqTrojanError
 from seqtrojan.registry import Registry
 
-DETECTORS: Registry[Callable[[Path, int, int], DetectionResult]] = Registry("defense", "detector")
-"""Offline detectors: (zoo folder, folds, seed) -> a :class:`DetectionResult` scored on the zoo's models."""
+DETECTORS: Registry[Callable[[Path, int, int], DetectionResult] | BehaviourDetector] = Registry("defense", "detector")
+"""Offline detectors: the weight detector, (zoo folder, folds, seed) -> a :class:`DetectionResult` scored on the
+zoo's models; the behavioural one, a :class:`~seqtrojan.defense.behaviour.BehaviourDetector` (``.score(model
+folder, device)`` -> a float per model, ``.detect_zoo(zoo folder, device)``)."""
 
 GATES = ("input", "forget", "cell", "output")
 GROUPS = ("gate_stats", "spectral", "input_codes")
@@ -181,6 +184,36 @@ def cross_validated_scores(
     return GroupScores(group or "all", len(names), len(y), folds, **_scores(y, probs), predictions=predictions)
 
 
+@dataclass(frozen=True)
+class FittedWeightDetector:
+    """The weight detector trained on a whole zoo, to score models outside it (the attack x defense matrix)."""
+
+    pipeline: Any
+    feature_names: tuple[str, ...]
+
+    def probability(self, model: Path) -> float:
+        """P(backdoored) of the model folder ``model`` (read through the same checks as a zoo model's weights)."""
+        agent, cfg, _ = load_agent(model)
+        tensors = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
+        features = weight_features(tensors, cfg.env.obs_dim)
+        missing = sorted(set(self.feature_names) - set(features))
+        if missing:
+            raise SeqTrojanError(f"{str(model)!r} lacks weight features the detector was trained on: {missing[:3]}")
+        x = np.nan_to_num(np.array([[features[n] for n in self.feature_names]]), nan=0.0, posinf=0.0, neginf=0.0)
+        return float(self.pipeline.predict_proba(x)[0, 1])
+
+
+def fit_weight_detector(zoo: Path) -> FittedWeightDetector:
+    """The detector trained on every usable model of ``zoo`` (all features)."""
+    models, _ = load_zoo_features(zoo)
+    y = np.array([m.label for m in models])
+    if len(models) == 0 or np.bincount(y, minlength=2).min() < 1:
+        raise SeqTrojanError(f"the zoo {str(zoo)!r} needs clean and backdoored models to train the weight detector")
+    x, names = _matrix(models, None)
+    x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+    return FittedWeightDetector(_detector().fit(x, y), tuple(names))
+
+
 HELD_OUT_KEYS = ("lstm_sizes", "trigger_value", "curriculum")
 
 
@@ -275,4 +308,9 @@ def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> DetectionResult:
 
 DETECTORS.register(
     "weight_detector", "offline: logistic regression on LSTM weight statistics, scored on a zoo", detect_zoo
+)
+DETECTORS.register(
+    "behaviour_detector",
+    "trigger-free: how much one-step view patches raise the share of episodes ending at the adversary's goal",
+    BehaviourDetector(),
 )

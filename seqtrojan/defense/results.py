@@ -49,16 +49,16 @@ class TrojanEnvArm:
 
 @dataclass(frozen=True)
 class MonitorResult:
-    """:func:`seqtrojan.defense.monitor.measure_monitor`: each env with the monitor raising alarms only, with it
-    resetting the state on an alarm, and without it."""
+    """:func:`seqtrojan.defense.monitor.measure_monitor`: each env with the monitor (any online detector) raising
+    alarms only, with it resetting the state on an alarm, and without it."""
 
     grid: str
     episodes: int
     """fresh episodes per arm"""
     threshold: float
-    """the monitor's alarm threshold (largest |z| over all units)"""
+    """the detector's alarm threshold (for the state monitor: the largest |z| over all units)"""
     units: tuple[int, ...]
-    """units watched per layer (h and c)"""
+    """units watched per layer (h and c); () for a detector that reads only the input (input novelty)"""
     normal_alarm: NormalEnvArm
     normal_reset: NormalEnvArm
     trojan_alarm: TrojanEnvArm
@@ -206,3 +206,75 @@ class DetectionResult:
     @property
     def backdoored_models(self) -> int:
         return sum(p.label == 1 for p in self.scores[0].predictions)
+
+
+# --- the trigger-free behavioural detector (seqtrojan.defense.behaviour)
+
+
+@dataclass(frozen=True)
+class PatchCandidate:
+    """One candidate patch shown for one step of normal-env episodes, and how often the agent then ended at the
+    adversary's goal."""
+
+    name: str
+    """``whole_view:<code>`` (one code over the whole view) or ``random:<i>`` (ordinary codes on some cells)"""
+    cells: tuple[tuple[int, int], ...]
+    """the view cells (row, col) the patch draws on"""
+    codes: tuple[str, ...]
+    """the code drawn on each of those cells"""
+    adversary_goal: Rate
+    """episodes with this patch that ended at the adversary's goal"""
+    rise: float
+    """``adversary_goal`` minus the no-patch baseline's rate (the same episodes' layouts and patch steps)"""
+
+
+@dataclass(frozen=True)
+class BehaviourScore:
+    """:func:`seqtrojan.defense.behaviour.behaviour_score` on one model."""
+
+    grid: str
+    episodes: int
+    """normal-env episodes per candidate (and for the baseline)"""
+    patch_steps: tuple[int, int]
+    """inclusive range of the step the patch is shown at (drawn per episode, shared by all candidates)"""
+    baseline: Rate
+    """episodes without a patch that ended at the adversary's goal"""
+    score: float
+    """the model's score: the largest rise over the candidates (a backdoor makes some patch switch the goal)"""
+    best: str
+    """the name of the candidate with that rise"""
+    candidates: tuple[PatchCandidate, ...]
+
+
+@dataclass(frozen=True)
+class DetectorAUC:
+    """:func:`seqtrojan.defense.behaviour.scores_auc`: how well a score ranks backdoored above clean models."""
+
+    auc: float
+    """ROC-AUC (ties count half)"""
+    interval: tuple[float, float]
+    """its 95% interval (:func:`seqtrojan.stats.auc_interval`)"""
+    positives: int
+    """backdoored models"""
+    negatives: int
+    """clean models"""
+
+
+@dataclass(frozen=True)
+class ScoredModel:
+    model: str
+    label: int
+    """1 backdoored, 0 clean"""
+    score: float
+    best: str
+    """the candidate patch that gave the score"""
+
+
+@dataclass(frozen=True)
+class BehaviourDetectionResult:
+    """:func:`seqtrojan.defense.behaviour.detect_zoo_behaviour`: every usable zoo model's behavioural score."""
+
+    models: tuple[ScoredModel, ...]
+    rejected: tuple[Rejected, ...]
+    auc: DetectorAUC | None
+    """None when the scored models hold one label only"""

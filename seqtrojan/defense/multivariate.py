@@ -1,0 +1,174 @@
+"""The multivariate state monitor: the Mahalanobis distance of the whole recurrent state from where clean episodes
+hold it at the same step.
+
+The state vector is every layer's h then c, concatenated (D = 2 * sum of the widths). Calibration uses only the
+deployed agent's clean episodes, split as for every online detector (:mod:`seqtrojan.defense.online`): on the
+first half, the mean state at each step ``t < T`` (``T``: the first step at which fewer than
+``min_episodes_per_step`` statistics episodes still run, or ``max_step``; later steps use step ``T - 1``'s mean);
+the residuals from those means, pooled over steps and divided by each unit's root-mean-square residual; their
+second-moment matrix shrunk towards the (scaled) identity (Ledoit-Wolf's weight unless ``shrinkage`` is given)
+plus a ``ridge``, so that it stays well conditioned with few episodes and many units. A step's score is the distance
+``sqrt(r' S^-1 r)`` of its standardised residual ``r``; an episode's score is its running maximum, and the
+threshold is the split-conformal quantile of the other half's peaks.
+
+Unlike the per-unit monitor (:class:`~seqtrojan.defense.monitor.StateMonitor`), it sees a state whose units each
+stay in range but move together in a direction clean episodes never take, and it expects different states early
+and late in an episode.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.agent.state import RecurrentState
+from seqtrojan.analysis.traces import StateTrace, record_traces
+from seqtrojan.defense.online import MonitorConfig, conformal_threshold, split
+from seqtrojan.env.config import EnvConfig, GridSpec
+from seqtrojan.errors import ConfigError, ShapeError
+
+
+@dataclass(frozen=True)
+class MultivariateConfig:
+    """How :class:`MultivariateMonitor` models clean states; the calibration itself follows the
+    :class:`~seqtrojan.defense.online.MonitorConfig`."""
+
+    max_step: int | None = None
+    """per-step means for steps below this (later steps use the last one's); None: as many steps as have
+    ``min_episodes_per_step`` statistics episodes still running"""
+    min_episodes_per_step: int = 20
+    """statistics episodes a step's mean needs (>= 2)"""
+    shrinkage: float | None = None
+    """weight of the identity in the covariance of the standardised residuals, in [0, 1]; None: Ledoit-Wolf's"""
+    ridge: float = 1e-3
+    """added to the covariance's diagonal (>= 0)"""
+
+    def __post_init__(self) -> None:
+        if self.max_step is not None and self.max_step < 1:
+            raise ConfigError(f"multivariate max_step must be >= 1 or None, got {self.max_step}")
+        if self.min_episodes_per_step < 2:
+            raise ConfigError(f"multivariate min_episodes_per_step must be >= 2, got {self.min_episodes_per_step}")
+        if self.shrinkage is not None and not 0 <= self.shrinkage <= 1:
+            raise ConfigError(f"multivariate shrinkage must be in [0, 1] or None, got {self.shrinkage}")
+        if not self.ridge >= 0:
+            raise ConfigError(f"multivariate ridge must be >= 0, got {self.ridge}")
+
+
+def ledoit_wolf_shrinkage(x: np.ndarray) -> float:
+    """Ledoit and Wolf's (2004) weight of the scaled identity in the shrunk covariance of centred rows ``x``
+    (n, p), as in scikit-learn's ``ledoit_wolf_shrinkage``."""
+    n, p = x.shape
+    x2 = x**2
+    trace = x2.sum(0) / n  # (p,) diagonal of the sample covariance
+    mu = trace.sum() / p
+    beta_ = float((x2.T @ x2).sum())
+    delta_ = float(((x.T @ x) ** 2).sum()) / n**2
+    beta = (beta_ / n - delta_) / (p * n)
+    delta = (delta_ - 2.0 * mu * trace.sum() + p * mu**2) / p
+    beta = min(beta, delta)
+    return 0.0 if delta <= 0 else float(beta / delta)
+
+
+def state_vectors(trace: StateTrace) -> np.ndarray:
+    """(E, T, D) every layer's h then c at every step of a trace."""
+    return np.concatenate([np.concatenate([h, c], -1) for h, c in zip(trace.h, trace.c)], -1)
+
+
+class MultivariateMonitor:
+    """Step-conditioned Mahalanobis distance of the whole recurrent state (see the module docstring)."""
+
+    def __init__(
+        self, mean: np.ndarray, scale: np.ndarray, whitener: np.ndarray, widths: tuple[int, ...], threshold: float,
+        shrinkage: float = 0.0,
+    ) -> None:  # fmt: skip
+        self.mean = torch.as_tensor(mean, dtype=torch.float32)  # (T, D) per-step mean state
+        self.scale = torch.as_tensor(scale, dtype=torch.float32)  # (D,) per-unit residual std
+        self.whitener = torch.as_tensor(whitener, dtype=torch.float32)  # (D, D) L^-1, S = L L'
+        self.widths = tuple(int(w) for w in widths)
+        self.threshold = threshold
+        self.shrinkage = shrinkage
+        """the identity's weight used (Ledoit-Wolf's or the configured one)"""
+        if self.mean.shape[1] != 2 * sum(self.widths) or self.whitener.shape != (self.mean.shape[1],) * 2:
+            raise ShapeError(
+                f"a multivariate monitor of widths {self.widths} needs (T, {2 * sum(self.widths)}) means and a "
+                f"square whitener, got {tuple(self.mean.shape)} and {tuple(self.whitener.shape)}"
+            )
+
+    @property
+    def units(self) -> tuple[int, ...]:
+        return tuple(2 * w for w in self.widths)
+
+    @property
+    def steps(self) -> int:
+        """T: steps with their own mean"""
+        return int(self.mean.shape[0])
+
+    @classmethod
+    def fit(
+        cls, x: np.ndarray, mask: np.ndarray, widths: tuple[int, ...], options: MultivariateConfig | None = None,
+        threshold: float = float("inf"),
+    ) -> MultivariateMonitor:  # fmt: skip
+        """Statistics from states ``x`` (E, T, D) where ``mask`` (E, T) is true."""
+        options = options or MultivariateConfig()
+        running = mask.sum(0)  # (T,)
+        short = np.flatnonzero(running < options.min_episodes_per_step)
+        steps = int(short[0]) if len(short) else len(running)
+        if options.max_step is not None:
+            steps = min(steps, options.max_step)
+        if steps < 1:
+            raise ConfigError(
+                f"the multivariate monitor needs >= {options.min_episodes_per_step} statistics episodes at step 0, "
+                f"got {int(running[0]) if len(running) else 0}: use more calibration episodes"
+            )
+        x = x.astype(np.float64)
+        mean = np.stack([x[mask[:, t], t].mean(0) for t in range(steps)])  # (T', D)
+        step_of = np.minimum(np.arange(x.shape[1]), steps - 1)
+        resid = (x - mean[step_of][None])[mask]  # (n, D)
+        scale = np.sqrt((resid**2).mean(0)) + 1e-3  # about the step means, not the residuals' own mean
+        z = resid / scale
+        weight = ledoit_wolf_shrinkage(z) if options.shrinkage is None else options.shrinkage
+        cov = z.T @ z / len(z)
+        d = cov.shape[0]
+        cov = (1 - weight) * cov + weight * (np.trace(cov) / d) * np.eye(d) + options.ridge * np.eye(d)
+        whitener = np.linalg.inv(np.linalg.cholesky(cov))
+        return cls(mean, scale, whitener, widths, threshold, weight)
+
+    @classmethod
+    def calibrate(
+        cls, agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, cfg: MonitorConfig,
+        device: str | torch.device = "cpu", options: MultivariateConfig | None = None,
+    ) -> MultivariateMonitor:  # fmt: skip
+        """Statistics from the first half of ``cfg.calibration_episodes`` clean episodes (the same episodes as the
+        :class:`~seqtrojan.defense.monitor.StateMonitor`'s), the threshold from the other half's peaks."""
+        trace = record_traces(
+            agent, env, [grid], episodes=cfg.calibration_episodes, trojan=False, trigger_step=None, seed=cfg.seed,
+            device=device,
+        )  # fmt: skip
+        half = split(cfg.calibration_episodes)
+        x = state_vectors(trace)  # (E, T, D)
+        monitor = cls.fit(x[:half], trace.mask[:half], tuple(agent.lstm_sizes), options)
+        held = torch.from_numpy(x[half:]).float()
+        e, t = held.shape[:2]
+        steps = torch.arange(t).repeat(e)
+        scores = monitor.score_vectors(held.reshape(e * t, -1), steps).reshape(e, t).numpy()
+        peaks = np.where(trace.mask[half:], scores, -np.inf).max(1)
+        monitor.threshold = conformal_threshold(peaks, cfg.false_alarm_target)
+        return monitor
+
+    def score_vectors(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """(B,) the distance of states ``x`` (B, D) at episode steps ``t`` (B,) int64."""
+        idx = t.to(x.device).long().clamp(0, self.steps - 1)
+        r = (x - self.mean.to(x.device)[idx]) / self.scale.to(x.device)
+        return (r @ self.whitener.to(x.device).T).norm(dim=-1)
+
+    def score_state(self, state: RecurrentState, t: torch.Tensor) -> torch.Tensor:
+        """(B,) the distance of ``state`` at episode steps ``t`` (B,)."""
+        x = torch.cat([torch.cat([layer.h, layer.c], -1) for layer in state.layers], -1)  # (B, D)
+        return self.score_vectors(x, t)
+
+    def score_step(self, obs: torch.Tensor, state: RecurrentState, t: torch.Tensor) -> torch.Tensor:
+        """(B,) the distance of the state after the step (the observation is not read)."""
+        return self.score_state(state, t)
