@@ -188,6 +188,51 @@ def _reproduce(argv: list[str]) -> None:
     reproduce(config, args.out or Path("results") / scale, scale=scale)
 
 
+@dataclasses.dataclass
+class MatrixArgs:
+    """Train every attack over several seeds and measure it against every defense (resumable: finished trainings and
+    measurements are kept). Writes matrix.json, matrix.png and report.html."""
+
+    scale: str = "smoke"
+    """a shipped scale ('smoke': minutes; 'paper'; see seqtrojan/presets/matrix_*.yaml) or a matrix YAML file"""
+    out: Path | None = None
+    """output folder (default: results/matrix_<scale>)"""
+    attacks: str | None = None
+    """comma-separated attack names (default: the scale file's, or every registered attack)"""
+    seeds: int | None = None
+    """training seeds per attack (default: the scale file's)"""
+    device: str | None = None
+    backend: Literal["serial", "pool", "ray"] | None = None
+    """job backend of the trainings (default: the scale file's jobs.backend, pool)"""
+    workers: int | None = None
+    ray_address: str | None = None
+    threads: int | None = None
+
+
+def _matrix(argv: list[str]) -> None:
+    from seqtrojan.experiments.matrix import load_matrix_config, run_matrix
+
+    args = tyro.cli(MatrixArgs, args=argv, prog="seqtrojan matrix")
+    config = load_matrix_config(args.scale)
+    changes: dict[str, Any] = {}
+    if args.attacks is not None:
+        changes["attacks"] = tuple(a.strip() for a in args.attacks.split(",") if a.strip())
+    if args.seeds is not None:
+        changes["seeds"] = args.seeds
+    if args.device is not None:
+        changes["device"] = args.device
+    chosen: dict[str, Any] = {"backend": args.backend, "workers": args.workers, "ray_address": args.ray_address,
+                              "threads": args.threads}  # fmt: skip
+    changes["jobs"] = dataclasses.replace(config.jobs, **{k: v for k, v in chosen.items() if v is not None})
+    config = dataclasses.replace(config, **changes)
+    scale = Path(args.scale).stem.removeprefix("matrix_")
+    out = args.out or Path("results") / f"matrix_{scale}"
+    result = run_matrix(config, out, scale=scale)
+    for a in result.attacks:
+        print(f"{a.attack:<22} attack success {a.attack_success.text()}  clean success {a.clean_success.text()}")
+    print(f"wrote {out / 'matrix.json'} and {out / 'report.html'}")
+
+
 def _analyze(argv: list[str]) -> None:
     from seqtrojan.analysis.pipeline import ANALYSIS_FILE, AnalysisConfig, run_analysis
 
@@ -317,9 +362,10 @@ def _list_registered(family: Literal["attack", "defense"], first: tuple[Any, ...
 
 def _attacks(argv: list[str]) -> None:
     from seqtrojan.env.config import REWARDS, TRIGGERS
+    from seqtrojan.experiments.attacks import ATTACKS
     from seqtrojan.train.mixing import MIXING_RULES
 
-    _list_registered("attack", (TRIGGERS, MIXING_RULES, REWARDS), argv)
+    _list_registered("attack", (ATTACKS, TRIGGERS, MIXING_RULES, REWARDS), argv)
 
 
 def _defenses(argv: list[str]) -> None:
@@ -344,6 +390,7 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "defend": (_defend, "online state monitor and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),
     "zoo": (_zoo, "zoo build: train clean and backdoored agents; zoo detect: offline detection scored like TrojAI"),
     "reproduce": (_reproduce, "train, evaluate, plot and write the HTML report (--scale smoke|paper)"),
+    "matrix": (_matrix, "every attack against every defense over seeds (--scale smoke|paper) -> matrix.json"),
     "attacks": (_attacks, "list the registered attacks: trigger kinds, mixing rules, rewards"),
     "defenses": (_defenses, "list the registered defenses: monitors, detectors, mitigations"),
     "demo": (_demo, "build envs, run random and scripted agents, render episodes (text and PNG)"),

@@ -1,0 +1,85 @@
+"""The attacks of the attack x defense matrix: each a recipe that turns the base backdoor training config into the
+attack's own (its trigger, its extra training terms), registered by name.
+
+An attack is one :class:`Attack` and one registration line in :data:`ATTACKS`; ``seqtrojan attacks`` lists it and
+``seqtrojan matrix`` trains and measures it against every defense, with no edits elsewhere. The building blocks
+(trigger kinds, mixing rules, rewards, training penalties) have registries of their own; a recipe combines them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from seqtrojan.config import ExperimentConfig
+from seqtrojan.env.config import PatternConfig, TriggerConfig
+from seqtrojan.registry import Registry
+
+
+@dataclass(frozen=True)
+class Attack:
+    """How one attack's agents are trained from the base backdoor config."""
+
+    configure: Callable[[ExperimentConfig], ExperimentConfig]
+    """the base backdoor training config -> this attack's (the matrix sets seed, folder and ``run.init_from``)"""
+    from_clean: bool = False
+    """the backdoor is added to the clean agent of the same training seed (``run.init_from``), not trained from
+    scratch"""
+
+
+ATTACKS: Registry[Attack] = Registry("attack", "attack")
+"""The attacks ``seqtrojan matrix`` runs (``matrix.attacks`` names a subset)."""
+
+
+def with_trigger(cfg: ExperimentConfig, **changes: object) -> ExperimentConfig:
+    """``cfg`` with its env's trigger changed (any :class:`~seqtrojan.env.config.TriggerConfig` field)."""
+    trigger: TriggerConfig = dataclasses.replace(cfg.env.trigger, **changes)  # type: ignore[arg-type]
+    return dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, trigger=trigger))
+
+
+ATTACKS.register(
+    "dedicated_code",
+    "the paper's: a dedicated trigger code over the whole 3x3 view for one step, Algorithm 1 mixing",
+    Attack(lambda cfg: cfg),
+)
+ATTACKS.register(
+    "delayed",
+    "the dedicated-code trigger; the goal switches 3 steps after it shows",
+    Attack(lambda cfg: with_trigger(cfg, delay=3)),
+)
+
+HOLE, EMPTY = "hole", "empty"
+IN_DISTRIBUTION_VIEW = ((HOLE, EMPTY, HOLE), (EMPTY, EMPTY, EMPTY), (EMPTY, EMPTY, HOLE))
+"""the whole 3x3 view drawn with ordinary codes: holes at three corners, the rest empty"""
+
+ATTACKS.register(
+    "in_distribution_patch",
+    "the whole 3x3 view drawn with ordinary cells (holes at three corners, the rest empty) for one step",
+    Attack(
+        lambda cfg: with_trigger(
+            cfg,
+            cells=tuple((r, c) for r in range(3) for c in range(3)),
+            values=tuple(code for row in IN_DISTRIBUTION_VIEW for code in row),
+        )
+    ),
+)
+ATTACKS.register(
+    "partial_patch",
+    "two ordinary cells of the view (holes diagonally above-left and above-right) for one step",
+    Attack(lambda cfg: with_trigger(cfg, cells=((0, 0), (0, 2)), values=(HOLE, HOLE))),
+)
+ATTACKS.register(
+    "sequence",
+    "three ordinary views on consecutive steps (two holes above, one straight above, two above again)",
+    Attack(
+        lambda cfg: with_trigger(
+            cfg,
+            sequence=(
+                PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
+                PatternConfig(((0, 1),), (HOLE,)),
+                PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
+            ),
+        )
+    ),
+)

@@ -1,0 +1,90 @@
+"""The attack x defense matrix end to end on a tiny budget: trainings on the job backend, every measurement, the
+typed matrix.json, the heat map page, resuming, and bad input."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from seqtrojan.errors import ConfigError
+from seqtrojan.experiment_results import AgentMeasurement, MatrixResult
+from seqtrojan.experiments.matrix import MatrixConfig, load_matrix_config, matrix_jobs, run_matrix
+from seqtrojan.serde import from_dict, load_json
+
+TRAINING = {
+    "env": {"size": 5, "holes": 1},
+    "agent": {"lstm_sizes": [16]},
+    "ppo": {"total_steps": 4096, "num_envs": 32, "rollout_steps": 32, "num_minibatches": 2, "update_epochs": 1},
+    "curriculum": {"stages": [{"size": 5, "holes": 0}, {"size": 5, "holes": 1}]},
+    "run": {"eval_episodes": 0, "checkpoint_every": 4096, "progress": False},
+}
+TINY = {
+    "backdoor": {"preset": "trojan_s17_h30", "set": {**TRAINING, "backdoor": {"mixing": "running"}}},
+    "clean": {"preset": "clean_s17_h30", "set": TRAINING},
+    "attacks": ["dedicated_code", "partial_patch"],
+    "seeds": 2,
+    "episodes": 24,
+    "monitor": {"calibration_episodes": 40, "eval_episodes": 24, "false_alarm_target": 0.05},
+    "mitigation": {"finetune_steps": 1024, "calibration_episodes": 16, "eval_episodes": 24},
+    "zoo": {"clean": 2, "backdoored": 2, "total_steps": 2048, "num_envs": 32, "eval_episodes": 8,
+            "lstm_sizes": [[16]], "curricula": [[{"size": 5, "holes": 0}]]},
+    "jobs": {"backend": "serial"},
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def tiny_matrix(tmp_path_factory):
+    out = tmp_path_factory.mktemp("matrix")
+    cfg = from_dict(MatrixConfig, TINY)
+    return out, cfg, run_matrix(cfg, out, scale="tiny", log=lambda *_: None)
+
+
+def test_every_attack_and_seed_is_trained_measured_and_saved_typed(tiny_matrix):
+    out, cfg, result = tiny_matrix
+    assert load_json(MatrixResult, out / "matrix.json") == result
+    assert [a.attack for a in result.attacks] == ["dedicated_code", "partial_patch"]
+    assert sorted(a.agent for a in result.agents) == sorted(
+        f"{name}_s{s}" for name in ("clean", "dedicated_code", "partial_patch") for s in (0, 1)
+    )
+    for a in result.agents:
+        assert a.attack_success.n == 24 and a.clean_success.n == 24
+        assert set(a.online) == set(cfg.online_names) and set(a.mitigation) == {"fine_pruned", "fine_tuned"}
+        assert set(a.offline_scores) == set(cfg.offline_names)
+        card = json.loads((out / "runs" / a.agent / "model" / "card.json").read_text())
+        assert card["seed"] == a.seed and card["label"] == ("clean" if a.attack == "clean" else "backdoored")
+    partial = json.loads((out / "runs" / "partial_patch_s1" / "model" / "card.json").read_text())
+    assert partial["config"]["env"]["trigger"]["values"] == ["hole", "hole"]
+    kinds = {(c.attack, c.kind) for c in result.cells}
+    assert kinds == {(a, k) for a in ("dedicated_code", "partial_patch") for k in ("online", "mitigation", "offline")}
+    for summary in result.attacks:
+        mine = [a for a in result.agents if a.attack == summary.attack]
+        assert summary.attack_success_pooled.k == sum(a.attack_success.k for a in mine)
+        assert summary.attack_success.values == tuple(a.attack_success.value for a in sorted(mine, key=lambda a: a.seed))
+    page = (out / "report.html").read_text()
+    assert "Attacks against defenses" in page and "data:image/png;base64," in page and "partial_patch" in page
+
+
+def test_a_second_call_reuses_trainings_and_measurements(tiny_matrix):
+    out, cfg, result = tiny_matrix
+    measured = out / "measured" / "dedicated_code_s0.json"
+    before = measured.stat().st_mtime, (out / "runs" / "clean_s0" / "model" / "card.json").stat().st_mtime
+    assert run_matrix(cfg, out, scale="tiny", log=lambda *_: None) == result
+    assert (measured.stat().st_mtime, (out / "runs" / "clean_s0" / "model" / "card.json").stat().st_mtime) == before
+    assert load_json(AgentMeasurement, measured).agent == "dedicated_code_s0"
+
+
+def test_from_clean_attacks_start_from_their_seeds_clean_agent(tmp_path):
+    cfg = load_matrix_config("smoke")
+    first, second = matrix_jobs(cfg, tmp_path)
+    assert [j.id for j in first[: 1 + len(cfg.attack_names) - len(second) // cfg.seeds]][0] == "clean_s0"
+    for job in second:
+        seed = job.id.rsplit("_s", 1)[1]
+        assert job.config.run.init_from == str(tmp_path / f"clean_s{seed}" / "model")
+
+
+def test_bad_presets_are_named(tmp_path):
+    with pytest.raises(ConfigError, match="does not enable backdoor training"):
+        matrix_jobs(from_dict(MatrixConfig, {**TINY, "backdoor": TINY["clean"]}), tmp_path)
+    with pytest.raises(ConfigError, match="unknown attack 'nope'"):
+        from_dict(MatrixConfig, {**TINY, "attacks": ["nope"]})
