@@ -60,7 +60,8 @@ def test_every_attack_and_seed_is_trained_measured_and_saved_typed(tiny_matrix):
     for summary in result.attacks:
         mine = [a for a in result.agents if a.attack == summary.attack]
         assert summary.attack_success_pooled.k == sum(a.attack_success.k for a in mine)
-        assert summary.attack_success.values == tuple(a.attack_success.value for a in sorted(mine, key=lambda a: a.seed))
+        by_seed = sorted(mine, key=lambda a: a.seed)
+        assert summary.attack_success.values == tuple(a.attack_success.value for a in by_seed)
     page = (out / "report.html").read_text()
     assert "Attacks against defenses" in page and "data:image/png;base64," in page and "partial_patch" in page
 
@@ -77,7 +78,7 @@ def test_a_second_call_reuses_trainings_and_measurements(tiny_matrix):
 def test_from_clean_attacks_start_from_their_seeds_clean_agent(tmp_path):
     cfg = load_matrix_config("smoke")
     first, second = matrix_jobs(cfg, tmp_path)
-    assert [j.id for j in first[: 1 + len(cfg.attack_names) - len(second) // cfg.seeds]][0] == "clean_s0"
+    assert first[0].id == "clean_s0" and len(first) + len(second) == cfg.seeds * (1 + len(cfg.attack_names))
     for job in second:
         seed = job.id.rsplit("_s", 1)[1]
         assert job.config.run.init_from == str(tmp_path / f"clean_s{seed}" / "model")

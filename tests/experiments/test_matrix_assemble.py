@@ -15,7 +15,8 @@ def measured(attack: str, seed: int, success: int, detected: int, score: float) 
     return AgentMeasurement(
         agent=f"{attack}_s{seed}", attack=attack, seed=seed, grid="7x7/3", clean_success=Rate(95, 100),
         attack_success=Rate(success, 100), unintentional=Rate(seed, 100), natural_trigger=Rate(0, 100),
-        online={"state_monitor": arm}, mitigation={"fine_tuned": MitigationOutcome(Rate(96, 100), Rate(10 * seed, 100))},
+        online={"state_monitor": arm},
+        mitigation={"fine_tuned": MitigationOutcome(Rate(96, 100), Rate(10 * seed, 100))},
         offline_scores={"weight_detector": score},
     )  # fmt: skip
 
@@ -50,7 +51,7 @@ def test_unknown_names_and_bad_sizes_are_refused_with_the_known_ones():
         MatrixConfig(attacks=("nope",))
     with pytest.raises(ConfigError, match=r"unknown monitor 'nope'; known: state_monitor"):
         MatrixConfig(online=("nope",))
-    with pytest.raises(ConfigError, match="matrix.seeds"):
+    with pytest.raises(ConfigError, match=r"matrix\.seeds"):
         MatrixConfig(seeds=0)
-    with pytest.raises(ConfigError, match="matrix.attacks is empty"):
+    with pytest.raises(ConfigError, match=r"matrix\.attacks is empty"):
         MatrixConfig(attacks=())
