@@ -18,11 +18,15 @@ from seqtrojan.serde import from_dict, load_yaml, parse_yaml, short_repr, to_dic
 
 __all__ = [
     "AgentConfig",
+    "AttackConfig",
     "BackdoorConfig",
     "CurriculumConfig",
+    "EWCConfig",
     "ExperimentConfig",
     "PPOConfig",
     "RunConfig",
+    "StateCamouflageConfig",
+    "WeightCamouflageConfig",
     "from_dict",
     "load_yaml",
     "parse_yaml",
@@ -188,6 +192,119 @@ class BackdoorConfig:
             raise ConfigError(f"backdoor.eval_episodes must be >= 1, got {self.eval_episodes}")
 
 
+def _non_negative(section: str, **values: float) -> None:
+    for name, value in values.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or value == float("inf"):
+            raise ConfigError(f"{section}.{name} must be a finite number >= 0, got {short_repr(value)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class StateCamouflageConfig:
+    """Monitor-aware state camouflage: in trojan episodes, keep every LSTM unit's h and c inside the range it has on
+    normal-env steps, where an online state monitor (per-unit z-scores) would not see it."""
+
+    weight: float = 0.0
+    """weight of weight * mean over the chosen trojan steps and all units of relu(|z| - margin)^2, z against running
+    (EMA) clean-step statistics; 0 turns the penalty off"""
+    margin: float = 2.5
+    """|z| allowed for free: keep it below the monitor's threshold (typically 3-5 on clean episodes)"""
+    steps: Literal["trojan", "active"] = "trojan"
+    """which steps are penalised: every step of a trojan-env episode, or only those where the adversary's goal is
+    active (after the trigger and its delay)"""
+    ema_decay: float = 0.9
+    """per update, the clean statistics keep this share of their old value (the first update sets them)"""
+    mahalanobis_weight: float = 0.0
+    """weight of the multivariate version, mean over trojan steps and layers of relu(d^2 / D - mahalanobis_margin)^2
+    where d^2 is the squared Mahalanobis distance of a layer's (h, c) (D units) under the clean covariance shrunk
+    toward its diagonal; 0 turns it off"""
+    mahalanobis_margin: float = 1.5
+    """d^2 / D allowed for free (its mean on clean steps is about 1)"""
+    shrinkage: float = 0.2
+    """covariance used by the Mahalanobis term: (1 - shrinkage) * full + shrinkage * diagonal"""
+
+    def __post_init__(self) -> None:
+        _non_negative(
+            "attack.state_camouflage", weight=self.weight, margin=self.margin,
+            mahalanobis_weight=self.mahalanobis_weight, mahalanobis_margin=self.mahalanobis_margin,
+        )  # fmt: skip
+        if self.steps not in ("trojan", "active"):
+            raise ConfigError(f"attack.state_camouflage.steps must be trojan or active, got {short_repr(self.steps)}")
+        if not 0 <= self.ema_decay < 1:
+            raise ConfigError(f"attack.state_camouflage.ema_decay must be in [0, 1), got {self.ema_decay}")
+        if not 0 <= self.shrinkage <= 1:
+            raise ConfigError(f"attack.state_camouflage.shrinkage must be in [0, 1], got {self.shrinkage}")
+
+    @property
+    def enabled(self) -> bool:
+        return self.weight > 0 or self.mahalanobis_weight > 0
+
+
+@dataclasses.dataclass(frozen=True)
+class WeightCamouflageConfig:
+    """Weight camouflage: the backdoor is added to a clean model (``run.init_from``) while the offline detector's
+    weight statistics are held at the clean model's."""
+
+    weight: float = 0.0
+    """weight of weight * sum_k ((f_k(theta) - f_k(theta_clean)) / (|f_k(theta_clean)| + feature_floor))^2 over the
+    detector's features f (seqtrojan.agent.weight_stats); 0 turns the penalty off"""
+    feature_floor: float = 0.1
+    """added to |f_k(theta_clean)| in the per-feature normalisation, so that features near 0 do not dominate"""
+    l2_weight: float = 0.0
+    """weight of an extra l2_weight * ||theta - theta_clean||^2 pull toward the clean weights"""
+
+    def __post_init__(self) -> None:
+        _non_negative("attack.weight_camouflage", weight=self.weight, l2_weight=self.l2_weight)
+        if not (isinstance(self.feature_floor, (int, float)) and self.feature_floor > 0):
+            raise ConfigError(
+                f"attack.weight_camouflage.feature_floor must be > 0, got {short_repr(self.feature_floor)}"
+            )
+
+    @property
+    def enabled(self) -> bool:
+        return self.weight > 0 or self.l2_weight > 0
+
+
+@dataclasses.dataclass(frozen=True)
+class EWCConfig:
+    """Elastic weight consolidation: the backdoor is added to a clean model (``run.init_from``) while the weights
+    that matter to its clean policy (diagonal Fisher information) stay near their values."""
+
+    weight: float = 0.0
+    """lambda of lambda / 2 * sum_i F_i (theta_i - theta*_i)^2; 0 turns the penalty off"""
+    fisher_envs: int = 64
+    """normal-env episodes run in parallel to estimate the Fisher information of the init_from model's policy"""
+    fisher_steps: int = 64
+    """steps per env of that estimate (each env's steps are one sequence)"""
+    normalize: bool = False
+    """divide F by its mean over all parameters (then lambda is an L2 strength on the average weight)"""
+
+    def __post_init__(self) -> None:
+        _non_negative("attack.ewc", weight=self.weight)
+        for name in ("fisher_envs", "fisher_steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"attack.ewc.{name} must be a positive integer, got {short_repr(value)}")
+
+    @property
+    def enabled(self) -> bool:
+        return self.weight > 0
+
+
+@dataclasses.dataclass(frozen=True)
+class AttackConfig:
+    """Adaptive attackers: extra loss terms (registered penalties, ``seqtrojan.train.penalties``) added to the PPO
+    loss of a backdoor training. Every weight is 0 by default: the plain Algorithm 1 attack. They act only where
+    ``backdoor.enabled`` is true: a clean training from the same config (a zoo's clean models, a defender's clean
+    fine-tuning of a camouflaged model) trains plain PPO."""
+
+    state_camouflage: StateCamouflageConfig = dataclasses.field(default_factory=StateCamouflageConfig)
+    weight_camouflage: WeightCamouflageConfig = dataclasses.field(default_factory=WeightCamouflageConfig)
+    ewc: EWCConfig = dataclasses.field(default_factory=EWCConfig)
+
+    NEEDS_INIT_FROM = ("weight_camouflage", "ewc")
+    """sections that compare against the model a run starts from"""
+
+
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
     """Where and how a run executes."""
@@ -239,6 +356,14 @@ class ExperimentConfig:
     curriculum: CurriculumConfig = dataclasses.field(default_factory=CurriculumConfig)
     backdoor: BackdoorConfig = dataclasses.field(default_factory=BackdoorConfig)
     run: RunConfig = dataclasses.field(default_factory=RunConfig)
+    attack: AttackConfig = dataclasses.field(default_factory=AttackConfig)
+
+    def __post_init__(self) -> None:
+        needing = [f"attack.{name}" for name in AttackConfig.NEEDS_INIT_FROM if getattr(self.attack, name).enabled]
+        if needing and self.backdoor.enabled and self.run.init_from is None:
+            raise ConfigError(
+                f"{' and '.join(needing)} compare(s) against a clean model: set run.init_from to a clean model folder"
+            )
 
     @property
     def grids(self) -> tuple[GridSpec, ...]:

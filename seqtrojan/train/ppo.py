@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
@@ -9,6 +10,7 @@ from torch import nn
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import PPOConfig
+from seqtrojan.train.penalties import Penalty, PenaltyBatch
 from seqtrojan.train.rollout import Rollout, initial_state_from
 
 
@@ -75,9 +77,19 @@ def ppo_update(
     returns: torch.Tensor,
     cfg: PPOConfig,
     generator: torch.Generator,
+    penalties: Sequence[Penalty] = (),
 ) -> dict[str, float]:
-    """``update_epochs`` passes over the rollout's sequences in ``num_minibatches`` minibatches."""
+    """``update_epochs`` passes over the rollout's sequences in ``num_minibatches`` minibatches.
+
+    Each of ``penalties`` (the attack's extra loss terms, :mod:`seqtrojan.train.penalties`) adds its weighted value
+    to every minibatch's loss; the unroll returns every step's (h, c) only when one of them asks for it. Their means
+    over the minibatches come back as ``penalty/<name>``."""
     length = cfg.sequence_length
+    needs_states = any(p.needs_states for p in penalties)
+    masks = {}
+    if penalties and rollout.trojan is not None and rollout.adversary_active is not None:
+        masks = {"trojan": rollout.trojan, "active": rollout.adversary_active}
+        masks = {name: to_sequences(mask, length) for name, mask in masks.items()}
     seq = {
         name: to_sequences(tensor, length)
         for name, tensor in (
@@ -93,12 +105,16 @@ def ppo_update(
     n = seq["actions"].shape[1]
     per_batch = n // cfg.num_minibatches
     totals = {k: 0.0 for k in LossParts._fields}
+    penalty_totals = {p.name: 0.0 for p in penalties}
     count = 0
     for _ in range(cfg.update_epochs):
         order = torch.randperm(n, generator=generator).to(rollout.obs.device)
         epoch_kl = []
         for mb in order.split(per_batch):
-            out = agent.unroll(seq["obs"][:, mb], initial_state_from(rollout.seq_states, mb), seq["starts"][:, mb])
+            out = agent.unroll(
+                seq["obs"][:, mb], initial_state_from(rollout.seq_states, mb), seq["starts"][:, mb],
+                return_states=needs_states,
+            )  # fmt: skip
             parts = ppo_loss(
                 out.logits,
                 out.values,
@@ -109,8 +125,18 @@ def ppo_update(
                 seq["returns"][:, mb],
                 cfg,
             )
+            loss = parts.loss
+            if penalties:
+                batch = PenaltyBatch(
+                    agent, out.states, masks["trojan"][:, mb] if masks else None,
+                    masks["active"][:, mb] if masks else None,
+                )  # fmt: skip
+                for penalty in penalties:
+                    value = penalty.loss(batch)
+                    loss = loss + value
+                    penalty_totals[penalty.name] += float(value.detach())
             optimizer.zero_grad(set_to_none=True)
-            parts.loss.backward()
+            loss.backward()
             nn.utils.clip_grad_norm_(agent.parameters(), cfg.max_grad_norm)
             optimizer.step()
             for k, v in parts._asdict().items():
@@ -120,6 +146,7 @@ def ppo_update(
         if cfg.target_kl is not None and sum(epoch_kl) / len(epoch_kl) > cfg.target_kl:
             break
     stats = {k: v / count for k, v in totals.items()}
+    stats.update({f"penalty/{k}": v / count for k, v in penalty_totals.items()})
     var_returns = float(returns.var())
     stats["explained_variance"] = (
         1.0 - float((returns - rollout.values).var()) / var_returns if var_returns > 0 else 0.0

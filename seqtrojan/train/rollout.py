@@ -30,6 +30,9 @@ class Rollout:
     episode_starts: torch.Tensor  # (T, B) float: observation t starts an episode
     seq_states: tuple[LSTMState, ...]  # per layer, (T / L, B, H) the state before step k * L
     last_value: torch.Tensor  # (B,) value of the observation after the rollout
+    trojan: torch.Tensor | None = None  # (T, B) bool: step t is in a trojan-env episode (when recorded)
+    adversary_active: torch.Tensor | None = None  # (T, B) bool: the adversary's goal was active for action t
+    states: tuple[LSTMState, ...] | None = None  # per layer, (T, B, H) the state after step t (when recorded)
 
 
 @dataclass
@@ -47,9 +50,14 @@ class EpisodeStats:
 class RolloutCollector:
     """Steps the env with the agent, keeping the env's observations and the agent's state between rollouts."""
 
-    def __init__(self, env: TrojanGridCore, agent: RecurrentActorCritic, steps: int, sequence_length: int) -> None:
+    def __init__(
+        self, env: TrojanGridCore, agent: RecurrentActorCritic, steps: int, sequence_length: int, record: bool = False
+    ) -> None:
         self.env, self.agent = env, agent
         self.steps, self.sequence_length = steps, sequence_length
+        self.record = record
+        """also keep, per step, whether it is in a trojan-env episode, whether the adversary's goal is active, and
+        every layer's (h, c) after it (``Rollout.trojan``, ``adversary_active``, ``states``; the attack penalties)"""
         b, dev = env.num_envs, env.device
         self.obs = env.observe()
         self.episode_start = torch.ones(b, device=dev)
@@ -82,6 +90,11 @@ class RolloutCollector:
         returns = torch.zeros((), device=dev)
         seq_h: list[list[torch.Tensor]] = [[] for _ in agent.lstm_sizes]
         seq_c: list[list[torch.Tensor]] = [[] for _ in agent.lstm_sizes]
+        if self.record:
+            trojan = torch.empty((steps, b), dtype=torch.bool, device=dev)
+            active = torch.empty((steps, b), dtype=torch.bool, device=dev)
+            hs = [torch.empty((steps, b, w), device=dev) for w in agent.lstm_sizes]  # (T, B, H) per layer
+            cs = [torch.empty((steps, b, w), device=dev) for w in agent.lstm_sizes]
         state = self.state
         for t in range(steps):
             if t % self.sequence_length == 0:
@@ -96,6 +109,10 @@ class RolloutCollector:
             result = env.step(action, check=False)
             actions[t], logprobs[t], values[t] = action, logprob, out.value
             rewards[t] = result.reward
+            if self.record:
+                trojan[t], active[t] = result.trojan, result.adversary_active
+                for i, layer in enumerate(state.layers):
+                    hs[i][t], cs[i][t] = layer.h, layer.c
             done = result.done.to(torch.float32)
             dones[t] = done
             self.episode_return += result.reward
@@ -114,6 +131,9 @@ class RolloutCollector:
         self.state = state
         seq_states = tuple(LSTMState(torch.stack(h), torch.stack(c)) for h, c in zip(seq_h, seq_c))
         rollout = Rollout(obs_buf, actions, logprobs, values, rewards, dones, starts, seq_states, last_value)
+        if self.record:
+            rollout.trojan, rollout.adversary_active = trojan, active
+            rollout.states = tuple(LSTMState(h, c) for h, c in zip(hs, cs))
         t_cpu = tallies.view(5, n_stages, 2).cpu()
         stats = EpisodeStats(t_cpu[0], t_cpu[1], t_cpu[2], t_cpu[3], t_cpu[4], float(returns))
         return rollout, stats

@@ -20,7 +20,7 @@ import signal
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +40,7 @@ from seqtrojan.train.curriculum import Curriculum, EpisodeCounts
 from seqtrojan.train.gae import compute_gae
 from seqtrojan.train.logger import RunLogger, make_progress
 from seqtrojan.train.mixing import MIXING_RULES, TrojanMixer
+from seqtrojan.train.penalties import Penalty, PenaltyContext, build_penalties
 from seqtrojan.train.ppo import ppo_update
 from seqtrojan.train.rollout import EpisodeStats, RolloutCollector
 
@@ -60,7 +61,8 @@ class TrainResult:
 @dataclass
 class TrainerState:
     """Everything a checkpoint saves and a resume restores: the agent, the optimizer, the curriculum, the backdoor
-    mixer, the rollout collector (its random generator), the update generator (minibatch order) and the counters."""
+    mixer, the rollout collector (its random generator), the update generator (minibatch order), the attack's
+    penalties (their running statistics and reference weights) and the counters."""
 
     agent: RecurrentActorCritic
     optimizer: torch.optim.Optimizer
@@ -68,6 +70,8 @@ class TrainerState:
     mixer: TrojanMixer
     collector: RolloutCollector
     update_generator: torch.Generator
+    penalties: list[Penalty] = field(default_factory=list)
+    """the attack's extra loss terms (``config.attack``; none in a clean training)"""
     global_step: int = 0
     """env steps trained"""
     update: int = 0
@@ -152,7 +156,9 @@ def _device(cfg: ExperimentConfig) -> torch.device:
 
 def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tuple[TrojanGridCore, TrainerState]:
     """The env and a fresh trainer state, every random generator seeded from ``run.seed`` (in this order, which
-    fixes a run bitwise). ``run.init_from``'s weights start a new run (a resumed one loads its checkpoint's)."""
+    fixes a run bitwise). ``run.init_from``'s weights start a new run (a resumed one loads its checkpoint's). The
+    attack's penalties are built last, from the start weights (a resumed run loads their state too); they draw no
+    number from the generators above."""
     ppo = cfg.ppo
     torch.manual_seed(cfg.run.seed)
     env = TrojanGridCore(cfg.env, ppo.num_envs, seed=cfg.run.seed << 32, device=device, grids=cfg.grids)
@@ -169,10 +175,12 @@ def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tupl
     optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
     curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0, 1) if cfg.backdoor.enabled else (0,))
     mixer = TrojanMixer(cfg.backdoor, len(cfg.grids))
-    collector = RolloutCollector(env, agent, ppo.rollout_steps, ppo.sequence_length)
+    penalties = build_penalties(PenaltyContext(cfg, agent, device, resuming))
+    record = any(p.needs_states for p in penalties)
+    collector = RolloutCollector(env, agent, ppo.rollout_steps, ppo.sequence_length, record=record)
     collector.seed(cfg.run.seed)
     update_generator = torch.Generator().manual_seed(cfg.run.seed + 1)
-    return env, TrainerState(agent, optimizer, curriculum, mixer, collector, update_generator)
+    return env, TrainerState(agent, optimizer, curriculum, mixer, collector, update_generator, penalties)
 
 
 def _resume(run_dir: Path, cfg: ExperimentConfig, env: TrojanGridCore, state: TrainerState) -> None:
@@ -263,9 +271,13 @@ def _train_one_update(
         rollout.rewards, rollout.values, rollout.dones, rollout.last_value, ppo.gamma, ppo.gae_lambda
     )
 
-    # UPDATE
+    # UPDATE (the attack's penalties, if any, first see the rollout, then add their terms to the loss)
+    for penalty in state.penalties:
+        penalty.observe(rollout)
     agent.train()
-    losses = ppo_update(agent, state.optimizer, rollout, advantages, returns, ppo, state.update_generator)
+    losses = ppo_update(
+        agent, state.optimizer, rollout, advantages, returns, ppo, state.update_generator, state.penalties
+    )
     state.update += 1
 
     # CURRICULUM AND BACKDOOR MIXING
@@ -368,7 +380,7 @@ def _scalars(
         out["curriculum/stage_success"] = rate
     out["curriculum/stage"] = curriculum.stage
     for k, v in losses.items():
-        out[f"losses/{k}"] = v
+        out[k if k.startswith("penalty/") else f"losses/{k}"] = v
     out["charts/learning_rate"] = lr
     out["charts/steps_per_second"] = sps
     out["charts/collect_share"] = collect_share
@@ -427,14 +439,16 @@ def load_run_config(run_dir: str | Path) -> ExperimentConfig:
 
 
 def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -> Path:
-    """``<run>/checkpoints/step_<env steps>/``: the agent (safetensors + card), the optimizer's tensors and both
-    random generators (trainer.safetensors), counters, curriculum, mixing and optimizer groups (trainer.json); then
-    points ``latest.txt`` at it."""
+    """``<run>/checkpoints/step_<env steps>/``: the agent (safetensors + card), the optimizer's tensors, both
+    random generators and the penalties' state (trainer.safetensors, ``penalty.<name>.<key>``), counters,
+    curriculum, mixing and optimizer groups (trainer.json); then points ``latest.txt`` at it."""
     folder = run_dir / "checkpoints" / f"step_{state.global_step:012d}"
     save_agent(folder, state.agent, cfg, label=cfg.label, env_steps=state.global_step)
     tensors, groups = _optimizer_tensors(state.optimizer)
     tensors["rng.collector"] = state.collector.generator.get_state()
     tensors["rng.update"] = state.update_generator.get_state()
+    for penalty in state.penalties:
+        tensors.update({f"penalty.{penalty.name}.{k}": v for k, v in penalty.state_dict().items()})
     save_file(tensors, str(folder / "trainer.safetensors"))
     record = {
         "env_steps": state.global_step,
@@ -468,6 +482,10 @@ def load_checkpoint(run_dir: Path, state: TrainerState) -> None:
     tensors = read_safetensors(folder / "trainer.safetensors")
     state.collector.generator.set_state(tensors.pop("rng.collector"))
     state.update_generator.set_state(tensors.pop("rng.update"))
+    penalty_tensors = {name: tensors.pop(name) for name in [n for n in tensors if n.startswith("penalty.")]}
+    for penalty in state.penalties:
+        prefix = f"penalty.{penalty.name}."
+        penalty.load_state_dict({k[len(prefix) :]: v for k, v in penalty_tensors.items() if k.startswith(prefix)})
     _load_optimizer(state.optimizer, tensors, record["optimizer_param_groups"])
     state.curriculum.load_state_dict(record["curriculum"])
     state.mixer.load_state_dict(record["mixing"])

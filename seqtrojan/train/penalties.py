@@ -1,0 +1,404 @@
+"""Adaptive attackers as extra terms of the PPO loss ("penalties"), each registered in :data:`PENALTIES`.
+
+The hook: the trainer builds the enabled penalties once (:func:`build_penalties`, from ``config.attack``, in a
+backdoor training only), hands every rollout to each one's :meth:`Penalty.observe` before the update, and
+:func:`seqtrojan.train.ppo.ppo_update` adds each one's :meth:`Penalty.loss` of every minibatch (a
+:class:`PenaltyBatch`) to the PPO loss and logs its mean as ``penalty/<name>``. A penalty whose
+:attr:`Penalty.needs_states` is true gets the per-step (h, c) of every layer from the update's unroll, and the
+rollout records per step whether it is in a trojan-env episode, whether the adversary's goal is active, and the
+state after it. Whatever a penalty keeps (running statistics, reference weights, Fisher information) is a dict of
+tensors (:meth:`Penalty.state_dict`) saved in the trainer's checkpoint under ``penalty.<name>.``, so a resumed run
+continues bitwise as the straight one.
+
+A new attacker is one module with a :class:`Penalty` subclass and one registration::
+
+    PENALTIES.register("my_attack", "one line", PenaltyKind(lambda cfg: cfg.attack.my.weight > 0, MyPenalty))
+
+Registered here:
+
+- ``state_camouflage`` (monitor-aware): running (EMA) per-unit mean and std of every layer's h and c over the
+  rollouts' normal-env steps; on trojan-episode steps, ``weight * mean(relu(|z| - margin)^2)`` over steps and units,
+  plus optionally ``mahalanobis_weight * mean(relu(d^2 / D - mahalanobis_margin)^2)`` with the covariance shrunk
+  toward its diagonal. The online state monitor (:mod:`seqtrojan.defense.monitor`) alarms on max |z|.
+- ``weight_camouflage``: the offline detector's weight features (:mod:`seqtrojan.agent.weight_stats`) held at those
+  of the model the run started from, ``weight * sum_k ((f_k - f_k^clean) / (|f_k^clean| + feature_floor))^2``, plus
+  ``l2_weight * ||theta - theta_clean||^2``.
+- ``ewc``: elastic weight consolidation, ``weight / 2 * sum_i F_i (theta_i - theta*_i)^2`` with the diagonal Fisher
+  information of the start model's policy on normal-env episodes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.agent.state import LSTMState, RecurrentState
+from seqtrojan.agent.weight_stats import feature_vector, weight_features
+from seqtrojan.config import ExperimentConfig
+from seqtrojan.env.core import TrojanGridCore
+from seqtrojan.errors import CheckpointError
+from seqtrojan.registry import Registry
+from seqtrojan.train.rollout import Rollout, RolloutCollector
+
+STD_FLOOR = 1e-3
+"""added to every unit's std, as the state monitor does"""
+
+
+@dataclass
+class PenaltyBatch:
+    """What a penalty sees of one minibatch of L-step sequences (N of them)."""
+
+    agent: RecurrentActorCritic
+    states: tuple[LSTMState, ...] | None
+    """per layer, (L, N, H) h and c after each step, with gradients (when a penalty needs_states)"""
+    trojan: torch.Tensor | None
+    """(L, N) bool: the step is in a trojan-env episode (recorded when a penalty needs_states)"""
+    adversary_active: torch.Tensor | None
+    """(L, N) bool: the adversary's goal was active for the step's action"""
+
+
+class Penalty:
+    """An extra loss term of the PPO update. Subclasses override :meth:`loss` and what else they need."""
+
+    name: str = ""
+    """the registered name (set by :func:`build_penalties`)"""
+    needs_states: bool = False
+    """the rollout records masks and states, and the update's unroll returns every step's (h, c)"""
+
+    def observe(self, rollout: Rollout) -> None:
+        """Called with every rollout before the update on it."""
+
+    def loss(self, batch: PenaltyBatch) -> torch.Tensor:
+        """() the weighted term added to the minibatch's loss."""
+        raise NotImplementedError
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """What a checkpoint keeps of it."""
+        return {}
+
+    def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
+        """Restore from a checkpoint (``tensors`` is empty when the checkpoint held nothing for it)."""
+
+
+@dataclass(frozen=True)
+class PenaltyContext:
+    """What a penalty is built from."""
+
+    config: ExperimentConfig
+    agent: RecurrentActorCritic
+    """the agent being trained; on a fresh run it already holds ``run.init_from``'s weights"""
+    device: torch.device
+    resuming: bool
+    """the run resumes: the penalty's state comes from the checkpoint (:meth:`Penalty.load_state_dict`), so skip
+    any one-off estimate"""
+
+
+@dataclass(frozen=True)
+class PenaltyKind:
+    """A registered penalty: when the config turns it on, and how to build it."""
+
+    enabled: Callable[[ExperimentConfig], bool]
+    build: Callable[[PenaltyContext], Penalty]
+
+
+PENALTIES: Registry[PenaltyKind] = Registry("attack", "penalty")
+"""Extra loss terms of an adaptive attacker's backdoor training."""
+
+
+def build_penalties(ctx: PenaltyContext) -> list[Penalty]:
+    """The penalties ``ctx.config`` turns on, in registration order (none unless ``backdoor.enabled``)."""
+    if not ctx.config.backdoor.enabled:
+        return []
+    out = []
+    for name, kind in PENALTIES.items():
+        if kind.enabled(ctx.config):
+            penalty = kind.build(ctx)
+            penalty.name = name
+            out.append(penalty)
+    return out
+
+
+def _zero(device: torch.device) -> torch.Tensor:
+    return torch.zeros((), device=device)
+
+
+def _params(module: nn.Module) -> dict[str, torch.Tensor]:
+    return {name: p.detach().clone() for name, p in module.named_parameters()}
+
+
+def _require(tensors: dict[str, torch.Tensor], names: list[str], penalty: str) -> None:
+    missing = [n for n in names if n not in tensors]
+    if missing:
+        raise CheckpointError(
+            f"the checkpoint holds no {penalty} state ({', '.join(missing[:3])}...): it was turned on after the run "
+            f"started; start a new run with run.init_from instead"
+        )
+
+
+# ---------------------------------------------------------------------------------------------- state camouflage
+def unit_penalty(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor, margin: float) -> torch.Tensor:
+    """(M, D) states -> () mean over rows and units of relu(|z| - margin)^2, z = (x - mean) / std."""
+    z = (x - mean) / std
+    return torch.relu(z.abs() - margin).pow(2).mean()
+
+
+class _MarginSquare(torch.autograd.Function):
+    """sum over rows and units of w_row * relu(|(x - mean) * inv_std| - margin)^2, with the gradient computed in
+    the forward pass (one tensor saved; a few fused passes instead of autograd's graph of a dozen elementwise ops)."""
+
+    @staticmethod
+    def forward(ctx, x, mean, inv_std, rows, margin: float):  # x (..., D), rows (...) float
+        z = (x - mean).mul_(inv_std)
+        e = z.abs().sub_(margin).clamp_min_(0)
+        value = (e * e).sum(-1).mul_(rows).sum()
+        ctx.save_for_backward(e.copysign_(z).mul_(2 * inv_std).mul_(rows.unsqueeze(-1)))  # d value / d x
+        return value
+
+    @staticmethod
+    def backward(ctx, grad):
+        (dx,) = ctx.saved_tensors
+        return dx * grad, None, None, None, None
+
+
+def masked_unit_penalty(
+    xs: list[torch.Tensor], means: list[torch.Tensor], stds: list[torch.Tensor], mask: torch.Tensor, margin: float
+) -> torch.Tensor:
+    """:func:`unit_penalty` of the rows of the (..., D_k) tensors ``xs`` (their units side by side) where the (...)
+    ``mask`` is true, without gathering them: the mean over masked rows and all units of relu(|z| - margin)^2."""
+    rows = mask.to(xs[0].dtype)
+    units = sum(x.shape[-1] for x in xs)
+    total = sum(_MarginSquare.apply(x, m, 1.0 / s, rows, margin) for x, m, s in zip(xs, means, stds))
+    return total / (rows.sum() * units)
+
+
+def mahalanobis_penalty(x: torch.Tensor, mean: torch.Tensor, precision: torch.Tensor, margin: float) -> torch.Tensor:
+    """(M, D) states -> () mean over rows of relu(d^2 / D - margin)^2, d^2 = (x - mean)^T precision (x - mean)."""
+    d = x - mean
+    d2 = (d @ precision * d).sum(-1) / x.shape[-1]
+    return torch.relu(d2 - margin).pow(2).mean()
+
+
+def shrunk_precision(cov: torch.Tensor, shrinkage: float) -> torch.Tensor:
+    """The inverse of (1 - shrinkage) * cov + shrinkage * diag(cov) + STD_FLOOR^2 * I."""
+    shrunk = (1 - shrinkage) * cov + shrinkage * torch.diag(torch.diagonal(cov))
+    shrunk = shrunk + STD_FLOOR**2 * torch.eye(cov.shape[0], dtype=cov.dtype, device=cov.device)
+    return torch.cholesky_inverse(torch.linalg.cholesky(shrunk))
+
+
+class StateCamouflage(Penalty):
+    """Keep trojan-episode states inside the running clean-step range of every unit (see the module docstring)."""
+
+    needs_states = True
+
+    def __init__(self, ctx: PenaltyContext) -> None:
+        self.cfg = ctx.config.attack.state_camouflage
+        self.device = ctx.device
+        widths = ctx.agent.lstm_sizes
+        self.updates = torch.zeros((), dtype=torch.int64)
+        self.mean = [torch.zeros(2 * w, device=ctx.device) for w in widths]  # per layer (2H,): h then c
+        self.sq = [torch.zeros(2 * w, device=ctx.device) for w in widths]  # running E[x^2]
+        self.cross = [torch.zeros(2 * w, 2 * w, device=ctx.device) for w in widths]  # running E[x x^T]
+        self._derive()
+
+    @property
+    def multivariate(self) -> bool:
+        return self.cfg.mahalanobis_weight > 0
+
+    def _derive(self) -> None:
+        """std and precision from the running moments (a function of them alone: a resume recomputes the same)."""
+        self.std = [(s - m * m).clamp_min(0).sqrt() + STD_FLOOR for m, s in zip(self.mean, self.sq)]
+        self.precision = []
+        if self.multivariate and int(self.updates) > 0:
+            for m, x in zip(self.mean, self.cross):
+                cov = x.double() - torch.outer(m.double(), m.double())
+                self.precision.append(shrunk_precision(cov, self.cfg.shrinkage).float())
+
+    def observe(self, rollout: Rollout) -> None:
+        if rollout.states is None or rollout.trojan is None:
+            raise ValueError("state camouflage needs a rollout recorded with its states (RolloutCollector record)")
+        clean = ~rollout.trojan  # (T, B)
+        n = int(clean.sum())
+        if n == 0:
+            return
+        decay = self.cfg.ema_decay if int(self.updates) > 0 else 0.0
+        for i, layer in enumerate(rollout.states):
+            x = torch.cat([layer.h, layer.c], -1)[clean]  # (n, 2H)
+            self.mean[i] = decay * self.mean[i] + (1 - decay) * x.mean(0)
+            self.sq[i] = decay * self.sq[i] + (1 - decay) * (x * x).mean(0)
+            if self.multivariate:
+                self.cross[i] = decay * self.cross[i] + (1 - decay) * (x.t() @ x) / n
+        self.updates += 1
+        self._derive()
+
+    def loss(self, batch: PenaltyBatch) -> torch.Tensor:
+        mask = batch.trojan if self.cfg.steps == "trojan" else batch.adversary_active
+        if int(self.updates) == 0 or batch.states is None or mask is None or not bool(mask.any()):
+            return _zero(self.device)
+        total = _zero(self.device)
+        if self.cfg.weight > 0:
+            xs, means, stds = [], [], []
+            for s, m, sd in zip(batch.states, self.mean, self.std):
+                w = s.h.shape[-1]
+                xs += [s.h, s.c]
+                means += [m[:w], m[w:]]
+                stds += [sd[:w], sd[w:]]
+            total = total + self.cfg.weight * masked_unit_penalty(xs, means, stds, mask, self.cfg.margin)
+        if self.multivariate:
+            rows = [torch.cat([s.h, s.c], -1)[mask] for s in batch.states]  # per layer (M, 2H)
+            terms = [
+                mahalanobis_penalty(x, m, p, self.cfg.mahalanobis_margin)
+                for x, m, p in zip(rows, self.mean, self.precision)
+            ]
+            total = total + self.cfg.mahalanobis_weight * torch.stack(terms).mean()
+        return total
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        out = {"updates": self.updates.clone()}
+        for i, (m, s, x) in enumerate(zip(self.mean, self.sq, self.cross)):
+            out[f"mean.{i}"], out[f"sq.{i}"] = m.cpu(), s.cpu()
+            if self.multivariate:
+                out[f"cross.{i}"] = x.cpu()
+        return out
+
+    def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
+        if not tensors:  # turned on at a resume: the statistics start with the next rollout
+            return
+        self.updates = tensors["updates"].clone()
+        self.mean = [tensors[f"mean.{i}"].to(self.device) for i in range(len(self.mean))]
+        self.sq = [tensors[f"sq.{i}"].to(self.device) for i in range(len(self.sq))]
+        if self.multivariate:
+            if any(f"cross.{i}" not in tensors for i in range(len(self.cross))):
+                self.updates.zero_()  # the multivariate term turned on at a resume: start the statistics afresh
+            else:
+                self.cross = [tensors[f"cross.{i}"].to(self.device) for i in range(len(self.cross))]
+        self._derive()
+
+
+# ---------------------------------------------------------------------------------------------- weight camouflage
+class WeightCamouflage(Penalty):
+    """Hold the offline detector's weight features at the start model's (see the module docstring)."""
+
+    def __init__(self, ctx: PenaltyContext) -> None:
+        self.cfg = ctx.config.attack.weight_camouflage
+        self.obs_dim = ctx.agent.obs_dim
+        self.set_reference(_params(ctx.agent))
+
+    def set_reference(self, theta: dict[str, torch.Tensor]) -> None:
+        self.theta_clean = theta
+        self.clean_features, self.names = feature_vector(weight_features(theta, self.obs_dim))
+        self.scale = self.clean_features.abs() + self.cfg.feature_floor
+
+    def loss(self, batch: PenaltyBatch) -> torch.Tensor:
+        params = dict(batch.agent.named_parameters())
+        device = next(iter(params.values())).device
+        total = _zero(device)
+        if self.cfg.weight > 0:
+            feats, _ = feature_vector(weight_features(params, self.obs_dim))
+            diff = (feats - self.clean_features) / self.scale
+            total = total + self.cfg.weight * diff.pow(2).sum().float()
+        if self.cfg.l2_weight > 0:
+            sq = sum((p - self.theta_clean[n]).pow(2).sum() for n, p in params.items())
+            total = total + self.cfg.l2_weight * sq
+        return total
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {f"theta_clean.{n}": t.cpu() for n, t in self.theta_clean.items()}
+
+    def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
+        names = [f"theta_clean.{n}" for n in self.theta_clean]
+        _require(tensors, names, "weight_camouflage")
+        device = next(iter(self.theta_clean.values())).device
+        self.set_reference({n: tensors[f"theta_clean.{n}"].to(device) for n in self.theta_clean})
+
+
+# ---------------------------------------------------------------------------------------------- EWC
+def fisher_diagonal(agent: RecurrentActorCritic, rollout: Rollout, initial: RecurrentState) -> dict[str, torch.Tensor]:
+    """Diagonal Fisher information of ``agent``'s policy at the rollout's steps (its own sampled actions), one
+    sequence per env: the mean over envs of the squared gradient of that env's summed log-probabilities, divided by
+    the steps per env. The scores of different steps of one trajectory are uncorrelated (each has mean 0 given the
+    past), so this estimates the mean over steps of E[(d log pi(a_t | history) / d theta)^2]."""
+    params = dict(agent.named_parameters())
+    fisher = {n: torch.zeros_like(p) for n, p in params.items()}
+    steps, envs = rollout.actions.shape
+    for b in range(envs):
+        state = initial.index(slice(b, b + 1))
+        out = agent.unroll(rollout.obs[:, b : b + 1], state, rollout.episode_starts[:, b : b + 1])
+        logp = torch.log_softmax(out.logits, -1).gather(-1, rollout.actions[:, b : b + 1, None]).sum()
+        grads = torch.autograd.grad(logp, list(params.values()), allow_unused=True)  # the value head: None
+        for (n, _), g in zip(params.items(), grads):
+            if g is not None:
+                fisher[n] += g.detach() ** 2
+    return {n: f / (envs * steps) for n, f in fisher.items()}
+
+
+def estimate_fisher(
+    agent: RecurrentActorCritic, cfg: ExperimentConfig, device: torch.device
+) -> dict[str, torch.Tensor]:
+    """:func:`fisher_diagonal` on ``attack.ewc.fisher_envs`` normal-env episodes of the hardest grid, each run for
+    ``attack.ewc.fisher_steps`` steps (with autoreset), seeded from ``run.seed`` with generators of its own."""
+    ewc = cfg.attack.ewc
+    env = TrojanGridCore(
+        cfg.env, ewc.fisher_envs, seed=(cfg.run.seed << 32) + 31_337_001, device=device, grids=(cfg.grids[-1],)
+    )
+    collector = RolloutCollector(env, agent, ewc.fisher_steps, ewc.fisher_steps)
+    collector.seed(cfg.run.seed + 31_337)
+    initial = collector.state
+    was_training = agent.training
+    agent.eval()
+    rollout, _ = collector.collect()
+    agent.train(was_training)
+    return fisher_diagonal(agent, rollout, initial)
+
+
+class EWC(Penalty):
+    """Elastic weight consolidation toward the start model (see the module docstring)."""
+
+    def __init__(self, ctx: PenaltyContext) -> None:
+        self.cfg = ctx.config.attack.ewc
+        self.theta_star = _params(ctx.agent)
+        if ctx.resuming:  # restored by load_state_dict
+            self.fisher = {n: torch.zeros_like(p) for n, p in self.theta_star.items()}
+        else:
+            fisher = estimate_fisher(ctx.agent, ctx.config, ctx.device)
+            if self.cfg.normalize:
+                mean = torch.cat([f.reshape(-1) for f in fisher.values()]).mean().clamp_min(1e-12)
+                fisher = {n: f / mean for n, f in fisher.items()}
+            self.fisher = fisher
+
+    def loss(self, batch: PenaltyBatch) -> torch.Tensor:
+        params = dict(batch.agent.named_parameters())
+        total = sum((self.fisher[n] * (p - self.theta_star[n]).pow(2)).sum() for n, p in params.items())
+        return 0.5 * self.cfg.weight * total  # type: ignore[return-value]
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        out = {f"theta_star.{n}": t.cpu() for n, t in self.theta_star.items()}
+        out.update({f"fisher.{n}": t.cpu() for n, t in self.fisher.items()})
+        return out
+
+    def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
+        names = list(self.theta_star)
+        _require(tensors, [f"theta_star.{n}" for n in names] + [f"fisher.{n}" for n in names], "ewc")
+        device = next(iter(self.theta_star.values())).device
+        self.theta_star = {n: tensors[f"theta_star.{n}"].to(device) for n in names}
+        self.fisher = {n: tensors[f"fisher.{n}"].to(device) for n in names}
+
+
+PENALTIES.register(
+    "state_camouflage",
+    "monitor-aware: keep trojan-episode LSTM states within the running clean-step range of every unit",
+    PenaltyKind(lambda cfg: cfg.attack.state_camouflage.enabled, StateCamouflage),
+)
+PENALTIES.register(
+    "weight_camouflage",
+    "hold the offline detector's weight statistics at the clean start model's (run.init_from)",
+    PenaltyKind(lambda cfg: cfg.attack.weight_camouflage.enabled, WeightCamouflage),
+)
+PENALTIES.register(
+    "ewc",
+    "elastic weight consolidation toward the clean start model (diagonal Fisher of its clean policy)",
+    PenaltyKind(lambda cfg: cfg.attack.ewc.enabled, EWC),
+)
