@@ -364,8 +364,9 @@ def _attacks(argv: list[str]) -> None:
     from seqtrojan.env.config import REWARDS, TRIGGERS
     from seqtrojan.experiments.attacks import ATTACKS
     from seqtrojan.train.mixing import MIXING_RULES
+    from seqtrojan.train.penalties import PENALTIES
 
-    _list_registered("attack", (ATTACKS, TRIGGERS, MIXING_RULES, REWARDS), argv)
+    _list_registered("attack", (ATTACKS, TRIGGERS, MIXING_RULES, REWARDS, PENALTIES), argv)
 
 
 def _defenses(argv: list[str]) -> None:

@@ -24,6 +24,7 @@ from seqtrojan.report.sections.defense import defense_section
 from seqtrojan.serde import load_json, save_json
 from seqtrojan.stats import Rate
 from seqtrojan.train.mixing import MIXING_RULES, MixingRule, TrojanMixer
+from seqtrojan.train.penalties import PENALTIES
 
 
 @pytest.fixture
@@ -64,8 +65,10 @@ def test_a_duplicate_name_and_a_bad_entry_are_refused(scratch):
 
 def test_what_exists_is_registered():
     assert ATTACKS.names() == (
-        "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence",
+        "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "state_camouflage",
+        "from_clean", "weight_camouflage", "ewc",
     )  # fmt: skip
+    assert PENALTIES.names() == ("state_camouflage", "weight_camouflage", "ewc")
     assert MIXING_RULES.names() == ("exact", "running", "fixed")
     assert TRIGGERS.get("patch") is TriggerConfig and TRIGGERS.get("on_off") is OffTriggerConfig
     assert TRIGGERS.names() == ("patch", "on_off", "delayed", "in_distribution_patch", "partial_patch", "sequence")
@@ -142,7 +145,10 @@ def test_a_mitigation_that_returns_a_taken_row_name_is_refused(tmp_path, monkeyp
 
 @pytest.mark.parametrize(
     ("command", "registered"),
-    [("attacks", (ATTACKS, TRIGGERS, MIXING_RULES, REWARDS)), ("defenses", (MONITORS, DETECTORS, MITIGATIONS))],
+    [
+        ("attacks", (ATTACKS, TRIGGERS, MIXING_RULES, REWARDS, PENALTIES)),
+        ("defenses", (MONITORS, DETECTORS, MITIGATIONS)),
+    ],
 )
 def test_the_listing_commands_print_every_registered_name(capsys, command, registered):
     assert main([command]) == 0

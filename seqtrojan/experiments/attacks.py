@@ -83,3 +83,32 @@ ATTACKS.register(
         )
     ),
 )
+
+
+def with_attack(cfg: ExperimentConfig, part: str, **changes: object) -> ExperimentConfig:
+    """``cfg`` with one training penalty of its ``attack`` section changed (e.g. ``state_camouflage``)."""
+    penalty = dataclasses.replace(getattr(cfg.attack, part), **changes)
+    return dataclasses.replace(cfg, attack=dataclasses.replace(cfg.attack, **{part: penalty}))
+
+
+ATTACKS.register(
+    "state_camouflage",
+    "monitor-aware: the dedicated-code backdoor trained to keep trojan-episode states within clean |z| <= 2.5",
+    Attack(lambda cfg: with_attack(cfg, "state_camouflage", weight=5.0, margin=2.5)),
+)
+ATTACKS.register(
+    "from_clean",
+    "the dedicated-code backdoor added to a trained clean agent with Algorithm 1 (no penalty): the baseline of the "
+    "two below",
+    Attack(lambda cfg: cfg, from_clean=True),
+)
+ATTACKS.register(
+    "weight_camouflage",
+    "the backdoor added to a clean agent with a pull toward its weight statistics (the weight detector's features)",
+    Attack(lambda cfg: with_attack(cfg, "weight_camouflage", weight=0.5, l2_weight=0.01), from_clean=True),
+)
+ATTACKS.register(
+    "ewc",
+    "anti-forgetting: the backdoor added to a clean agent with elastic weight consolidation (normalised Fisher)",
+    Attack(lambda cfg: with_attack(cfg, "ewc", weight=100.0, normalize=True), from_clean=True),
+)

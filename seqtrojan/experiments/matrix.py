@@ -143,11 +143,10 @@ def matrix_jobs(cfg: MatrixConfig, runs: Path) -> tuple[list[TrainJob], list[Tra
             raise ConfigError(f"the matrix's backdoor preset {cfg.backdoor.preset!r} does not enable backdoor training")
         for name in cfg.attack_names:
             attack = ATTACKS.get(name)
-            run = dataclasses.replace(base.run, name=agent_name(name, offset), seed=base.run.seed + offset)
+            start = str(clean_job.model_dir) if attack.from_clean else base.run.init_from
+            run = dataclasses.replace(base.run, name=agent_name(name, offset), seed=base.run.seed + offset,
+                                      init_from=start)  # fmt: skip
             config = attack.configure(dataclasses.replace(base, run=run))
-            if attack.from_clean:
-                start = str(clean_job.model_dir)
-                config = dataclasses.replace(config, run=dataclasses.replace(config.run, init_from=start))
             (second if attack.from_clean else first).append(TrainJob(agent_name(name, offset), config))
     return first, second
 

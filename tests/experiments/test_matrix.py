@@ -22,7 +22,7 @@ TRAINING = {
 TINY = {
     "backdoor": {"preset": "trojan_s17_h30", "set": {**TRAINING, "backdoor": {"mixing": "running"}}},
     "clean": {"preset": "clean_s17_h30", "set": TRAINING},
-    "attacks": ["dedicated_code", "partial_patch"],
+    "attacks": ["dedicated_code", "partial_patch", "ewc"],
     "seeds": 2,
     "episodes": 24,
     "monitor": {"calibration_episodes": 40, "eval_episodes": 24, "false_alarm_target": 0.05},
@@ -43,9 +43,9 @@ def tiny_matrix(tmp_path_factory):
 def test_every_attack_and_seed_is_trained_measured_and_saved_typed(tiny_matrix):
     out, cfg, result = tiny_matrix
     assert load_json(MatrixResult, out / "matrix.json") == result
-    assert [a.attack for a in result.attacks] == ["dedicated_code", "partial_patch"]
+    assert [a.attack for a in result.attacks] == ["dedicated_code", "partial_patch", "ewc"]
     assert sorted(a.agent for a in result.agents) == sorted(
-        f"{name}_s{s}" for name in ("clean", "dedicated_code", "partial_patch") for s in (0, 1)
+        f"{name}_s{s}" for name in ("clean", "dedicated_code", "partial_patch", "ewc") for s in (0, 1)
     )
     for a in result.agents:
         assert a.attack_success.n == 24 and a.clean_success.n == 24
@@ -55,8 +55,10 @@ def test_every_attack_and_seed_is_trained_measured_and_saved_typed(tiny_matrix):
         assert card["seed"] == a.seed and card["label"] == ("clean" if a.attack == "clean" else "backdoored")
     partial = json.loads((out / "runs" / "partial_patch_s1" / "model" / "card.json").read_text())
     assert partial["config"]["env"]["trigger"]["values"] == ["hole", "hole"]
+    ewc = json.loads((out / "runs" / "ewc_s1" / "model" / "card.json").read_text())["config"]
+    assert ewc["run"]["init_from"] == str(out / "runs" / "clean_s1" / "model") and ewc["attack"]["ewc"]["weight"] > 0
     kinds = {(c.attack, c.kind) for c in result.cells}
-    assert kinds == {(a, k) for a in ("dedicated_code", "partial_patch") for k in ("online", "mitigation", "offline")}
+    assert kinds == {(a, k) for a in TINY["attacks"] for k in ("online", "mitigation", "offline")}
     for summary in result.attacks:
         mine = [a for a in result.agents if a.attack == summary.attack]
         assert summary.attack_success_pooled.k == sum(a.attack_success.k for a in mine)
