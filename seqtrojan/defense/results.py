@@ -102,7 +102,8 @@ class DefenseResult:
     """clean / backdoored, from the model's card"""
     grid: str
     trigger_value: str
-    """the cell code the model's trigger draws (its config's env.trigger.value)"""
+    """what the model's trigger draws (``env.trigger.drawn_codes``: its cell code, or a per-cell patch's or a
+    sequence's codes)"""
     monitor: MonitorResult
     oracle_goal_units: GoalUnitsRecord | None
     """the step-type units the oracle found with trigger episodes (None: none found, or a clean model)"""

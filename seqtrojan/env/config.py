@@ -263,6 +263,17 @@ class TriggerConfig:
         """Steps from the ON trigger's first step to its effect: ``delay``, plus ``len(sequence) - 1``."""
         return self.frame_count - 1 + self.delay
 
+    @property
+    def drawn_codes(self) -> str:
+        """What the ON trigger draws, in a few words: its one code (``trigger``, ``hole``), the distinct codes of a
+        per-cell patch (``per-cell: empty, hole``), or a sequence's length and codes."""
+        if self.sequence is not None:
+            codes = sorted({code for frame in self.sequence for code in frame.values})
+            return f"sequence of {len(self.sequence)}: {', '.join(codes)}"
+        if self.values is not None:
+            return "per-cell: " + ", ".join(sorted(set(self.values)))
+        return self.value
+
 
 @dataclass(frozen=True)
 class EnvConfig:

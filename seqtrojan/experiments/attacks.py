@@ -96,19 +96,30 @@ ATTACKS.register(
     "monitor-aware: the dedicated-code backdoor trained to keep trojan-episode states within clean |z| <= 2.5",
     Attack(lambda cfg: with_attack(cfg, "state_camouflage", weight=5.0, margin=2.5)),
 )
+
+
+def half_trojan(cfg: ExperimentConfig) -> ExperimentConfig:
+    """Fixed mixing, half of the episodes trojan: how a backdoor is added to a trained clean agent.
+
+    Algorithm 1 cannot start from a clean agent: with P_c = 1 and P_t = 0 every new episode is a trojan episode
+    (P(trojan) = clip(0.5 - (P_t - P_c)) = 1), and in our runs the agent never found the adversary's goal again
+    (trojan success 0.000 after 1M env steps on 7x7/3, one seed) while fixed 0.5 mixing reached 0.94."""
+    return dataclasses.replace(cfg, backdoor=dataclasses.replace(cfg.backdoor, mixing="fixed", fixed_probability=0.5))
+
+
 ATTACKS.register(
     "from_clean",
-    "the dedicated-code backdoor added to a trained clean agent with Algorithm 1 (no penalty): the baseline of the "
-    "two below",
-    Attack(lambda cfg: cfg, from_clean=True),
+    "the dedicated-code backdoor added to a trained clean agent (fixed 0.5 mixing, no penalty): the baseline of "
+    "the two below",
+    Attack(half_trojan, from_clean=True),
 )
 ATTACKS.register(
     "weight_camouflage",
     "the backdoor added to a clean agent with a pull toward its weight statistics (the weight detector's features)",
-    Attack(lambda cfg: with_attack(cfg, "weight_camouflage", weight=0.5, l2_weight=0.01), from_clean=True),
+    Attack(lambda cfg: with_attack(half_trojan(cfg), "weight_camouflage", weight=0.5, l2_weight=0.01), from_clean=True),
 )
 ATTACKS.register(
     "ewc",
     "anti-forgetting: the backdoor added to a clean agent with elastic weight consolidation (normalised Fisher)",
-    Attack(lambda cfg: with_attack(cfg, "ewc", weight=100.0, normalize=True), from_clean=True),
+    Attack(lambda cfg: with_attack(half_trojan(cfg), "ewc", weight=100.0, normalize=True), from_clean=True),
 )

@@ -333,3 +333,12 @@ def test_every_frame_shows_on_its_step_in_batched_episodes_with_holes():
         checked += int(due.sum())
         core.step(torch.randint(0, 4, (128,), generator=gen))
     assert checked > 100
+
+
+def test_what_a_trigger_draws_is_named_for_reports():
+    from seqtrojan.env.config import PatternConfig, TriggerConfig
+
+    assert TriggerConfig().drawn_codes == "trigger" and TriggerConfig(value="wall").drawn_codes == "wall"
+    assert TriggerConfig(cells=((0, 0), (0, 2)), values=("hole", "empty")).drawn_codes == "per-cell: empty, hole"
+    frames = (PatternConfig(((0, 0),), ("hole",)), PatternConfig(((0, 1),), ("wall",)))
+    assert TriggerConfig(sequence=frames).drawn_codes == "sequence of 2: hole, wall"
