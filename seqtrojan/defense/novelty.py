@@ -6,8 +6,12 @@ the frequency of every (view cell, code) pair. A step's score is the rarity of w
 
 * ``pattern``: ``-log((count + a) / (N + a))`` of the whole view among the N calibration views (``a`` the
   smoothing; an unseen view scores ``-log(a / (N + a))``);
-* ``cells``: the largest ``-log((count + a) / (N + 6a))`` over the view's cells of that cell's code at that place;
-* ``both`` (the default): their sum, so that among views never seen, one with a code never seen at that place
+* ``cells``: the sum over the view's cells of ``-log((count + a) / (N + 6a))``, the rarity of that cell's code at
+  that place. A sum, not the largest: rarity saturates at "never seen", and the largest would score a view with
+  one unseen (cell, code) pair like the dedicated trigger over all nine cells. Measured: on one agent of the smoke
+  matrix whose clean episodes showed such a pair now and then, the largest put the threshold at that ceiling and
+  the trigger was never detected (0 of 300 episodes); the sum ranks the trigger far above;
+* ``both`` (the default): their sum, so that among views never seen, one with codes never seen at their places
   (the paper's dedicated trigger code) scores above one made of familiar codes.
 
 An episode's score is its running maximum; the threshold is the split-conformal quantile of held-out clean peaks
@@ -140,7 +144,7 @@ class InputNovelty:
         if features in ("cells", "both"):
             table = self.cell_rarity.to(codes.device)  # (cells, 6)
             per_cell = table.gather(1, codes.long().T).T  # (B, cells)
-            score = score + per_cell.amax(-1)
+            score = score + per_cell.sum(-1)
         return score
 
     def score_step(self, obs: torch.Tensor, state: RecurrentState, t: torch.Tensor) -> torch.Tensor:

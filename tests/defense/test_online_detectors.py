@@ -115,8 +115,11 @@ def test_novelty_scores_rarity_and_ignores_familiar_views():
     q = torch.tensor([[0, 0, 0, 0], [1, 0, 0, 2], [2, 0, 0, 1]])
     np.testing.assert_allclose(detector.score_codes(q).numpy(), -np.log([3.5 / 4.5, 1.5 / 4.5, 0.5 / 4.5]), 1e-6)
     cells = InputNovelty.from_codes(codes, options=NoveltyConfig(features="cells", smoothing=0.5))
-    # the worst cell: code 2 at cell 0 (never seen there) vs code 1 there (seen once), of 4 + 6 * 0.5
-    np.testing.assert_allclose(cells.score_codes(q).numpy(), -np.log([3.5 / 7, 1.5 / 7, 0.5 / 7]), 1e-6)
+    # the sum over cells of each code's rarity at its place, of 4 + 6 * 0.5: cells 1 and 2 always show code 0 (4
+    # times), cell 0 shows 0 three times and 1 once, cell 3 shows 0 three times and 2 once
+    per_cell = [[3.5, 4.5, 4.5, 3.5], [1.5, 4.5, 4.5, 1.5], [0.5, 4.5, 4.5, 0.5]]
+    expected = -np.log(np.array(per_cell) / 7).sum(1)
+    np.testing.assert_allclose(cells.score_codes(q).numpy(), expected, 1e-6)
     both = InputNovelty.from_codes(codes)
     np.testing.assert_allclose(both.score_codes(q).numpy(), (detector.score_codes(q) + cells.score_codes(q)).numpy())
     views = torch.cartesian_prod(*[torch.arange(6)] * 4)  # every 2x2 view: all keys differ
