@@ -367,50 +367,49 @@ def _goal_flips(findings, agent, acfg, goal: GoalUnits) -> dict[str, Rate]:
 
 
 def _plot_findings(findings, agent, acfg, goal: GoalUnits, traces, cfg: AnalysisConfig, out: Path) -> list[str]:
+    """The first ``cfg.findings_to_plot`` findings of each kind, replayed and drawn with the goal units over time
+    beside their mean in the env the agent behaved as if it were in (the paper's Figure 9)."""
+    reference = _goal_unit_means(traces, goal, cfg.rule.min_episodes)
     plotted = []
-    normal_mean = {}
-    for env in ENVS:
-        x = traces[("backdoor", env)].states(goal.which, goal.layer)
-        mask = traces[("backdoor", env)].mask
-        act = goal.activation(x)
-        counts = mask.sum(0)
-        keep = counts >= cfg.rule.min_episodes
-        normal_mean[env] = ((act * mask).sum(0) / np.maximum(counts, 1))[keep]
     for kind in ("activation", "deactivation"):
         for i, finding in enumerate([f for f in findings if f.kind == kind][: cfg.findings_to_plot]):
-            replay = finding.replay(agent, acfg.env)
-            series = {
-                f"goal units ({len(goal.units)} {goal.which} units of layer {goal.layer})": goal.activation(
-                    (replay["h"] if goal.which == "h" else replay["c"])[goal.layer]
-                )
-            }
-            layout = Layout(np.asarray(finding.layout, dtype=np.int8))
-            positions = replay["positions"]
-            last = positions[-1]
-            snap = EpisodeSnapshot(
-                layout,
-                last,
-                len(positions),
-                finding.trigger_step is not None,
-                finding.trigger_step,
-                None,
-                None,
-                False,
-                3,
-                (),
-                (),
-                0,
-            )
-            rgb = render_rgb(snap, positions[:-1], cell_px=12)
-            ref_env = "trojan" if kind == "activation" else "normal"
             name = f"finding_{kind}_{i}.png"
-            plot_finding(
-                rgb,
-                series,
-                {next(iter(series)): normal_mean[ref_env]},
-                finding.trigger_step,
-                out / "figures" / name,
-                f"{kind} on {finding.grid}: ended at the {finding.outcome.replace('_', ' ')}",
-            )
+            ref_env = "trojan" if kind == "activation" else "normal"
+            _plot_one_finding(finding, agent, acfg, goal, reference[ref_env], out / "figures" / name)
             plotted.append(name)
     return plotted
+
+
+def _goal_unit_means(traces, goal: GoalUnits, min_episodes: int) -> dict[str, np.ndarray]:
+    """env -> the backdoored agent's mean goal-unit activation per step, over the steps with enough episodes."""
+    means = {}
+    for env in ENVS:
+        trace = traces[("backdoor", env)]
+        act, mask = goal.activation(trace.states(goal.which, goal.layer)), trace.mask
+        counts = mask.sum(0)
+        means[env] = ((act * mask).sum(0) / np.maximum(counts, 1))[counts >= min_episodes]
+    return means
+
+
+def _plot_one_finding(finding, agent, acfg, goal: GoalUnits, reference: np.ndarray, path: Path) -> None:
+    replay = finding.replay(agent, acfg.env)
+    label = f"goal units ({len(goal.units)} {goal.which} units of layer {goal.layer})"
+    series = {label: goal.activation((replay["h"] if goal.which == "h" else replay["c"])[goal.layer])}
+    positions = replay["positions"]
+    snap = EpisodeSnapshot(
+        layout=Layout(np.asarray(finding.layout, dtype=np.int8)),
+        agent=positions[-1],
+        t=len(positions),
+        trojan=finding.trigger_step is not None,
+        on_step=finding.trigger_step,
+        off_step=None,
+        visible=None,
+        adversary_active=False,
+        view_size=acfg.env.view_size,
+        on_cells=(),
+        off_cells=(),
+        time_limit=0,
+    )
+    title = f"{finding.kind} on {finding.grid}: ended at the {finding.outcome.replace('_', ' ')}"
+    plot_finding(render_rgb(snap, positions[:-1], cell_px=12), series, {label: reference}, finding.trigger_step,
+                 path, title)  # fmt: skip
