@@ -378,6 +378,58 @@ def _defenses(argv: list[str]) -> None:
     _list_registered("defense", (MONITORS, DETECTORS, MITIGATIONS), argv)
 
 
+def _import(argv: list[str]) -> None:
+    from typing import Annotated
+
+    from seqtrojan.agent.card import read_card
+    from seqtrojan.agent.imports import import_agent
+
+    @dataclasses.dataclass
+    class ImportArgs:
+        """Import a recurrent agent trained elsewhere as a seqtrojan model folder (safetensors + card), without
+        unpickling anything: an sb3-contrib RecurrentPPO zip (MlpLstmPolicy) or a CleanRL LSTM state dict. Every
+        seqtrojan tool (evaluate, analyze, defend, ...) then runs on it. See docs/import.md."""
+
+        source: tyro.conf.Positional[Path]
+        """the model file: an sb3 .zip or a CleanRL state dict (.pt)"""
+        from_: Annotated[Literal["sb3", "cleanrl"], tyro.conf.arg(name="from")]
+        """the file's kind"""
+        out: Path
+        """the model folder to write (new or empty)"""
+        label: Literal["clean", "backdoored"] | None = None
+        """what you state the agent is (the card's label); unset writes 'clean' and marks the card's
+        provenance.label_stated false"""
+        obs_dim: int | None = None
+        """observation inputs (required for cleanrl; checked for sb3)"""
+        actions: int | None = None
+        """number of discrete actions (required for cleanrl; checked for sb3)"""
+        activation: Literal["relu", "tanh"] = "relu"
+        """cleanrl: the activation after each encoder layer (network.*)"""
+        config: str | None = None
+        """a preset's name or an experiment YAML whose env is the one the agent acts in (default: the default
+        env, a 3x3 view and four moves)"""
+
+    args = tyro.cli(ImportArgs, args=argv, prog="seqtrojan import")
+    config = None
+    if args.config is not None:
+        from seqtrojan.config import ExperimentConfig
+        from seqtrojan.presets import resolve_preset
+        from seqtrojan.serde import from_dict, load_yaml
+
+        config = from_dict(ExperimentConfig, load_yaml(resolve_preset(args.config)), "")
+    out = import_agent(
+        args.from_, args.source, args.out, config=config, label=args.label, obs_dim=args.obs_dim,
+        num_actions=args.actions, activation=args.activation,
+    )  # fmt: skip
+    card = read_card(out)
+    provenance = card.provenance or {}
+    print(f"imported {args.source} ({args.from_}) -> {out}")
+    print(f"architecture: {card.architecture.describe()}")
+    print(f"label: {card.label}" + ("" if provenance.get("label_stated") else " (not stated: pass --label)"))
+    if provenance.get("value") == "zeroed":
+        print("value head: zero (the original's separate critic is not imported; the policy is exact)")
+
+
 def _demo(argv: list[str]) -> None:
     from seqtrojan.demo import DemoArgs, run_demo
 
@@ -394,6 +446,7 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "matrix": (_matrix, "every attack against every defense over seeds (--scale smoke|paper) -> matrix.json"),
     "attacks": (_attacks, "list the registered attacks: trigger kinds, mixing rules, rewards"),
     "defenses": (_defenses, "list the registered defenses: monitors, detectors, mitigations"),
+    "import": (_import, "import an agent trained elsewhere (sb3-contrib RecurrentPPO zip, CleanRL LSTM state dict)"),
     "demo": (_demo, "build envs, run random and scripted agents, render episodes (text and PNG)"),
 }
 

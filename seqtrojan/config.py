@@ -17,6 +17,7 @@ from seqtrojan.errors import ConfigError
 from seqtrojan.serde import from_dict, load_yaml, parse_yaml, short_repr, to_dict
 
 __all__ = [
+    "ACTIVATIONS",
     "AgentConfig",
     "AttackConfig",
     "BackdoorConfig",
@@ -40,9 +41,22 @@ MAX_WIDTH = 4096
 """widest recurrent layer a config or a model card may name"""
 
 
+ACTIVATIONS = ("tanh", "relu")
+"""activation functions of the optional MLP layers (``agent.encoder``, ``agent.policy_mlp``, ``agent.value_mlp``)"""
+
+
 @dataclasses.dataclass(frozen=True)
 class AgentConfig:
-    """The recurrent actor-critic: stacked LSTM layers, then a policy head and a value head."""
+    """The recurrent actor-critic: stacked LSTM layers, then a policy head and a value head.
+
+    The optional MLP parts (all empty by default, so that the paper's network is unchanged) describe agents
+    imported from elsewhere (:mod:`seqtrojan.agent.imports`): ``encoder`` layers between the observation and the
+    first LSTM layer (CleanRL's ``network``), and ``policy_mlp`` / ``value_mlp`` layers between the last LSTM layer
+    and each head (sb3's ``mlp_extractor``). Each MLP layer is a linear layer followed by its activation.
+
+    Saved (:func:`seqtrojan.serde.to_dict`) without the optional fields that are at their defaults, so that the
+    card and run config of every network without them are exactly what earlier versions wrote and read.
+    """
 
     lstm_sizes: tuple[int, ...] = (64, 32)
     """widths of the stacked LSTM layers (the paper: 64 then 32)"""
@@ -50,6 +64,19 @@ class AgentConfig:
     """initial forget-gate bias (1 helps gradients reach far back at the start of training)"""
     memory: bool = True
     """False resets the LSTM state before every step: a memoryless baseline with the same network"""
+    encoder: tuple[int, ...] = ()
+    """widths of MLP layers between the observation and the first LSTM layer (none by default)"""
+    encoder_activation: Literal["tanh", "relu"] = "relu"
+    """activation after each encoder layer (CleanRL's: relu)"""
+    policy_mlp: tuple[int, ...] = ()
+    """widths of MLP layers between the last LSTM layer and the policy head (none by default)"""
+    value_mlp: tuple[int, ...] = ()
+    """widths of MLP layers between the last LSTM layer and the value head (none by default)"""
+    mlp_activation: Literal["tanh", "relu"] = "tanh"
+    """activation after each policy_mlp and value_mlp layer (sb3's default: tanh)"""
+
+    OPTIONAL = ("encoder", "encoder_activation", "policy_mlp", "value_mlp", "mlp_activation")
+    """fields left out of the saved form while at their defaults"""
 
     def __post_init__(self) -> None:
         if not self.lstm_sizes or any((not isinstance(w, int)) or w < 1 for w in self.lstm_sizes):
@@ -60,6 +87,32 @@ class AgentConfig:
                 f"agent.lstm_sizes must be 1 to {MAX_LAYERS} layers of at most {MAX_WIDTH} units, "
                 f"got {short_repr(self.lstm_sizes)}"
             )
+        for name in ("encoder", "policy_mlp", "value_mlp"):
+            widths = getattr(self, name)
+            if (
+                not isinstance(widths, tuple)
+                or len(widths) > MAX_LAYERS
+                or any(isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= MAX_WIDTH for w in widths)
+            ):
+                raise ConfigError(
+                    f"agent.{name} must be 0 to {MAX_LAYERS} layer widths in [1, {MAX_WIDTH}], got {short_repr(widths)}"
+                )
+        for name in ("encoder_activation", "mlp_activation"):
+            if getattr(self, name) not in ACTIVATIONS:
+                raise ConfigError(f"agent.{name} must be one of {ACTIVATIONS}, got {short_repr(getattr(self, name))}")
+
+    def serde_dump(self) -> dict:
+        """The saved form: every field but the optional ones at their defaults."""
+        defaults = AgentConfig()
+        return {
+            f.name: to_dict(getattr(self, f.name))
+            for f in dataclasses.fields(self)
+            if f.name not in self.OPTIONAL or getattr(self, f.name) != getattr(defaults, f.name)
+        }
+
+    @classmethod
+    def serde_load(cls, data: object, path: str) -> AgentConfig:
+        return from_dict(cls, data, path)
 
 
 @dataclasses.dataclass(frozen=True)

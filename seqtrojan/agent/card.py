@@ -8,7 +8,9 @@ hostile until proven otherwise. This module reads both with bounded sizes and ch
   recursive JSON parser), with at most :data:`MAX_ITEMS` entries in any list or object and no duplicate keys;
 - its fields have the types and values ``save_agent`` writes: label ``clean`` or ``backdoored``, a SHA-256 of the
   weights, an architecture within :data:`MAX_OBS_DIM`, :data:`MAX_ACTIONS`, :data:`MAX_LAYERS`, :data:`MAX_WIDTH`
-  and :data:`MAX_PARAMETERS`, and an embedded config that parses to the same architecture;
+  and :data:`MAX_PARAMETERS` (its optional MLP parts too: ``encoder``, ``policy_mlp``, ``value_mlp`` and their
+  activations, present only where not empty), an embedded config that parses to the same architecture, and for an
+  imported model a ``provenance`` of fixed keys (:data:`PROVENANCE_KEYS`);
 - the safetensors header (an 8-byte little-endian length, then JSON) is read alone, its length bounded by
   :data:`MAX_HEADER_BYTES` before it is read; every tensor's dtype is known, its byte range matches its shape and
   dtype, and the ranges tile the data exactly to the end of the file;
@@ -32,7 +34,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from seqtrojan.config import MAX_LAYERS, MAX_WIDTH, ExperimentConfig
+from seqtrojan.config import ACTIVATIONS, MAX_LAYERS, MAX_WIDTH, ExperimentConfig
 from seqtrojan.errors import CheckpointError, SeqTrojanError
 from seqtrojan.serde import from_dict
 
@@ -72,7 +74,20 @@ FLOAT_DTYPES = ("F16", "BF16", "F32", "F64")
 """dtypes a model's weights may have"""
 
 _REQUIRED = ("format", "format_version", "label", "architecture", "config", "tensors", "weights_sha256")
-_OPTIONAL = ("seqtrojan_version", "created", "seed", "env_steps", "metrics")
+_OPTIONAL = ("seqtrojan_version", "created", "seed", "env_steps", "metrics", "provenance")
+IMPORT_SOURCES = ("sb3", "cleanrl")
+"""where an imported model can come from (a card's ``provenance.imported_from``)"""
+VALUE_IMPORTS = ("imported", "zeroed")
+"""``provenance.value``: the value head computes the original's value, or it is zero (the original's critic had
+parts this network does not have; see docs/import.md)"""
+PROVENANCE_KEYS = ("imported_from", "source_file", "source_sha256", "label_stated", "value", "details")
+"""the keys of a card's ``provenance`` (all required)"""
+MAX_DETAIL_CHARS = 1000
+"""longest string in ``provenance`` (and its ``details``)"""
+_ARCH_REQUIRED = ("type", "obs_dim", "num_actions", "lstm_sizes")
+_ARCH_MLPS = ("encoder", "policy_mlp", "value_mlp")
+_ARCH_ACTIVATIONS = {"encoder_activation": "relu", "mlp_activation": "tanh"}
+"""the optional activations and their defaults (those of :class:`seqtrojan.config.AgentConfig`)"""
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _STRINGS = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*(?:"|\\?\Z)', re.DOTALL)
 """a JSON string; one left open runs to the end of the text (so a match never fails and never backtracks far)"""
@@ -86,26 +101,64 @@ for _c in b"]}":
 
 @dataclasses.dataclass(frozen=True)
 class Architecture:
-    """The network a card describes: ``RecurrentActorCritic(obs_dim, num_actions, lstm_sizes)``."""
+    """The network a card describes: ``RecurrentActorCritic(obs_dim, num_actions, lstm_sizes, ...)`` with its
+    optional MLP parts (empty by default)."""
 
     obs_dim: int
     num_actions: int
     lstm_sizes: tuple[int, ...]
+    encoder: tuple[int, ...] = ()
+    encoder_activation: str = "relu"
+    policy_mlp: tuple[int, ...] = ()
+    value_mlp: tuple[int, ...] = ()
+    mlp_activation: str = "tanh"
+
+    @classmethod
+    def of_config(cls, config: ExperimentConfig) -> Architecture:
+        """The architecture ``config`` builds (:func:`seqtrojan.agent.checkpoint.build_agent`)."""
+        a = config.agent
+        return cls(
+            config.env.obs_dim, config.env.num_actions, tuple(a.lstm_sizes), tuple(a.encoder), a.encoder_activation,
+            tuple(a.policy_mlp), tuple(a.value_mlp), a.mlp_activation,
+        )  # fmt: skip
+
+    def optional_parts(self) -> dict[str, Any]:
+        """The optional parts that are not at their defaults, as the card writes them."""
+        out: dict[str, Any] = {}
+        for name in _ARCH_MLPS:
+            if getattr(self, name):
+                out[name] = list(getattr(self, name))
+        for name, default in _ARCH_ACTIVATIONS.items():
+            if getattr(self, name) != default:
+                out[name] = getattr(self, name)
+        return out
+
+    def to_card(self) -> dict[str, Any]:
+        """The card's ``architecture`` field (the optional parts only where not at their defaults)."""
+        return {
+            "type": ARCHITECTURE_TYPE, "obs_dim": self.obs_dim, "num_actions": self.num_actions,
+            "lstm_sizes": list(self.lstm_sizes), **self.optional_parts(),
+        }  # fmt: skip
 
     def tensor_shapes(self) -> dict[str, tuple[int, ...]]:
         """The network's state_dict names and shapes, computed without building it."""
         shapes: dict[str, tuple[int, ...]] = {}
-        inputs = (self.obs_dim, *self.lstm_sizes[:-1])
+        inputs = (self.encoder[-1] if self.encoder else self.obs_dim, *self.lstm_sizes[:-1])
         for i, (n_in, width) in enumerate(zip(inputs, self.lstm_sizes)):
             shapes[f"cells.{i}.weight_ih"] = (4 * width, n_in)
             shapes[f"cells.{i}.weight_hh"] = (4 * width, width)
             shapes[f"cells.{i}.bias_ih"] = (4 * width,)
             shapes[f"cells.{i}.bias_hh"] = (4 * width,)
         last = self.lstm_sizes[-1]
-        shapes["policy_head.weight"] = (self.num_actions, last)
+        shapes["policy_head.weight"] = (self.num_actions, self.policy_mlp[-1] if self.policy_mlp else last)
         shapes["policy_head.bias"] = (self.num_actions,)
-        shapes["value_head.weight"] = (1, last)
+        shapes["value_head.weight"] = (1, self.value_mlp[-1] if self.value_mlp else last)
         shapes["value_head.bias"] = (1,)
+        for name, n_in in (("encoder", self.obs_dim), ("policy_mlp", last), ("value_mlp", last)):
+            widths = getattr(self, name)
+            for i, (a, b) in enumerate(zip((n_in, *widths[:-1]), widths)):
+                shapes[f"{name}.{i}.weight"] = (b, a)
+                shapes[f"{name}.{i}.bias"] = (b,)
         return shapes
 
     @property
@@ -113,7 +166,8 @@ class Architecture:
         return sum(math.prod(shape) for shape in self.tensor_shapes().values())
 
     def describe(self) -> str:
-        return f"obs_dim={self.obs_dim}, num_actions={self.num_actions}, lstm_sizes={list(self.lstm_sizes)}"
+        text = f"obs_dim={self.obs_dim}, num_actions={self.num_actions}, lstm_sizes={list(self.lstm_sizes)}"
+        return "".join([text, *(f", {k}={v}" for k, v in self.optional_parts().items())])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,6 +187,8 @@ class ModelCard:
     seed: int | None
     seqtrojan_version: str | None
     created: str | None
+    provenance: Mapping[str, Any] | None
+    """where an imported model came from (:data:`PROVENANCE_KEYS`); None for a model trained here"""
     data: dict[str, Any] = dataclasses.field(repr=False, compare=False)
 
 
@@ -210,24 +266,27 @@ def parse_card(raw: bytes | str, where: str = CARD) -> ModelCard:
     env_steps = _optional_int(card, "env_steps", where, minimum=0)
     seed = _optional_int(card, "seed", where)
     version_text, created = (_optional_str(card, key, where) for key in ("seqtrojan_version", "created"))
+    provenance = _provenance(card["provenance"], where) if card.get("provenance") is not None else None
     config = _config(card["config"], where)
-    from_config = Architecture(config.env.obs_dim, config.env.num_actions, tuple(config.agent.lstm_sizes))
+    from_config = Architecture.of_config(config)
     if from_config != arch:
         raise CheckpointError(
             f"{where}: architecture ({arch.describe()}) disagrees with its config ({from_config.describe()})"
         )
-    return ModelCard(label, arch, config, tensors, sha, metrics, env_steps, seed, version_text, created, card)
+    return ModelCard(
+        label, arch, config, tensors, sha, metrics, env_steps, seed, version_text, created, provenance, card
+    )
 
 
 def _architecture(value: Any, where: str) -> Architecture:
     if not isinstance(value, dict):
         raise CheckpointError(f"{where}: architecture must be a mapping, got {type(value).__name__}")
-    keys = {"type", "obs_dim", "num_actions", "lstm_sizes"}
-    if set(value) != keys:
-        missing, extra = sorted(keys - set(value)), sorted(set(value) - keys)
+    keys, optional = set(_ARCH_REQUIRED), {*_ARCH_MLPS, *_ARCH_ACTIVATIONS}
+    if not keys <= set(value) <= keys | optional:
+        missing, extra = sorted(keys - set(value)), sorted(set(value) - keys - optional)
         raise CheckpointError(
-            f"{where}: architecture must have exactly the keys {sorted(keys)} (missing {missing}, unknown "
-            f"{_clip(extra)})"
+            f"{where}: architecture must have the keys {sorted(keys)} and may have {sorted(optional)} (missing "
+            f"{missing}, unknown {_clip(extra)})"
         )
     if value["type"] != ARCHITECTURE_TYPE:
         raise CheckpointError(f"{where}: architecture.type must be {ARCHITECTURE_TYPE!r}, got {_clip(value['type'])}")
@@ -239,13 +298,62 @@ def _architecture(value: Any, where: str) -> Architecture:
             f"{where}: architecture.lstm_sizes must be a list of 1 to {MAX_LAYERS} layer widths, got {_clip(sizes)}"
         )
     widths = tuple(_bounded_int(w, 1, MAX_WIDTH, f"{where}: architecture.lstm_sizes[{i}]") for i, w in enumerate(sizes))
-    arch = Architecture(obs_dim, num_actions, widths)
+    mlps: dict[str, Any] = {}
+    for name in _ARCH_MLPS:
+        layers = value.get(name, [])
+        if not isinstance(layers, list) or len(layers) > MAX_LAYERS:
+            raise CheckpointError(
+                f"{where}: architecture.{name} must be a list of at most {MAX_LAYERS} layer widths, got {_clip(layers)}"
+            )
+        what = f"{where}: architecture.{name}"
+        mlps[name] = tuple(_bounded_int(w, 1, MAX_WIDTH, f"{what}[{i}]") for i, w in enumerate(layers))
+    for name, default in _ARCH_ACTIVATIONS.items():
+        mlps[name] = value.get(name, default)
+        if mlps[name] not in ACTIVATIONS:
+            raise CheckpointError(f"{where}: architecture.{name} must be one of {ACTIVATIONS}, got {_clip(mlps[name])}")
+    arch = Architecture(obs_dim, num_actions, widths, **mlps)
     if arch.num_parameters > MAX_PARAMETERS:
         raise CheckpointError(
             f"{where}: architecture ({arch.describe()}) has {arch.num_parameters} parameters, more than the "
             f"limit of {MAX_PARAMETERS}"
         )
     return arch
+
+
+def _provenance(value: Any, where: str) -> dict[str, Any]:
+    """A validated ``provenance`` (an imported model's origin): exactly :data:`PROVENANCE_KEYS`, typed."""
+    what = f"{where}: provenance"
+    if not isinstance(value, dict):
+        raise CheckpointError(f"{what} must be a mapping or null, got {type(value).__name__}")
+    if set(value) != set(PROVENANCE_KEYS):
+        missing, extra = sorted(set(PROVENANCE_KEYS) - set(value)), sorted(set(value) - set(PROVENANCE_KEYS))
+        raise CheckpointError(
+            f"{what} must have exactly the keys {list(PROVENANCE_KEYS)} (missing {missing}, unknown {_clip(extra)})"
+        )
+    if value["imported_from"] not in IMPORT_SOURCES:
+        source = _clip(value["imported_from"])
+        raise CheckpointError(f"{what}.imported_from must be one of {IMPORT_SOURCES}, got {source}")
+    if not isinstance(value["source_file"], str) or not 0 < len(value["source_file"]) <= MAX_DETAIL_CHARS:
+        raise CheckpointError(f"{what}.source_file must be a file name, got {_clip(value['source_file'])}")
+    sha = value["source_sha256"]
+    if not isinstance(sha, str) or not _SHA256.fullmatch(sha):
+        raise CheckpointError(f"{what}.source_sha256 must be 64 lowercase hex digits, got {_clip(sha)}")
+    if type(value["label_stated"]) is not bool:
+        raise CheckpointError(f"{what}.label_stated must be true or false, got {_clip(value['label_stated'])}")
+    if value["value"] not in VALUE_IMPORTS:
+        raise CheckpointError(f"{what}.value must be one of {VALUE_IMPORTS}, got {_clip(value['value'])}")
+    details = value["details"]
+    if not isinstance(details, dict):
+        raise CheckpointError(f"{what}.details must be a mapping, got {type(details).__name__}")
+    for key, item in details.items():
+        scalar = item is None or type(item) in (bool, int, float) or isinstance(item, str)
+        ints = isinstance(item, list) and len(item) <= MAX_RANK and all(type(i) is int for i in item)
+        if not (scalar or ints) or (isinstance(item, str) and len(item) > MAX_DETAIL_CHARS):
+            raise CheckpointError(
+                f"{what}.details[{_clip(key)}] must be a number, a string of at most {MAX_DETAIL_CHARS} characters, "
+                f"true/false, null or a short list of integers, got {_clip(item)}"
+            )
+    return value
 
 
 def _tensor_list(value: Any, where: str) -> dict[str, tuple[int, ...]]:
@@ -308,9 +416,12 @@ def read_header(path: str | Path) -> SafetensorsHeader:
     with path.open("rb") as fh:
         head = fh.read(9)
         size = os.fstat(fh.fileno()).st_size
-        if head[:2] == b"PK" or head[:1] == b"\x80":
-            raise CheckpointError(f"{where} is a pickle/zip file, not safetensors: refusing to load it")
         header_len = int.from_bytes(head[:8], "little") if len(head) >= 8 else -1
+        plausible = len(head) == 9 and 0 < header_len <= MAX_HEADER_BYTES and header_len + 8 <= size
+        # A header length can begin with the bytes of "PK" (19280 + 65536 k) or 0x80 (128 + 256 k): only a file that
+        # cannot be safetensors is called a zip or a pickle.
+        if not (plausible and head[8:9] == b"{") and (head[:2] == b"PK" or head[:1] == b"\x80"):
+            raise CheckpointError(f"{where} is a pickle/zip file, not safetensors: refusing to load it")
         if header_len > MAX_HEADER_BYTES:
             raise CheckpointError(
                 f"{where} declares a safetensors header of {header_len} bytes, more than the limit of "

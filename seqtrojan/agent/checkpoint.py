@@ -30,6 +30,7 @@ from seqtrojan.agent.card import (
     FORMAT,
     FORMAT_VERSION,
     WEIGHTS,
+    Architecture,
     ModelCard,
     check_weights,
     parse_card,
@@ -48,6 +49,7 @@ __all__ = [
     "PICKLE_SUFFIXES",
     "WEIGHTS",
     "ModelCard",
+    "architecture_of",
     "build_agent",
     "load_agent",
     "read_card",
@@ -61,7 +63,20 @@ PICKLE_SUFFIXES = (".pt", ".pth", ".pkl", ".pickle", ".ckpt", ".bin")
 
 def build_agent(config: ExperimentConfig) -> RecurrentActorCritic:
     a = config.agent
-    return RecurrentActorCritic(config.env.obs_dim, config.env.num_actions, a.lstm_sizes, a.forget_bias, a.memory)
+    return RecurrentActorCritic(
+        config.env.obs_dim, config.env.num_actions, a.lstm_sizes, a.forget_bias, a.memory, encoder=a.encoder,
+        encoder_activation=a.encoder_activation, policy_mlp=a.policy_mlp, value_mlp=a.value_mlp,
+        mlp_activation=a.mlp_activation,
+    )  # fmt: skip
+
+
+def architecture_of(agent: RecurrentActorCritic) -> Architecture:
+    """The card's description of ``agent``'s network."""
+    return Architecture(
+        agent.obs_dim, agent.num_actions, agent.lstm_sizes, encoder=agent.encoder_sizes,
+        encoder_activation=agent.encoder_activation, policy_mlp=agent.policy_mlp_sizes,
+        value_mlp=agent.value_mlp_sizes, mlp_activation=agent.mlp_activation,
+    )  # fmt: skip
 
 
 def save_agent(
@@ -72,10 +87,12 @@ def save_agent(
     label: str,
     metrics: dict[str, Any] | None = None,
     env_steps: int | None = None,
+    provenance: dict[str, Any] | None = None,
 ) -> Path:
     """Write ``model.safetensors`` and ``card.json`` into ``folder`` (created); returns the folder.
 
     The card is checked with the same rules as loading before anything is written, so a saved model always loads.
+    ``provenance`` (where an imported model came from, :mod:`seqtrojan.agent.imports`) is written only when given.
     """
     if label not in ("clean", "backdoored"):
         raise ConfigError(f"label must be 'clean' or 'backdoored', got {label!r}")
@@ -89,12 +106,7 @@ def save_agent(
         "seqtrojan_version": __version__,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "label": label,
-        "architecture": {
-            "type": "RecurrentActorCritic",
-            "obs_dim": agent.obs_dim,
-            "num_actions": agent.num_actions,
-            "lstm_sizes": list(agent.lstm_sizes),
-        },
+        "architecture": architecture_of(agent).to_card(),
         "seed": config.run.seed,
         "env_steps": env_steps,
         "config": to_dict(config),
@@ -102,6 +114,8 @@ def save_agent(
         "tensors": {k: list(v.shape) for k, v in tensors.items()},
         "weights_sha256": "0" * 64,
     }
+    if provenance is not None:
+        card["provenance"] = provenance
     parse_card(json.dumps(card), f"the card for {str(folder)!r}")  # refuse what load_agent would refuse
     folder.mkdir(parents=True, exist_ok=True)
     tmp = folder / (WEIGHTS + ".tmp")

@@ -1,5 +1,9 @@
 """The recurrent actor-critic: observation -> stacked LSTM cells -> policy logits and value.
 
+Optional MLP parts (none by default: the paper's network) describe agents trained elsewhere and imported
+(:mod:`seqtrojan.agent.imports`): ``encoder`` layers before the first LSTM layer, ``policy_mlp`` / ``value_mlp``
+layers between the last LSTM layer and each head; each layer is a linear map followed by its activation.
+
 The state always goes in and comes out (:class:`RecurrentState`); nothing is kept inside the module.
 ``step`` runs one time step for a batch and lets a caller-supplied intervention edit each layer's (h, c);
 ``unroll`` runs T steps with episode-start masks. Both compute exactly the same function (tested).
@@ -18,6 +22,8 @@ from seqtrojan.agent.state import Intervention, LSTMState, RecurrentState
 from seqtrojan.errors import ConfigError
 
 BACKENDS = ("auto", "torch", "cpp")
+ACTIVATIONS = {"tanh": torch.tanh, "relu": torch.relu}
+"""the optional MLP layers' activation functions, by name (the names of :data:`seqtrojan.config.ACTIVATIONS`)"""
 
 
 class StepOutput(NamedTuple):
@@ -34,7 +40,13 @@ class UnrollOutput(NamedTuple):
 
 
 class RecurrentActorCritic(nn.Module):
-    """Stacked LSTM cells (widths e.g. 64, 32) with a policy head and a value head on the last layer."""
+    """Stacked LSTM cells (widths e.g. 64, 32) with a policy head and a value head on the last layer.
+
+    Optionally (all empty by default) ``encoder`` MLP layers before the first cell, and ``policy_mlp`` /
+    ``value_mlp`` MLP layers before each head. Their modules exist only when they have layers, and they are built
+    and initialised after the default parts, so that a network without them is exactly the one earlier versions
+    built from the same seed (same parameters, same state_dict).
+    """
 
     def __init__(
         self,
@@ -43,18 +55,46 @@ class RecurrentActorCritic(nn.Module):
         lstm_sizes: Sequence[int] = (64, 32),
         forget_bias: float = 1.0,
         memory: bool = True,
+        *,
+        encoder: Sequence[int] = (),
+        encoder_activation: str = "relu",
+        policy_mlp: Sequence[int] = (),
+        value_mlp: Sequence[int] = (),
+        mlp_activation: str = "tanh",
     ):
         super().__init__()
+        for name, activation in (("encoder_activation", encoder_activation), ("mlp_activation", mlp_activation)):
+            if activation not in ACTIVATIONS:
+                raise ConfigError(f"{name} must be one of {tuple(ACTIVATIONS)}, got {activation!r}")
         self.memory = memory
         """False: the state is reset before every step (a memoryless baseline)"""
         self.obs_dim = obs_dim
         self.num_actions = num_actions
         self.lstm_sizes = tuple(int(w) for w in lstm_sizes)
-        inputs = (obs_dim, *self.lstm_sizes[:-1])
+        self.encoder_sizes = tuple(int(w) for w in encoder)
+        self.policy_mlp_sizes = tuple(int(w) for w in policy_mlp)
+        self.value_mlp_sizes = tuple(int(w) for w in value_mlp)
+        self.encoder_activation = encoder_activation
+        self.mlp_activation = mlp_activation
+        lstm_in = self.encoder_sizes[-1] if self.encoder_sizes else obs_dim
+        last = self.lstm_sizes[-1]
+        inputs = (lstm_in, *self.lstm_sizes[:-1])
         self.cells = nn.ModuleList(nn.LSTMCell(i, w) for i, w in zip(inputs, self.lstm_sizes))
-        self.policy_head = nn.Linear(self.lstm_sizes[-1], num_actions)
-        self.value_head = nn.Linear(self.lstm_sizes[-1], 1)
+        self.policy_head = nn.Linear(self.policy_mlp_sizes[-1] if self.policy_mlp_sizes else last, num_actions)
+        self.value_head = nn.Linear(self.value_mlp_sizes[-1] if self.value_mlp_sizes else last, 1)
         self._init_weights(forget_bias)
+        # the optional parts, after everything above (a network without them draws the same random numbers)
+        for name, n_in, widths in (
+            ("encoder", obs_dim, self.encoder_sizes),
+            ("policy_mlp", last, self.policy_mlp_sizes),
+            ("value_mlp", last, self.value_mlp_sizes),
+        ):
+            if widths:
+                layers = nn.ModuleList(nn.Linear(i, w) for i, w in zip((n_in, *widths[:-1]), widths))
+                for layer in cast("Sequence[nn.Linear]", layers):
+                    nn.init.orthogonal_(layer.weight, gain=2**0.5)
+                    nn.init.zeros_(layer.bias)
+                self.add_module(name, layers)
         self.lstm_backend = "auto"
         """'auto' uses the fused C++ kernels (:mod:`seqtrojan.agent.fast_lstm`) on CPU where they build, 'torch'
         never, 'cpp' always (an error where unavailable). Both compute the same function."""
@@ -87,6 +127,27 @@ class RecurrentActorCritic(nn.Module):
         nn.init.orthogonal_(self.value_head.weight, gain=1.0)
         nn.init.zeros_(self.value_head.bias)
 
+    # ------------------------------------------------------------------ optional MLP parts
+    def _mlp(self, name: str, activation: str, x: torch.Tensor) -> torch.Tensor:
+        """``x`` through the MLP layers ``name`` (each linear, then ``activation``); ``x`` itself when it has none."""
+        layers = self._modules.get(name)
+        if layers is None:
+            return x
+        act = ACTIVATIONS[activation]
+        for layer in cast("Sequence[nn.Linear]", layers):
+            x = act(layer(x))
+        return x
+
+    def encode(self, obs: torch.Tensor) -> torch.Tensor:
+        """The first LSTM layer's input: ``obs`` (..., obs_dim) through the encoder, or ``obs`` without one."""
+        return self._mlp("encoder", self.encoder_activation, obs)
+
+    def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Logits (..., A) and values (...) from the last LSTM layer's h (..., H)."""
+        logits = self.policy_head(self._mlp("policy_mlp", self.mlp_activation, x))
+        values = self.value_head(self._mlp("value_mlp", self.mlp_activation, x)).squeeze(-1)
+        return logits, values
+
     # ------------------------------------------------------------------ state
     def initial_state(self, batch: int, device: torch.device | str | None = None) -> RecurrentState:
         weight = self.policy_head.weight
@@ -109,13 +170,13 @@ class RecurrentActorCritic(nn.Module):
             episode_start = torch.ones(obs.shape[0], dtype=torch.bool, device=obs.device)
         if intervention is None and not torch.is_grad_enabled() and self._fast(obs):
             keep = torch.ones(obs.shape[0], dtype=obs.dtype) if episode_start is None else (~episode_start.bool())
-            new = fast_lstm.step_stack(self.cells, obs, keep.to(obs.dtype), list(state.layers), self._weight_cache)
-            x = new[-1][0]
+            x = self.encode(obs)
+            new = fast_lstm.step_stack(self.cells, x, keep.to(obs.dtype), list(state.layers), self._weight_cache)
             fast_layers = tuple(LSTMState(h, c) for h, c in new)
-            return StepOutput(self.policy_head(x), self.value_head(x).squeeze(-1), RecurrentState(fast_layers))
+            return StepOutput(*self.heads(new[-1][0]), RecurrentState(fast_layers))
         if episode_start is not None:
             state = state.mask(episode_start)
-        x = obs
+        x = self.encode(obs)
         layers = []
         for i, cell in enumerate(self.cells):
             h, c = cell(x, state.layers[i])
@@ -124,7 +185,7 @@ class RecurrentActorCritic(nn.Module):
                 s = intervention(i, t, s)
             layers.append(s)
             x = s.h
-        return StepOutput(self.policy_head(x), self.value_head(x).squeeze(-1), RecurrentState(tuple(layers)))
+        return StepOutput(*self.heads(x), RecurrentState(tuple(layers)))
 
     # ------------------------------------------------------------------ T steps
     def unroll(
@@ -148,7 +209,7 @@ class RecurrentActorCritic(nn.Module):
             return self._unroll_stepwise(obs, state, episode_starts, intervention, t, return_states)
         keep = (~episode_starts.bool()).to(obs.dtype)  # (T, B)
         layer = _fast_layer if self._fast(obs) else _lstm_layer
-        x = obs
+        x = self.encode(obs)
         finals: list[LSTMState] = []
         sequences: list[LSTMState] = []  # filled when return_states
         for cell, s in zip(cast("Sequence[nn.LSTMCell]", self.cells), state.layers):
@@ -156,8 +217,7 @@ class RecurrentActorCritic(nn.Module):
             finals.append(final)
             if seq is not None:
                 sequences.append(seq)
-        logits = self.policy_head(x)
-        values = self.value_head(x).squeeze(-1)
+        logits, values = self.heads(x)
         return UnrollOutput(logits, values, RecurrentState(tuple(finals)), tuple(sequences) if return_states else None)
 
     def _unroll_stepwise(

@@ -1,0 +1,627 @@
+"""Agents trained elsewhere, imported as a :class:`~seqtrojan.agent.network.RecurrentActorCritic` model folder.
+
+Two sources (docs/import.md has the full mapping and every refusal):
+
+- **sb3**: a stable-baselines3 zip of sb3-contrib's ``RecurrentPPO`` with ``MlpLstmPolicy``. Read without unpickling
+  anything: ``policy.pth`` with ``torch.load(weights_only=True)``, and the architecture from the JSON text of the
+  ``data`` entry (``policy_kwargs``, and the non-pickled parts sb3 writes beside each pickled ``:serialized:``
+  value: the observation space's ``_shape`` and ``dtype``, the action space's ``n``), checked against the weights.
+- **cleanrl**: a state dict saved with ``torch.save(agent.state_dict())`` from CleanRL's ``ppo_atari_lstm.py``
+  ``Agent`` with an MLP in place of the CNN: ``network.{0,2,...}`` (linear layers, each followed by the activation),
+  ``lstm.*`` (``nn.LSTM``), ``actor`` and ``critic``.
+
+The policy path (observation -> LSTM -> policy MLP -> logits) is imported exactly. sb3-contrib's default critic has a
+separate LSTM (``enable_critic_lstm=True``) or, with ``enable_critic_lstm=False``, a linear layer on the
+observation; this network has one LSTM stack, which the monitors, interventions and analyses read as *the* agent's
+memory, so such a critic is not imported: the value MLP keeps sb3's shapes and weights (a starting point for
+fine-tuning) and the value head is zero, so the value is 0 (``provenance.value = "zeroed"``). Evaluation, analysis
+and the defenses read only the policy; PPO fine-tuning learns a new value. A ``shared_lstm=True`` critic and
+CleanRL's critic are imported exactly (``provenance.value = "imported"``).
+
+Every file is untrusted: sizes are checked before anything is read or decompressed (:data:`MAX_DATA_BYTES`,
+:data:`MAX_WEIGHTS_BYTES`, also the entries of the torch archive inside), every tensor's name and shape is checked
+against the architecture, and any refusal is one :class:`~seqtrojan.errors.CheckpointError` line, raised before
+anything is written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import math
+import re
+import zipfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal, cast
+
+import torch
+
+from seqtrojan.agent.card import MAX_DETAIL_CHARS, MAX_RANK, load_json
+from seqtrojan.agent.checkpoint import build_agent, save_agent
+from seqtrojan.config import AgentConfig, ExperimentConfig
+from seqtrojan.env.codes import ACTION_SETS, CELL_NAMES
+from seqtrojan.errors import CheckpointError, ConfigError
+
+__all__ = ["MAX_DATA_BYTES", "MAX_WEIGHTS_BYTES", "SOURCES", "Imported", "import_agent", "read_cleanrl", "read_sb3"]
+
+SOURCES = ("sb3", "cleanrl")
+MAX_DATA_BYTES = 64 << 20
+"""largest ``data`` entry of an sb3 zip read (a real one is tens of KiB; it holds the last observations, pickled)"""
+MAX_WEIGHTS_BYTES = 1 << 30
+"""largest weights file (sb3's ``policy.pth`` entry or a CleanRL state dict), and the most its torch archive's
+entries may hold together once decompressed (a model card allows 2^26 parameters, 256 MiB as float32; an sb3 policy
+holds a second LSTM for its critic)"""
+MAX_VERSION_BYTES = 256
+"""largest ``_stable_baselines3_version`` entry read"""
+MAX_TENSORS = 256
+"""most tensors in an imported state dict"""
+
+SB3_POLICY_MODULE = "sb3_contrib.common.recurrent.policies"
+SB3_POLICY_CLASS = "RecurrentActorCriticPolicy"
+"""sb3-contrib's class behind ``"MlpLstmPolicy"``"""
+SB3_ACTIVATIONS = {"Tanh": "tanh", "ReLU": "relu"}
+"""sb3 ``activation_fn`` classes (torch.nn) that have a counterpart here"""
+_LSTM_KEY = re.compile(r"(weight_ih|weight_hh|bias_ih|bias_hh)_l([0-9]+)")
+_CLASS_NAME = re.compile(r"<class '([A-Za-z0-9_.]+)'>")
+_INIT_OF = re.compile(r"<function ([A-Za-z0-9_]+)\.__init__ at ")
+
+
+@dataclasses.dataclass(frozen=True)
+class Imported:
+    """An agent read from a foreign file, ready to be built here: the network's parts and its tensors (our names)."""
+
+    source: str
+    """'sb3' or 'cleanrl'"""
+    obs_dim: int
+    num_actions: int
+    agent: AgentConfig
+    tensors: Mapping[str, torch.Tensor] = dataclasses.field(repr=False)
+    """the state dict of :class:`~seqtrojan.agent.network.RecurrentActorCritic` (float32)"""
+    value: str
+    """'imported' (the value head computes the original's value) or 'zeroed'"""
+    details: Mapping[str, Any]
+    """what the card's ``provenance.details`` records (versions, the original's layout)"""
+    env_steps: int | None = None
+
+
+# ---------------------------------------------------------------------- sb3
+
+
+def read_sb3(path: str | Path) -> Imported:
+    """Read an sb3-contrib ``RecurrentPPO`` zip (``MlpLstmPolicy``) without unpickling anything."""
+    path = Path(path)
+    where = repr(str(path))
+    if not path.is_file():
+        raise CheckpointError(f"{where} does not exist or is not a file")
+    try:
+        with zipfile.ZipFile(path) as archive:
+            entries = {info.filename: info for info in archive.infolist()}
+            for name in ("data", "policy.pth"):
+                if name not in entries:
+                    raise CheckpointError(
+                        f"{where} has no {name!r} entry: not a stable-baselines3 model zip (it holds "
+                        f"{_clip(sorted(entries)[:8])})"
+                    )
+            data_raw = _read_entry(archive, entries["data"], MAX_DATA_BYTES, where)
+            weights_raw = _read_entry(archive, entries["policy.pth"], MAX_WEIGHTS_BYTES, where)
+            version = None
+            if "_stable_baselines3_version" in entries:
+                text = _read_entry(archive, entries["_stable_baselines3_version"], MAX_VERSION_BYTES, where)
+                version = text.decode("utf-8", "replace").strip()
+    except zipfile.BadZipFile as err:
+        raise CheckpointError(f"{where} is not a valid zip file: {err}") from None
+    data = load_json(data_raw, f"the 'data' entry of {where}")
+    if not isinstance(data, dict):
+        raise CheckpointError(f"the 'data' entry of {where} is not a JSON object")
+    _check_sb3_policy_class(data.get("policy_class"), where)
+    kwargs = _plain_items(data.get("policy_kwargs") or {})
+    obs_shape = _sb3_observation_shape(data.get("observation_space"), where)
+    declared_actions = _sb3_action_count(data.get("action_space"), where)
+    tensors = _load_state_dict(weights_raw, f"'policy.pth' in {where}")
+    return _map_sb3(tensors, kwargs, obs_shape, declared_actions, data, version, where)
+
+
+def _map_sb3(
+    sd: dict[str, torch.Tensor],
+    kwargs: dict[str, Any],
+    obs_shape: tuple[int, ...] | None,
+    declared_actions: int | None,
+    data: dict[str, Any],
+    version: str | None,
+    where: str,
+) -> Imported:
+    if "log_std" in sd:
+        raise CheckpointError(f"{where} has a continuous action distribution (log_std): only Discrete actions import")
+    if not any(k.startswith("lstm_actor.") for k in sd):
+        raise CheckpointError(
+            f"{where} has no lstm_actor weights: not a recurrent policy (only sb3-contrib RecurrentPPO's MlpLstmPolicy "
+            f"imports)"
+        )
+    for key in sd:
+        if key.startswith(("features_extractor.", "pi_features_extractor.", "vf_features_extractor.")):
+            raise CheckpointError(
+                f"{where} has features-extractor weights ({key!r}): only the FlattenExtractor of MlpLstmPolicy imports"
+            )
+    lstm = _lstm_layers(sd, "lstm_actor", where)
+    hidden, obs_dim = lstm[0][1], lstm[0][0]
+    _agree(kwargs, "lstm_hidden_size", hidden, where)
+    _agree(kwargs, "n_lstm_layers", len(lstm), where)
+    if obs_shape is not None and math.prod(obs_shape) != obs_dim:
+        raise CheckpointError(
+            f"{where}: the observation space has shape {list(obs_shape)} ({math.prod(obs_shape)} inputs) but "
+            f"lstm_actor.weight_ih_l0 reads {obs_dim}"
+        )
+    activation_name = kwargs.get("activation_fn")
+    activation = "tanh"
+    if activation_name is not None:
+        match = _CLASS_NAME.fullmatch(str(activation_name))
+        short = match.group(1).rpartition(".")[2] if match else str(activation_name)
+        if short not in SB3_ACTIVATIONS or (match and not match.group(1).startswith("torch.nn.")):
+            raise CheckpointError(
+                f"{where}: activation_fn {_clip(activation_name)} has no counterpart here (torch.nn.Tanh or ReLU)"
+            )
+        activation = SB3_ACTIVATIONS[short]
+    extractor = kwargs.get("features_extractor_class")
+    if extractor is not None and "FlattenExtractor" not in str(extractor):
+        raise CheckpointError(f"{where}: features_extractor_class {_clip(extractor)} is not FlattenExtractor")
+    pi = _mlp_layers(sd, "mlp_extractor.policy_net", hidden, where)
+    vf = _mlp_layers(sd, "mlp_extractor.value_net", hidden, where)
+    net_arch = kwargs.get("net_arch")
+    if net_arch is not None:
+        want = net_arch if isinstance(net_arch, dict) else {"pi": net_arch, "vf": net_arch}
+        for part, got in (("pi", pi), ("vf", vf)):
+            if isinstance(want, dict) and part in want and list(want[part]) != list(got):
+                raise CheckpointError(
+                    f"{where}: policy_kwargs.net_arch.{part} is {_clip(want[part])} but the weights have layers "
+                    f"{list(got)}"
+                )
+    action_in = pi[-1] if pi else hidden
+    num_actions = _dim(sd, "action_net.weight", 0, where)
+    value_in = vf[-1] if vf else hidden
+    expected: dict[str, tuple[int, ...]] = {
+        "action_net.weight": (num_actions, action_in), "action_net.bias": (num_actions,),
+        "value_net.weight": (1, value_in), "value_net.bias": (1,),
+    }  # fmt: skip
+    if declared_actions is not None and declared_actions != num_actions:
+        raise CheckpointError(
+            f"{where}: the action space has {declared_actions} actions but action_net.weight has {num_actions} rows"
+        )
+    # the critic: a separate LSTM (sb3-contrib's default), a linear layer on the observation, or the actor's LSTM
+    if any(k.startswith("lstm_critic.") for k in sd):
+        critic = "lstm"
+        critic_lstm = _lstm_layers(sd, "lstm_critic", where)
+        if critic_lstm != lstm:
+            raise CheckpointError(f"{where}: lstm_critic's shapes {critic_lstm} differ from lstm_actor's {lstm}")
+    elif "critic.weight" in sd or "critic.bias" in sd:
+        critic = "linear"
+        expected["critic.weight"], expected["critic.bias"] = (hidden, obs_dim), (hidden,)
+    else:
+        critic = "shared"
+    flags = (kwargs.get("shared_lstm", False), kwargs.get("enable_critic_lstm", True))  # sb3-contrib's defaults
+    said = "shared" if flags[0] is True else "lstm" if flags[1] is True else "linear"
+    if said != critic:
+        raise CheckpointError(
+            f"{where}: policy_kwargs (shared_lstm={flags[0]}, enable_critic_lstm={flags[1]}) describe a {said} "
+            f"critic but the weights hold a {critic} one"
+        )
+    known = {k for k in sd if k.startswith(("lstm_actor.", "lstm_critic.", "mlp_extractor."))}
+    _check_shapes(sd, expected, known, where)
+    ours: dict[str, torch.Tensor] = {}
+    for k in range(len(lstm)):
+        for part in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"):
+            ours[f"cells.{k}.{part}"] = sd[f"lstm_actor.{part}_l{k}"]
+    for j in range(len(pi)):
+        ours[f"policy_mlp.{j}.weight"] = sd[f"mlp_extractor.policy_net.{2 * j}.weight"]
+        ours[f"policy_mlp.{j}.bias"] = sd[f"mlp_extractor.policy_net.{2 * j}.bias"]
+    for j in range(len(vf)):
+        ours[f"value_mlp.{j}.weight"] = sd[f"mlp_extractor.value_net.{2 * j}.weight"]
+        ours[f"value_mlp.{j}.bias"] = sd[f"mlp_extractor.value_net.{2 * j}.bias"]
+    ours["policy_head.weight"], ours["policy_head.bias"] = sd["action_net.weight"], sd["action_net.bias"]
+    exact = critic == "shared"
+    ours["value_head.weight"] = sd["value_net.weight"] if exact else torch.zeros(1, value_in)
+    ours["value_head.bias"] = sd["value_net.bias"] if exact else torch.zeros(1)
+    env_steps = data.get("num_timesteps")
+    details = {
+        "format": "stable-baselines3 zip", "sb3_version": _text(version), "policy": SB3_POLICY_CLASS,
+        "critic": critic, "observation_shape": list(obs_shape) if obs_shape is not None else None,
+    }  # fmt: skip
+    agent = AgentConfig(
+        lstm_sizes=(hidden,) * len(lstm), policy_mlp=pi, value_mlp=vf, mlp_activation=_activation(activation)
+    )
+    return Imported(
+        "sb3", obs_dim, num_actions, agent,
+        ours, "imported" if exact else "zeroed", details,
+        env_steps if type(env_steps) is int and env_steps >= 0 else None,
+    )  # fmt: skip
+
+
+def _check_sb3_policy_class(value: Any, where: str) -> None:
+    """Refuse a policy class other than sb3-contrib's recurrent MLP policy, read from the non-pickled JSON items
+    (``__module__`` and the ``__init__`` function's repr) where sb3 wrote them."""
+    if not isinstance(value, dict):
+        return  # the weights are checked anyway
+    module = value.get("__module__")
+    if isinstance(module, str) and module != SB3_POLICY_MODULE:
+        raise CheckpointError(
+            f"{where}: the policy class comes from {_clip(module)}, not {SB3_POLICY_MODULE}: only sb3-contrib "
+            f"RecurrentPPO's MlpLstmPolicy (an LSTM policy) imports"
+        )
+    init = value.get("__init__")
+    match = _INIT_OF.match(init) if isinstance(init, str) else None
+    if match and match.group(1) != SB3_POLICY_CLASS:
+        raise CheckpointError(
+            f"{where}: the policy class is {match.group(1)}, not {SB3_POLICY_CLASS} (MlpLstmPolicy): CNN and "
+            f"multi-input policies do not import"
+        )
+
+
+def _plain_items(value: Any) -> dict[str, Any]:
+    """A JSON object sb3 wrote, without its pickled ``:type:`` / ``:serialized:`` items (never decoded)."""
+    if not isinstance(value, dict):
+        return {}
+    return {k: v for k, v in value.items() if not (isinstance(k, str) and k.startswith(":"))}
+
+
+def _sb3_observation_shape(value: Any, where: str) -> tuple[int, ...] | None:
+    if not isinstance(value, dict):
+        return None
+    kind = value.get(":type:")
+    if isinstance(kind, str) and not kind.endswith(".Box'>"):
+        raise CheckpointError(
+            f"{where}: the observation space is {_clip(kind)}; only a Box of numbers imports (flattened, as sb3's "
+            f"FlattenExtractor reads it)"
+        )
+    shape = value.get("_shape")
+    if shape is None:
+        return None
+    if not isinstance(shape, list) or len(shape) > MAX_RANK or any(type(d) is not int or d < 1 for d in shape):
+        raise CheckpointError(f"{where}: the observation space has an invalid shape {_clip(shape)}")
+    dtype = value.get("dtype")
+    if dtype == "uint8" and len(shape) == 3:
+        raise CheckpointError(
+            f"{where}: the observation space is a uint8 image {shape}, which sb3 scales by 1/255 before the policy: "
+            f"image policies do not import"
+        )
+    return tuple(shape)
+
+
+def _sb3_action_count(value: Any, where: str) -> int | None:
+    if not isinstance(value, dict):
+        return None
+    kind = value.get(":type:")
+    if isinstance(kind, str) and not kind.endswith(".Discrete'>"):
+        raise CheckpointError(
+            f"{where}: the action space is {_clip(kind)}, not Discrete: continuous and multi-discrete policies do not "
+            f"import (seqtrojan agents choose one of a few discrete actions)"
+        )
+    start = value.get("start")
+    if start is not None and str(start) not in ("0", "0.0"):
+        raise CheckpointError(f"{where}: the Discrete action space starts at {_clip(start)}; only start 0 imports")
+    n = value.get("n")
+    if n is None:
+        return None
+    try:
+        return int(str(n))
+    except ValueError:
+        raise CheckpointError(f"{where}: the action space's n is {_clip(n)}, not an integer") from None
+
+
+# ---------------------------------------------------------------------- CleanRL
+
+
+def read_cleanrl(path: str | Path, obs_dim: int, num_actions: int, activation: str = "relu") -> Imported:
+    """Read a CleanRL LSTM agent's state dict (``ppo_atari_lstm.py``'s layout with an MLP encoder)."""
+    path = Path(path)
+    where = repr(str(path))
+    if not path.is_file():
+        raise CheckpointError(f"{where} does not exist or is not a file")
+    if activation not in SB3_ACTIVATIONS.values():
+        raise ConfigError(f"activation must be one of {tuple(SB3_ACTIVATIONS.values())}, got {activation!r}")
+    size = path.stat().st_size
+    if size > MAX_WEIGHTS_BYTES:
+        raise CheckpointError(f"{where} has {size} bytes, more than the limit of {MAX_WEIGHTS_BYTES}")
+    with path.open("rb") as fh:
+        raw = fh.read(MAX_WEIGHTS_BYTES + 1)
+    sd = _load_state_dict(raw, where)
+    if "lstm.weight_ih_l0" not in sd:
+        raise CheckpointError(f"{where} has no lstm.weight_ih_l0: not a CleanRL LSTM agent's state dict")
+    lstm = _lstm_layers(sd, "lstm", where)
+    hidden = lstm[0][1]
+    encoder = _mlp_layers(sd, "network", None, where)
+    first_in = _dim(sd, "network.0.weight", 1, where) if encoder else lstm[0][0]
+    if encoder and lstm[0][0] != encoder[-1]:
+        raise CheckpointError(
+            f"{where}: lstm.weight_ih_l0 reads {lstm[0][0]} inputs but the last network layer gives {encoder[-1]}"
+        )
+    if first_in != obs_dim:
+        raise CheckpointError(f"{where}: the agent reads {first_in} observation inputs, not --obs-dim {obs_dim}")
+    expected = {
+        "actor.weight": (num_actions, hidden), "actor.bias": (num_actions,),
+        "critic.weight": (1, hidden), "critic.bias": (1,),
+    }  # fmt: skip
+    known = {k for k in sd if k.startswith(("lstm.", "network."))}
+    _check_shapes(sd, expected, known, where, hint=f"--actions {num_actions}")
+    ours: dict[str, torch.Tensor] = {}
+    for j in range(len(encoder)):
+        ours[f"encoder.{j}.weight"] = sd[f"network.{2 * j}.weight"]
+        ours[f"encoder.{j}.bias"] = sd[f"network.{2 * j}.bias"]
+    for k in range(len(lstm)):
+        for part in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"):
+            ours[f"cells.{k}.{part}"] = sd[f"lstm.{part}_l{k}"]
+    ours["policy_head.weight"], ours["policy_head.bias"] = sd["actor.weight"], sd["actor.bias"]
+    ours["value_head.weight"], ours["value_head.bias"] = sd["critic.weight"], sd["critic.bias"]
+    agent = AgentConfig(lstm_sizes=(hidden,) * len(lstm), encoder=encoder, encoder_activation=_activation(activation))
+    details = {"format": "CleanRL LSTM state dict (ppo_atari_lstm.py layout, MLP encoder)"}
+    return Imported("cleanrl", obs_dim, num_actions, agent, ours, "imported", details)
+
+
+# ---------------------------------------------------------------------- shared checks
+
+
+def _read_entry(archive: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int, where: str) -> bytes:
+    """An entry's bytes, refused before decompression when its declared size exceeds ``limit`` (and never more than
+    ``limit`` bytes decompressed, whatever the header says)."""
+    if info.file_size > limit:
+        raise CheckpointError(
+            f"the {info.filename!r} entry of {where} unpacks to {info.file_size} bytes, more than the limit of "
+            f"{limit}: refusing to read it"
+        )
+    try:
+        with archive.open(info) as fh:
+            raw = fh.read(limit + 1)
+    except (zipfile.BadZipFile, OSError, EOFError, NotImplementedError, RuntimeError) as err:
+        raise CheckpointError(
+            f"the {info.filename!r} entry of {where} cannot be read: {_clip_text(str(err))}"
+        ) from None
+    if len(raw) > limit:
+        raise CheckpointError(f"the {info.filename!r} entry of {where} unpacks to more than {limit} bytes")
+    return raw
+
+
+def _load_state_dict(raw: bytes, where: str) -> dict[str, torch.Tensor]:
+    """``torch.load(weights_only=True)`` of a torch zip archive, after bounding what its entries unpack to; the
+    result must be a flat mapping of names to float tensors."""
+    if not raw.startswith(b"PK"):
+        raise CheckpointError(
+            f"{where} is not a torch zip archive (torch.save's format since torch 1.6): refusing to read it"
+        )
+    try:
+        with zipfile.ZipFile(io.BytesIO(raw)) as inner:
+            unpacked = sum(info.file_size for info in inner.infolist())
+    except zipfile.BadZipFile as err:
+        raise CheckpointError(f"{where} is not a valid torch archive: {err}") from None
+    if unpacked > MAX_WEIGHTS_BYTES:
+        raise CheckpointError(
+            f"{where} unpacks to {unpacked} bytes, more than the limit of {MAX_WEIGHTS_BYTES}: refusing to read it"
+        )
+    try:
+        loaded = torch.load(io.BytesIO(raw), map_location="cpu", weights_only=True)
+    except Exception as err:  # weights_only refuses any pickled object that is not tensors and plain containers
+        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        raise CheckpointError(
+            f"{where} holds more than weights (torch.load(weights_only=True) refused it: {type(err).__name__}: "
+            f"{_clip_text(first)}); refusing to unpickle it"
+        ) from None
+    if not isinstance(loaded, Mapping):
+        raise CheckpointError(f"{where} holds a {type(loaded).__name__}, not a state dict (names -> tensors)")
+    if len(loaded) > MAX_TENSORS:
+        raise CheckpointError(f"{where} holds {len(loaded)} entries, more than the limit of {MAX_TENSORS}")
+    out: dict[str, torch.Tensor] = {}
+    for key, value in loaded.items():
+        if not isinstance(key, str) or not isinstance(value, torch.Tensor):
+            raise CheckpointError(
+                f"{where}: entry {_clip(key)} is a {type(value).__name__}, not a tensor: not a state dict"
+            )
+        if not value.is_floating_point() or value.dim() > MAX_RANK:
+            raise CheckpointError(f"{where}: tensor {_clip(key)} has dtype {value.dtype} and shape {list(value.shape)}")
+        out[key] = value.detach().to(torch.float32).contiguous()
+    return out
+
+
+def _lstm_layers(sd: dict[str, torch.Tensor], prefix: str, where: str) -> list[tuple[int, int]]:
+    """The (input size, hidden size) of each layer of the ``nn.LSTM`` stored under ``prefix``; every tensor's shape
+    is checked, and any other tensor under ``prefix`` (projections, a reverse direction) is refused."""
+    layers: dict[int, set[str]] = {}
+    for key in sd:
+        if key.startswith(prefix + "."):
+            match = _LSTM_KEY.fullmatch(key[len(prefix) + 1 :])
+            if match is None:
+                raise CheckpointError(
+                    f"{where}: {key!r} is not a weight of a one-directional LSTM without projections (expected "
+                    f"{prefix}.weight_ih_l0, weight_hh_l0, bias_ih_l0, bias_hh_l0, ...)"
+                )
+            layers.setdefault(int(match.group(2)), set()).add(match.group(1))
+    if sorted(layers) != list(range(len(layers))) or not layers:
+        raise CheckpointError(f"{where}: the layers of {prefix} are {sorted(layers)}, not 0, 1, ...")
+    out: list[tuple[int, int]] = []
+    for k in range(len(layers)):
+        missing = sorted({"weight_ih", "weight_hh", "bias_ih", "bias_hh"} - layers[k])
+        if missing:
+            raise CheckpointError(f"{where}: {prefix} layer {k} lacks {[f'{prefix}.{m}_l{k}' for m in missing]}")
+        hidden = _dim(sd, f"{prefix}.weight_hh_l{k}", 1, where)
+        n_in = _dim(sd, f"{prefix}.weight_ih_l{k}", 1, where) if k == 0 else hidden
+        expected = {
+            f"{prefix}.weight_ih_l{k}": (4 * hidden, n_in), f"{prefix}.weight_hh_l{k}": (4 * hidden, hidden),
+            f"{prefix}.bias_ih_l{k}": (4 * hidden,), f"{prefix}.bias_hh_l{k}": (4 * hidden,),
+        }  # fmt: skip
+        if k > 0 and hidden != out[0][1]:
+            raise CheckpointError(f"{where}: {prefix} layer {k} has {hidden} units, layer 0 {out[0][1]}")
+        for name, shape in expected.items():
+            if tuple(sd[name].shape) != shape or hidden < 1:
+                actual = list(sd[name].shape)
+                raise CheckpointError(f"{where}: tensor {name!r} has shape {actual}, expected {list(shape)}")
+        out.append((n_in, hidden))
+    return out
+
+
+def _mlp_layers(sd: dict[str, torch.Tensor], prefix: str, n_in: int | None, where: str) -> tuple[int, ...]:
+    """The widths of the linear layers of an ``nn.Sequential(Linear, activation, Linear, activation, ...)`` stored
+    under ``prefix`` (indices 0, 2, 4, ...), each reading the previous one's output (the first ``n_in``, if given)."""
+    indices: dict[int, set[str]] = {}
+    for key in sd:
+        if key.startswith(prefix + "."):
+            position, _, part = key[len(prefix) + 1 :].partition(".")
+            if not position.isdigit() or part not in ("weight", "bias"):
+                raise CheckpointError(f"{where}: {key!r} is not a linear layer's weight or bias")
+            indices.setdefault(int(position), set()).add(part)
+    expected_indices = list(range(0, 2 * len(indices), 2))
+    if sorted(indices) != expected_indices:
+        raise CheckpointError(
+            f"{where}: the layers under {prefix} sit at {sorted(indices)}; expected linear layers at "
+            f"{expected_indices} (Linear, activation, Linear, activation, ...)"
+        )
+    widths: list[int] = []
+    for j, index in enumerate(expected_indices):
+        if indices[index] != {"weight", "bias"}:
+            raise CheckpointError(f"{where}: {prefix}.{index} lacks its {sorted({'weight', 'bias'} - indices[index])}")
+        w, b = sd[f"{prefix}.{index}.weight"].shape, sd[f"{prefix}.{index}.bias"].shape
+        reads = n_in if j == 0 else widths[-1]
+        if len(w) != 2 or tuple(b) != (w[0],) or (reads is not None and w[1] != reads) or w[0] < 1:
+            raise CheckpointError(
+                f"{where}: {prefix}.{index} has weight {list(w)} and bias {list(b)}, which do not chain"
+                + (f" from {reads} inputs" if reads is not None else "")
+            )
+        widths.append(int(w[0]))
+    return tuple(widths)
+
+
+def _check_shapes(
+    sd: dict[str, torch.Tensor], expected: dict[str, tuple[int, ...]], known: set[str], where: str, hint: str = ""
+) -> None:
+    for name, shape in expected.items():
+        if name not in sd:
+            raise CheckpointError(f"{where} lacks the tensor {name!r}")
+        if tuple(sd[name].shape) != shape:
+            because = f" (for {hint})" if hint else ""
+            actual = list(sd[name].shape)
+            raise CheckpointError(f"{where}: tensor {name!r} has shape {actual}, expected {list(shape)}{because}")
+    unexpected = sorted(set(sd) - set(expected) - known)
+    if unexpected:
+        raise CheckpointError(f"{where} has tensor(s) this layout does not have: {_clip(unexpected)}")
+
+
+def _dim(sd: dict[str, torch.Tensor], name: str, axis: int, where: str) -> int:
+    """Size ``axis`` of the matrix ``name``."""
+    if name not in sd:
+        raise CheckpointError(f"{where} lacks the tensor {name!r}")
+    shape = list(sd[name].shape)
+    if len(shape) != 2 or shape[axis] < 1:
+        raise CheckpointError(f"{where}: tensor {name!r} has shape {shape}, not a weight matrix")
+    return shape[axis]
+
+
+def _agree(kwargs: dict[str, Any], key: str, actual: int, where: str) -> None:
+    if key in kwargs and kwargs[key] != actual:
+        raise CheckpointError(f"{where}: policy_kwargs.{key} is {_clip(kwargs[key])} but the weights have {actual}")
+
+
+# ---------------------------------------------------------------------- writing
+
+
+def import_agent(
+    source: str,
+    path: str | Path,
+    out: str | Path,
+    *,
+    config: ExperimentConfig | None = None,
+    label: str | None = None,
+    obs_dim: int | None = None,
+    num_actions: int | None = None,
+    activation: str = "relu",
+) -> Path:
+    """Import ``path`` (``source`` 'sb3' or 'cleanrl') into the model folder ``out``; returns ``out``.
+
+    ``config`` describes the env the agent acts in (its ``env`` must give the agent's observation size and action
+    count; default: the default config, the 3x3 view and four moves). ``label`` is what the caller states; None
+    writes 'clean' with ``provenance.label_stated = false``. ``obs_dim`` and ``num_actions`` are required for
+    'cleanrl' and checked against the weights; ``activation`` is CleanRL's encoder activation. Nothing is written
+    unless everything is accepted, and ``out`` must not already hold files.
+    """
+    if source not in SOURCES:
+        raise ConfigError(f"--from must be one of {SOURCES}, got {source!r}")
+    if label is not None and label not in ("clean", "backdoored"):
+        raise ConfigError(f"label must be 'clean' or 'backdoored', got {label!r}")
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ConfigError(f"{str(out)!r} already exists and is not an empty folder: choose a new --out")
+    if source == "sb3":
+        imported = read_sb3(path)
+    else:
+        if obs_dim is None or num_actions is None:
+            raise ConfigError("--from cleanrl needs --obs-dim and --actions (a state dict does not record them)")
+        imported = read_cleanrl(path, obs_dim, num_actions, activation)
+    where = repr(str(path))
+    checks = ((obs_dim, imported.obs_dim, "--obs-dim"), (num_actions, imported.num_actions, "--actions"))
+    for given, actual, flag in checks:
+        if given is not None and given != actual:
+            raise CheckpointError(f"{where}: the agent has {flag[2:]} {actual}, not {flag} {given}")
+    base = config if config is not None else ExperimentConfig()
+    _check_env(imported, base, where)
+    stated = label is not None
+    label = label if label is not None else "clean"
+    cfg = dataclasses.replace(
+        base, agent=imported.agent, backdoor=dataclasses.replace(base.backdoor, enabled=label == "backdoored")
+    )
+    agent = build_agent(cfg)
+    agent.load_state_dict(dict(imported.tensors), strict=True)  # names and shapes were checked above
+    provenance = {
+        "imported_from": imported.source, "source_file": _text(Path(path).name) or "?",
+        "source_sha256": _sha256(Path(path)), "label_stated": stated, "value": imported.value,
+        "details": {k: _text(v) if isinstance(v, str) else v for k, v in imported.details.items()},
+    }  # fmt: skip
+    return save_agent(out, agent.eval(), cfg, label=label, env_steps=imported.env_steps, provenance=provenance)
+
+
+def _check_env(imported: Imported, config: ExperimentConfig, where: str) -> None:
+    """The env ``config`` describes must give the agent's observation size and action count."""
+    env = config.env
+    if (imported.obs_dim, imported.num_actions) == (env.obs_dim, env.num_actions):
+        return
+    hints = []
+    view = math.isqrt(imported.obs_dim // len(CELL_NAMES))
+    if view * view * len(CELL_NAMES) == imported.obs_dim and view != env.view_size:
+        hints.append(f"env.view_size: {view}")
+    sets = [name for name, moves in ACTION_SETS.items() if len(moves) == imported.num_actions]
+    if imported.num_actions != env.num_actions and sets:
+        hints.append(f"env.actions: {' or '.join(sets)}")
+    hint = f"; pass --config with {', '.join(hints)}" if hints else (
+        "; seqtrojan's env has no such observation (its tools run agents in that env)"
+    )  # fmt: skip
+    raise CheckpointError(
+        f"{where}: the agent reads {imported.obs_dim} inputs and chooses among {imported.num_actions} actions, but "
+        f"the env of the config gives {env.obs_dim} inputs (view {env.view_size}x{env.view_size}) and "
+        f"{env.num_actions} actions ({env.actions}){hint}"
+    )
+
+
+def _activation(name: str) -> Literal["tanh", "relu"]:
+    if name not in ("tanh", "relu"):
+        raise ConfigError(f"activation must be tanh or relu, got {name!r}")
+    return cast('Literal["tanh", "relu"]', name)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _text(value: Any) -> str | None:
+    """A string for the card (bounded), or None."""
+    if value is None:
+        return None
+    text = str(value)
+    return text if len(text) <= MAX_DETAIL_CHARS else text[: MAX_DETAIL_CHARS - 3] + "..."
+
+
+def _clip(value: Any) -> str:
+    return _clip_text(repr(value))
+
+
+def _clip_text(text: str) -> str:
+    text = " ".join(text.split())
+    return text if len(text) <= 200 else text[:197] + "..."
