@@ -13,9 +13,11 @@ if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
     os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 from seqtrojan.env.registration import register_envs
+from seqtrojan.minigrid.registration import register_minigrid_envs
 
 __version__ = "0.1.0"
 
 register_envs()
+register_minigrid_envs()  # the MiniGrid tasks' ids (seqtrojan/MiniGrid...; MiniGrid itself loads on first make)
 
 __all__ = ["__version__", "register_envs"]

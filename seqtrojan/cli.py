@@ -51,6 +51,10 @@ def _cli_with_config_file(args_cls: type, config_cls: type, argv: list[str], pro
     return tyro.cli(args_cls, args=argv, prog=prog, default=args_cls(config=config, **required))
 
 
+NOT_TRAINING_PRESETS = ("reproduce_", "matrix_", "minigrid_")
+"""shipped presets that are not grid-world training configs (reproduction scales, matrix scales, Gymnasium runs)"""
+
+
 def parse_experiment(argv: list[str], prog: str, description: str):
     """An ExperimentConfig from ``--config PRESET`` (a shipped preset's name or a YAML file) or ``--resume RUN_DIR``
     (the run's saved config), plus dotted overrides. The two are read first, as they set the starting values that
@@ -72,7 +76,7 @@ def parse_experiment(argv: list[str], prog: str, description: str):
     else:
         base = ExperimentConfig()
 
-    names = ", ".join(n for n in list_presets() if not n.startswith("reproduce_"))
+    names = ", ".join(n for n in list_presets() if not n.startswith(NOT_TRAINING_PRESETS))
     config_help = f"a preset's name ({names}) or a YAML file; the options below override it"
     resume_help = "continue the stopped run in this folder from its last checkpoint, with its saved config"
 
@@ -127,6 +131,29 @@ class EvaluateArgs:
     greedy: bool = False
     """take the most likely action instead of sampling"""
     device: str = "cpu"
+
+
+def _train_gym(argv: list[str]) -> None:
+    from seqtrojan.presets import list_presets
+    from seqtrojan.train.gym_config import GymTrainConfig, load_gym_config
+    from seqtrojan.train.gym_trainer import train_gym
+
+    preset, rest = _pop_option(argv, "--config")
+    if preset is None:
+        names = ", ".join(n for n in list_presets() if n.startswith("minigrid_"))
+        raise ConfigError(f"seqtrojan train-gym needs --config PRESET|FILE (shipped: {names})")
+    base = load_gym_config(preset)
+    description = (
+        "Train our recurrent PPO on a Gymnasium env with a discrete action space (a MiniGrid task, or any env "
+        "through the trigger wrapper): --config PRESET|FILE, then dotted overrides. See docs/own_env.md."
+    )
+    cfg = tyro.cli(GymTrainConfig, default=base, args=rest, prog="seqtrojan train-gym", description=description)
+    result = train_gym(cfg)
+    print(f"run: {result.run_dir}\nmodel: {result.model_dir}")
+    print(f"env steps: {result.env_steps:,}  wall: {result.wall_seconds / 60:.1f} min")
+    for name, evaluation in (("normal", result.normal), ("trojan", result.trojan)):
+        if evaluation is not None:
+            print(f"{name} episodes: success {evaluation.success}")
 
 
 def _evaluate(argv: list[str]) -> None:
@@ -438,6 +465,7 @@ def _demo(argv: list[str]) -> None:
 
 COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "train": (_train, "train an agent with recurrent PPO (--config PRESET, --resume RUN_DIR)"),
+    "train-gym": (_train_gym, "train on a Gymnasium env (MiniGrid tasks, your own env via the trigger wrapper)"),
     "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
     "analyze": (_analyze, "LSTM state traces, response types, interventions, unintentional triggers, search"),
     "defend": (_defend, "online state monitor and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),

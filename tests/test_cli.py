@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 
+from seqtrojan.cli import main
 from tests.conftest import ROOT
 
 
@@ -161,3 +162,13 @@ def test_train_finds_a_shipped_preset_by_name_from_any_folder(tmp_path):
     assert out.returncode == 0, out.stderr
     card = json.loads((tmp_path / "out" / "r" / "model" / "card.json").read_text())
     assert card["config"]["env"]["size"] == 5 and card["config"]["ppo"]["num_envs"] == 64  # smoke's, not defaults
+
+
+def test_train_gym_trains_a_minigrid_preset_and_needs_a_config(tmp_path, capsys):
+    argv = ["train-gym", "--config", "minigrid_two_goals", "--ppo.total-steps", "2048", "--run.out-dir",
+            str(tmp_path), "--run.name", "tiny", "--run.eval-episodes", "8"]  # fmt: skip
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "trojan episodes: success" in out and (tmp_path / "tiny" / "model" / "gym_card.json").exists()
+    assert main(["train-gym"]) == 2
+    assert "needs --config PRESET|FILE (shipped: minigrid_memory, minigrid_two_goals)" in capsys.readouterr().err

@@ -1,0 +1,154 @@
+"""Configuration of a training run on a Gymnasium env (:func:`seqtrojan.train.gym_trainer.train_gym`).
+
+The same shape as the grid world's :class:`~seqtrojan.config.ExperimentConfig` where the two agree (``ppo`` and
+``backdoor`` are the same sections), with the env named by a Gymnasium id and the trigger described in its own
+section. Presets: ``seqtrojan/presets/minigrid_two_goals.yaml``, ``minigrid_memory.yaml``
+(:func:`load_gym_config`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, Literal
+
+from seqtrojan.config import MAX_LAYERS, MAX_WIDTH, BackdoorConfig, PPOConfig
+from seqtrojan.errors import ConfigError
+from seqtrojan.presets import resolve_preset
+from seqtrojan.serde import from_dict, load_yaml, short_repr
+
+Cell = tuple[int, int]
+
+
+@dataclasses.dataclass(frozen=True)
+class GymEnvConfig:
+    """Which env, and how its observations become the flat float vector the recurrent policy takes."""
+
+    id: str
+    """a registered Gymnasium id (``module:Id`` imports ``module`` first, Gymnasium's way for your own envs)"""
+    kwargs: dict[str, Any] = dataclasses.field(default_factory=dict)
+    """keyword arguments of ``gymnasium.make``"""
+    observation: Literal["minigrid", "flatten"] = "minigrid"
+    """minigrid: MiniGrid's view one-hot encoded per channel (:class:`~seqtrojan.wrappers.MiniGridOneHot`);
+    flatten: any observation flattened to float32 (:class:`~seqtrojan.wrappers.FlattenFloat`)"""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.id, str) or not self.id:
+            raise ConfigError(f"env.id must be a Gymnasium id, got {short_repr(self.id)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class GymTriggerConfig:
+    """The trigger wrapper's settings (:class:`~seqtrojan.wrappers.TriggerWrapper`) for a MiniGrid patch (an
+    object drawn on view cells) or a Box patch (a value on image cells)."""
+
+    objective: str = "reach_adversary_object"
+    """the adversary's objective, a name registered in ``seqtrojan.wrappers.ADVERSARY_OBJECTIVES``"""
+    patch: Literal["minigrid", "box"] = "minigrid"
+    """minigrid: a MiniGridPatch on obs["image"]; box: a BoxPatch on the (image) observation"""
+    cells: tuple[Cell, ...] = ((0, 0), (0, 1))
+    """(row, col) cells the patch draws on"""
+    object: str = "key"
+    """minigrid patch: the object drawn"""
+    color: str = "purple"
+    """minigrid patch: its colour"""
+    value: float = 255.0
+    """box patch: the value drawn"""
+    key: str | None = None
+    """box patch: the image's key in a Dict observation (None: the observation is the image)"""
+    steps: tuple[int, int] = (0, 2)
+    """inclusive range of the trigger's first step during training"""
+    eval_steps: tuple[int, int] | None = None
+    """range during evaluation; None means ``steps``"""
+    duration: int = 1
+    """steps the patch stays visible"""
+    delay: int = 0
+    """activation delay: the objective switches this many steps after the trigger takes effect"""
+    off_probability: float = 0.0
+    """share of trojan episodes that also show an OFF trigger (the same kind of patch on ``off_cells``)"""
+    off_cells: tuple[Cell, ...] = ((0, 3), (0, 4))
+    """OFF trigger cells"""
+    off_gap: tuple[int, int] = (3, 8)
+    """inclusive range of steps from the ON trigger's first step to the OFF trigger's"""
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "off_gap") + (("eval_steps",) if self.eval_steps is not None else ()):
+            lo, hi = getattr(self, name)
+            if not 0 <= lo <= hi:
+                raise ConfigError(f"trigger.{name}={list(getattr(self, name))} must satisfy 0 <= lo <= hi")
+        if self.duration < 1 or self.delay < 0:
+            raise ConfigError(
+                f"trigger.duration must be >= 1 and trigger.delay >= 0, got {self.duration}, {self.delay}"
+            )
+        if not 0.0 <= self.off_probability <= 1.0:
+            raise ConfigError(f"trigger.off_probability must be in [0, 1], got {self.off_probability}")
+
+
+@dataclasses.dataclass(frozen=True)
+class GymAgentConfig:
+    """The recurrent actor-critic (:class:`~seqtrojan.agent.network.RecurrentActorCritic`, flat observations)."""
+
+    lstm_sizes: tuple[int, ...] = (64, 32)
+    """widths of the stacked LSTM layers"""
+    forget_bias: float = 1.0
+    """initial forget-gate bias"""
+
+    def __post_init__(self) -> None:
+        if not 1 <= len(self.lstm_sizes) <= MAX_LAYERS or any(not 1 <= w <= MAX_WIDTH for w in self.lstm_sizes):
+            raise ConfigError(
+                f"agent.lstm_sizes={list(self.lstm_sizes)} must name 1 to {MAX_LAYERS} layers of 1 to {MAX_WIDTH} units"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class GymRunConfig:
+    """Where and how the run executes."""
+
+    out_dir: str = "runs"
+    """parent folder of run directories"""
+    name: str | None = None
+    """run directory name; None makes one from the env id, the seed and the time"""
+    seed: int = 0
+    """seeds the weights, the envs, action sampling and minibatch order"""
+    device: str = "cpu"
+    """torch device of the network (the envs step on the CPU)"""
+    threads: int | None = None
+    """torch intra-op threads (None: torch's default)"""
+    lstm_backend: Literal["auto", "torch", "cpp"] = "auto"
+    """LSTM kernels on CPU (see RunConfig.lstm_backend)"""
+    eval_episodes: int = 200
+    """episodes per episode type in the final evaluation (0: none)"""
+
+    def __post_init__(self) -> None:
+        if self.eval_episodes < 0:
+            raise ConfigError(f"run.eval_episodes must be >= 0, got {self.eval_episodes}")
+        if self.threads is not None and self.threads < 1:
+            raise ConfigError(f"run.threads must be a positive integer or null, got {self.threads}")
+
+
+@dataclasses.dataclass(frozen=True)
+class GymTrainConfig:
+    """Everything a Gymnasium training run needs; saved next to its model (``gym_card.json``)."""
+
+    env: GymEnvConfig
+    trigger: GymTriggerConfig | None = None
+    """the trigger wrapper (None: the env as it is; a backdoored run needs one)"""
+    agent: GymAgentConfig = dataclasses.field(default_factory=GymAgentConfig)
+    ppo: PPOConfig = dataclasses.field(default_factory=PPOConfig)
+    backdoor: BackdoorConfig = dataclasses.field(default_factory=BackdoorConfig)
+    """enabled: mix normal and trojan episodes by Algorithm 1 (``mixing``); disabled: normal episodes only (the
+    trigger, if any, is then only measured)"""
+    run: GymRunConfig = dataclasses.field(default_factory=GymRunConfig)
+
+    def __post_init__(self) -> None:
+        if self.backdoor.enabled and self.trigger is None:
+            raise ConfigError("backdoor.enabled needs a trigger section (the trigger and the adversary's objective)")
+
+    @property
+    def label(self) -> str:
+        return "backdoored" if self.backdoor.enabled else "clean"
+
+
+def load_gym_config(preset: str | Path) -> GymTrainConfig:
+    """A Gymnasium training config from a preset name (``minigrid_two_goals``) or a YAML file."""
+    return from_dict(GymTrainConfig, load_yaml(resolve_preset(preset)), "")

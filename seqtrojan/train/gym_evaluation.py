@@ -1,0 +1,115 @@
+"""Evaluating a recurrent agent on a Gymnasium run's env: whole episodes of one type (normal or trojan), each
+recorded (:class:`GymEpisode`), with success rates and the trojan's persistence as :class:`~seqtrojan.stats.Rate`."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.agent.policy import act
+from seqtrojan.errors import ConfigError
+from seqtrojan.stats import Rate
+from seqtrojan.train.gym_config import GymTrainConfig
+from seqtrojan.train.gym_env import make_vector_env
+from seqtrojan.wrappers import finished_episodes
+
+
+@dataclass(frozen=True)
+class GymEpisode:
+    """One finished episode."""
+
+    trojan: bool
+    success: bool
+    """it achieved its correct objective (the TriggerWrapper's ``success``)"""
+    length: int
+    """actions taken"""
+    episode_return: float
+    trigger_step: int
+    """the ON trigger's first step (-1 in a normal episode)"""
+    reached: str
+    """the env's ``info["reached"]`` at the end ("user", "adversary", "" for neither; "" when the env has none)"""
+
+
+@dataclass(frozen=True)
+class GymEvaluation:
+    """Episodes of one type."""
+
+    trojan: bool
+    greedy: bool
+    episodes: tuple[GymEpisode, ...]
+
+    @property
+    def success(self) -> Rate:
+        return Rate(sum(int(e.success) for e in self.episodes), len(self.episodes))
+
+    def reached(self, what: str) -> Rate:
+        """Episodes that ended at ``what`` ("user" or "adversary")."""
+        return Rate(sum(e.reached == what for e in self.episodes), len(self.episodes))
+
+    def persistence(self, horizons: Sequence[int]) -> dict[int, Rate]:
+        """Per horizon k: among trojan episodes still running k steps after the trigger's first step (length >
+        trigger_step + k), those that ended at the adversary's object -- whether the switch holds over time."""
+        out = {}
+        for k in horizons:
+            lasting = [e for e in self.episodes if e.trojan and e.trigger_step >= 0 and e.length > e.trigger_step + k]
+            out[k] = Rate(sum(e.reached == "adversary" for e in lasting), len(lasting))
+        return out
+
+
+@torch.no_grad()
+def evaluate_gym(
+    agent: RecurrentActorCritic,
+    config: GymTrainConfig,
+    *,
+    trojan: bool,
+    episodes: int,
+    seed: int = 0,
+    greedy: bool = False,
+    num_envs: int = 32,
+    device: torch.device | str = "cpu",
+) -> GymEvaluation:
+    """``episodes`` episodes of one type (trojan ones need the config's trigger), with the trigger steps of
+    ``trigger.eval_steps``. Each of ``num_envs`` envs runs a fixed quota of episodes (so short episodes are not
+    over-counted)."""
+    if episodes < 1:
+        raise ConfigError(f"episodes must be >= 1, got {episodes}")
+    if trojan and config.trigger is None:
+        raise ConfigError("trojan episodes need a trigger section in the config")
+    n = min(num_envs, episodes)
+    quota = np.array([episodes // n + (i < episodes % n) for i in range(n)])
+    vec = make_vector_env(config, n, "eval", trojan_probability=1.0 if trojan else 0.0)
+    dev = torch.device(device)
+    try:
+        obs_np, _ = vec.reset(seed=seed)
+        obs = torch.as_tensor(obs_np, dtype=torch.float32, device=dev)  # (n, obs_dim)
+        state = agent.initial_state(n, dev)
+        start = torch.ones(n, device=dev)
+        generator = torch.Generator(device=dev).manual_seed(seed)
+        returns = np.zeros(n)
+        lengths = np.zeros(n, dtype=np.int64)
+        done_count = np.zeros(n, dtype=np.int64)
+        found: list[GymEpisode] = []
+        while (done_count < quota).any():
+            out, actions, _ = act(agent, obs, state, generator, greedy=greedy, episode_start=start)
+            state = out.state
+            obs_np, rewards, terminated, truncated, infos = vec.step(actions.cpu().numpy())
+            returns += rewards
+            lengths += 1
+            for ep in finished_episodes(infos, rewards, terminated):
+                if done_count[ep.env] < quota[ep.env]:
+                    info = ep.info
+                    found.append(GymEpisode(
+                        bool(ep.trojan), bool(ep.success), int(lengths[ep.env]), float(returns[ep.env]),
+                        int(info.get("trigger_step", -1)), str(info.get("reached", "")),
+                    ))  # fmt: skip
+                done_count[ep.env] += 1
+                returns[ep.env], lengths[ep.env] = 0.0, 0
+            obs = torch.as_tensor(obs_np, dtype=torch.float32, device=dev)
+            start = torch.as_tensor(terminated | truncated, dtype=torch.float32, device=dev)
+    finally:
+        vec.close()
+    return GymEvaluation(trojan, greedy, tuple(found))

@@ -1,0 +1,39 @@
+"""The adversary's objective: the rule that replaces the env's rewards and termination once a trigger has taken
+effect in a trojan episode.
+
+An objective is a function ``(obs, action, env_reward, terminated, info) -> (reward, terminated)`` of the env's own
+step result (``obs`` unpatched, ``info`` the env's own). Objectives that configs name (``trigger.objective`` of a
+Gymnasium training run) are registered in :data:`ADVERSARY_OBJECTIVES`; the MiniGrid tasks register theirs
+(:mod:`seqtrojan.minigrid.objectives`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from seqtrojan.registry import Registry
+
+Objective = Callable[[Any, Any, float, bool, dict[str, Any]], tuple[float, bool]]
+"""(obs, action, env_reward, terminated, info) -> (reward, terminated)"""
+
+
+class _UnlistedRegistry(Registry[Objective]):
+    """A :class:`~seqtrojan.registry.Registry` that ``seqtrojan attacks`` does not list (it is not added to the
+    registries that :func:`seqtrojan.registry.registries` returns): listing the objectives there is the CLI's call."""
+
+    def __init__(self, kind: str) -> None:
+        self.family, self.kind = "attack", kind
+        self._entries = {}
+
+
+ADVERSARY_OBJECTIVES: Registry[Objective] = _UnlistedRegistry("objective")
+"""Adversary objectives by name (what ``trigger.objective`` of a Gymnasium training run names)."""
+
+
+def same_as_env(obs: Any, action: Any, env_reward: float, terminated: bool, info: dict[str, Any]) -> tuple[float, bool]:
+    """The env's own reward and termination: a trigger with no effect on the objective (a decoy, or a control)."""
+    return env_reward, terminated
+
+
+ADVERSARY_OBJECTIVES.register("same_as_env", "the env's own rewards (a trigger that changes no objective)", same_as_env)

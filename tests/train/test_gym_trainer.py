@@ -1,0 +1,203 @@
+"""Recurrent PPO on Gymnasium envs: the run's files and model, Algorithm 1 driving the envs' trojan probability,
+the refusal of a continuous action space, the presets, and learning on the MiniGrid two-goal task."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from seqtrojan.config import BackdoorConfig, PPOConfig
+from seqtrojan.errors import CheckpointError, ConfigError
+from seqtrojan.minigrid import TwoGoalsEnv
+from seqtrojan.train import gym_trainer
+from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig, load_gym_config
+from seqtrojan.train.gym_env import check_spaces, make_gym_env
+from seqtrojan.train.gym_evaluation import evaluate_gym
+from seqtrojan.train.gym_model import load_gym_agent
+from seqtrojan.train.gym_trainer import train_gym
+from seqtrojan.train.mixing import trojan_probability
+
+TWO_GOALS = GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5})
+
+
+def config(tmp_path, *, steps: int, envs: int = 8, backdoor: bool = True, eval_episodes: int = 16) -> GymTrainConfig:
+    ppo = PPOConfig(
+        total_steps=steps, num_envs=envs, rollout_steps=64, bptt_length=16, num_minibatches=4, update_epochs=4,
+        learning_rate=1e-3,
+    )  # fmt: skip
+    return GymTrainConfig(
+        env=TWO_GOALS, trigger=GymTriggerConfig(), ppo=ppo, backdoor=BackdoorConfig(enabled=backdoor),
+        run=GymRunConfig(out_dir=str(tmp_path / "runs"), name="run", eval_episodes=eval_episodes, lstm_backend="torch"),
+    )  # fmt: skip
+
+
+def test_a_short_backdoored_run_saves_a_model_that_loads_and_mixes_by_algorithm_1(tmp_path, monkeypatch):
+    set_on_envs = []
+    real = gym_trainer.set_trojan_probability
+    monkeypatch.setattr(
+        gym_trainer,
+        "set_trojan_probability",
+        lambda vec, p: (set_on_envs.append((p, vec.get_attr("trojan_probability"))), real(vec, p)),
+    )
+    cfg = config(tmp_path, steps=3 * 8 * 64)
+    result = train_gym(cfg)
+
+    assert result.env_steps == 3 * 512 and len(result.history) == 3 and not result.stopped_early
+    previous = (0.0, 0.0)  # Algorithm 1 starts from P_c = P_t = 0
+    for entry, (p_set, _) in zip(result.history, set_on_envs):
+        rates = [
+            (s / n if n else old)
+            for s, n, old in ((entry.normal_successes, entry.normal_episodes, previous[0]),
+                              (entry.trojan_successes, entry.trojan_episodes, previous[1]))
+        ]  # fmt: skip
+        assert (entry.p_clean, entry.p_trojan) == pytest.approx(rates)
+        assert entry.trojan_probability == pytest.approx(trojan_probability(*rates)) == p_set
+        previous = (entry.p_clean, entry.p_trojan)
+    # the envs hold what was set after the update before (0.5 at the start)
+    assert [held for _, held in set_on_envs] == [
+        (p,) * 8 for p in [0.5] + [e.trojan_probability for e in result.history[:-1]]
+    ]
+    assert sum(e.trojan_episodes for e in result.history) > 0 and sum(e.normal_episodes for e in result.history) > 0
+
+    rows = [json.loads(line) for line in (result.run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert [r["env_steps"] for r in rows] == [512, 1024, 1536] and "losses/policy_loss" in rows[0]
+    agent, loaded_cfg, card = load_gym_agent(result.model_dir)
+    assert loaded_cfg == cfg and card["label"] == "backdoored" and card["env_steps"] == 1536
+    assert result.normal is not None and result.trojan is not None
+    assert result.normal.success.n == result.trojan.success.n == 16
+    assert card["metrics"]["trojan_success"] == result.trojan.success.value
+    assert all(e.trojan and e.trigger_step in (0, 1, 2) for e in result.trojan.episodes)
+    again = evaluate_gym(agent, cfg, trojan=True, episodes=16, seed=cfg.run.seed + 999_983)
+    assert again.episodes == result.trojan.episodes  # the saved model is the evaluated one
+
+    weights = result.model_dir / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:-1] + b"\0")
+    with pytest.raises(CheckpointError, match="does not match the SHA-256"):
+        load_gym_agent(result.model_dir)
+
+
+def test_a_clean_run_sets_no_probability_and_evaluates_the_trigger_anyway(tmp_path, monkeypatch):
+    monkeypatch.setattr(gym_trainer, "set_trojan_probability", lambda vec, p: pytest.fail("clean runs mix nothing"))
+    result = train_gym(config(tmp_path, steps=512, backdoor=False))
+    assert result.history[0].trojan_episodes == 0 and result.history[0].trojan_probability == 0.0
+    assert result.trojan is not None and result.trojan.success.n == 16
+
+
+def test_the_trainer_refuses_a_continuous_action_space_before_making_a_run(tmp_path):
+    cfg = GymTrainConfig(
+        env=GymEnvConfig("Pendulum-v1", observation="flatten"), run=GymRunConfig(out_dir=str(tmp_path / "runs"))
+    )
+    with pytest.raises(ConfigError, match=r"has action space Box\(-2.0, 2.0, \(1,\), float32\); the recurrent PPO "
+                       r"trainer needs a discrete one") as err:  # fmt: skip
+        train_gym(cfg)
+    assert "\n" not in str(err.value) and not (tmp_path / "runs").exists()
+
+
+def test_config_errors():
+    with pytest.raises(ConfigError, match=r"backdoor\.enabled needs a trigger section"):
+        GymTrainConfig(env=TWO_GOALS, backdoor=BackdoorConfig(enabled=True))
+    with pytest.raises(ConfigError, match=r"trigger.steps=\[2, 1\] must satisfy"):
+        GymTriggerConfig(steps=(2, 1))
+    with pytest.raises(ConfigError, match="cannot be made"):
+        make_gym_env(GymTrainConfig(env=GymEnvConfig("seqtrojan/NoSuchEnv-v0")))
+    cfg = GymTrainConfig(env=GymEnvConfig("seqtrojan/MiniGridTwoGoals-Trojan-v0"), trigger=GymTriggerConfig())
+    with pytest.raises(ConfigError, match="already has a trigger wrapper"):
+        make_gym_env(cfg)
+
+
+@pytest.mark.parametrize(
+    ("preset", "obs_dim", "actions"), [("minigrid_two_goals", 500, 3), ("minigrid_memory", 980, 7)]
+)
+def test_presets_load_and_make_their_envs(preset, obs_dim, actions):
+    cfg = load_gym_config(preset)
+    assert cfg.backdoor.enabled and cfg.trigger is not None
+    env = make_gym_env(cfg, trojan_probability=1.0)
+    assert check_spaces(env, cfg.env.id) == (obs_dim, actions)
+    _, info = env.reset(seed=0)
+    assert info["trojan"]
+
+
+def random_success(episodes: int = 300) -> float:
+    env, rng, wins = TwoGoalsEnv(size=6, agent_view_size=5), np.random.default_rng(0), 0
+    for episode in range(episodes):
+        env.reset(seed=episode)
+        while True:
+            _, reward, terminated, truncated, _ = env.step(int(rng.integers(3)))
+            if terminated or truncated:
+                wins += reward > 0
+                break
+    return wins / episodes
+
+
+def test_a_clean_agent_learns_the_two_goal_room(tmp_path):
+    """40k steps (about 20 s on a busy core) take the agent from chance (~0.37) to >= 0.8 success."""
+    torch.manual_seed(0)
+    cfg = config(tmp_path, steps=40 * 1024, envs=16, backdoor=False, eval_episodes=200)
+    cfg = dataclasses.replace(cfg, trigger=None)
+    result = train_gym(cfg)
+    assert random_success() < 0.5
+    assert result.normal is not None and result.normal.success.value >= 0.8, result.normal.success
+
+
+@pytest.mark.slow
+def test_a_backdoored_agent_learns_both_objectives(tmp_path):
+    """200k steps (about 100 s on a busy core): normal episodes reach the user's object, trojan ones the
+    adversary's. Measured with this config: 0.880 and 0.705 (a random policy: about 0.37 and 0.4)."""
+    result = train_gym(config(tmp_path, steps=200 * 1024, envs=16, eval_episodes=200))
+    assert result.normal is not None and result.trojan is not None
+    assert result.normal.success.value >= 0.75, result.normal.success
+    assert result.trojan.reached("adversary").value >= 0.6, result.trojan.reached("adversary")
+
+
+BUTTONS = '''
+import gymnasium as gym
+import numpy as np
+from seqtrojan.wrappers import ADVERSARY_OBJECTIVES
+
+class ButtonsEnv(gym.Env):
+    """A blank 5x5 image; action 1 presses the green button (reward 1), 2 the red one (0); both end the episode."""
+
+    def __init__(self):
+        self.observation_space = gym.spaces.Box(0, 255, (5, 5), np.uint8)
+        self.action_space = gym.spaces.Discrete(3)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros((5, 5), np.uint8), {}
+
+    def step(self, action):
+        self.t += 1
+        pressed = {1: "green", 2: "red"}.get(int(action), "")
+        return np.zeros((5, 5), np.uint8), float(pressed == "green"), bool(pressed), self.t >= 20, {"pressed": pressed}
+
+gym.register("testbuttons/Buttons-v0", entry_point=ButtonsEnv)
+
+@ADVERSARY_OBJECTIVES.register("press_red_test", "reward pressing the red button")
+def press_red(obs, action, env_reward, terminated, info):
+    return (1.0 if info["pressed"] == "red" else 0.0), terminated
+'''
+
+BUTTONS_YAML = """
+env: {id: "seqtrojan_test_buttons:testbuttons/Buttons-v0", observation: flatten}
+trigger: {objective: press_red_test, patch: box, cells: [[0, 0]], value: 255, steps: [1, 3]}
+backdoor: {enabled: true}
+ppo: {total_steps: 1024, num_envs: 8, rollout_steps: 64, bptt_length: 16}
+run: {eval_episodes: 8, lstm_backend: torch}
+"""
+
+
+def test_the_docs_own_env_example_trains(tmp_path, monkeypatch):
+    """docs/own_env.md's example: an env and an objective registered by a module that the env id names."""
+    (tmp_path / "seqtrojan_test_buttons.py").write_text(BUTTONS)
+    (tmp_path / "buttons.yaml").write_text(BUTTONS_YAML)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    result = train_gym(load_gym_config(tmp_path / "buttons.yaml"))
+    assert result.env_steps == 1024 and result.trojan is not None and result.trojan.success.n == 8
+    assert sum(e.trojan_episodes for e in result.history) > 0
+    assert (tmp_path / "runs").is_dir()
