@@ -23,8 +23,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from seqtrojan.agent.checkpoint import WEIGHTS, load_agent
+from seqtrojan.agent.weight_stats import weight_features as torch_weight_features
 from seqtrojan.defense.behaviour import BehaviourDetector
 from seqtrojan.defense.results import (
     DetectionResult,
@@ -35,7 +37,6 @@ from seqtrojan.defense.results import (
     Prediction,
     Rejected,
 )
-from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS
 from seqtrojan.errors import CheckpointError, SeqTrojanError
 from seqtrojan.registry import Registry
 
@@ -44,50 +45,16 @@ DETECTORS: Registry[Callable[[Path, int, int], DetectionResult] | BehaviourDetec
 zoo's models; the behavioural one, a :class:`~seqtrojan.defense.behaviour.BehaviourDetector` (``.score(model
 folder, device)`` -> a float per model, ``.detect_zoo(zoo folder, device)``)."""
 
-GATES = ("input", "forget", "cell", "output")
 GROUPS = ("gate_stats", "spectral", "input_codes")
 
 
-def _moments(w: np.ndarray) -> dict[str, float]:
-    w = w.ravel().astype(np.float64)
-    mean, std = float(w.mean()), float(w.std()) + 1e-12
-    z = (w - mean) / std
-    return {
-        "mean": mean, "std": std, "absmax": float(np.abs(w).max()), "rms": float(np.sqrt((w**2).mean())),
-        "skew": float((z**3).mean()), "kurtosis": float((z**4).mean() - 3.0),
-    }  # fmt: skip
-
-
-def _spectral(w: np.ndarray) -> dict[str, float]:
-    s = np.linalg.svd(w.astype(np.float64), compute_uv=False)
-    rms = float(np.sqrt((w.astype(np.float64) ** 2).mean())) + 1e-12
-    p = s**2 / max(float((s**2).sum()), 1e-12)
-    return {"top_sv_over_rms": float(s[0]) / rms, "effective_rank": float(np.exp(-(p * np.log(p + 1e-12)).sum()))}
-
-
 def weight_features(tensors: dict[str, np.ndarray], obs_dim: int) -> dict[str, float]:
-    """Named features of one model's parameters (``cells.<i>.weight_ih`` etc.); see the module docstring."""
-    layers = sorted({int(k.split(".")[1]) for k in tensors if k.startswith("cells.")})
-    feats: dict[str, float] = {}
-    for tag, layer in (("first", layers[0]), ("last", layers[-1])):
-        w_ih = tensors[f"cells.{layer}.weight_ih"]
-        w_hh = tensors[f"cells.{layer}.weight_hh"]
-        bias = tensors[f"cells.{layer}.bias_ih"] + tensors[f"cells.{layer}.bias_hh"]
-        hidden = w_hh.shape[1]
-        for g, gate in enumerate(GATES):
-            rows = slice(g * hidden, (g + 1) * hidden)
-            for block, w in (("ih", w_ih[rows]), ("hh", w_hh[rows]), ("bias", bias[rows])):
-                for name, value in _moments(w).items():
-                    feats[f"gate_stats/{tag}.{gate}.{block}.{name}"] = value
-                if block != "bias":
-                    for name, value in _spectral(w).items():
-                        feats[f"spectral/{tag}.{gate}.{block}.{name}"] = value
-        if tag == "first" and w_ih.shape[1] == obs_dim and obs_dim % NUM_CHANNELS == 0:
-            per_code = np.linalg.norm(w_ih.reshape(w_ih.shape[0], -1, NUM_CHANNELS), axis=(0, 1))  # (6,)
-            per_code = per_code / (per_code.mean() + 1e-12)
-            for code, value in zip(CELL_NAMES, per_code):
-                feats[f"input_codes/{code}"] = float(value)
-    return feats
+    """Named features of one model's parameters (``cells.<i>.weight_ih`` etc.); see the module docstring. Computed
+    by :func:`seqtrojan.agent.weight_stats.weight_features`, the same function a weight-camouflage attacker
+    differentiates (tests/train/test_penalties.py checks it against an independent numpy reference)."""
+    with torch.no_grad():
+        feats = torch_weight_features({k: torch.from_numpy(np.asarray(v)) for k, v in tensors.items()}, obs_dim)
+    return {name: float(value) for name, value in feats.items()}
 
 
 @dataclass(frozen=True)

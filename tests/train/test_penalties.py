@@ -33,6 +33,7 @@ from seqtrojan.config import (
     WeightCamouflageConfig,
 )
 from seqtrojan.env import EnvConfig, GridSpec, TriggerConfig
+from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.serde import from_dict, parse_yaml
 from seqtrojan.train import penalties as pen
@@ -257,8 +258,44 @@ def test_single_sequence_fisher_equals_the_summed_score_squared():
 
 
 # ---------------------------------------------------------------------------------------------- features
+def _numpy_reference_features(tensors: dict[str, np.ndarray], obs_dim: int) -> dict[str, float]:
+    """The weight detector's features written out independently in numpy (the package computes them once, in
+    seqtrojan.agent.weight_stats, for the detector and the attacker alike)."""
+
+    def moments(w):
+        w = w.ravel().astype(np.float64)
+        mean, std = float(w.mean()), float(w.std()) + 1e-12
+        z = (w - mean) / std
+        return {"mean": mean, "std": std, "absmax": float(np.abs(w).max()), "rms": float(np.sqrt((w**2).mean())),
+                "skew": float((z**3).mean()), "kurtosis": float((z**4).mean() - 3.0)}  # fmt: skip
+
+    def spectral(w):
+        s = np.linalg.svd(w.astype(np.float64), compute_uv=False)
+        rms = float(np.sqrt((w.astype(np.float64) ** 2).mean())) + 1e-12
+        p = s**2 / max(float((s**2).sum()), 1e-12)
+        return {"top_sv_over_rms": float(s[0]) / rms, "effective_rank": float(np.exp(-(p * np.log(p + 1e-12)).sum()))}
+
+    layers = sorted({int(k.split(".")[1]) for k in tensors if k.startswith("cells.")})
+    feats: dict[str, float] = {}
+    for tag, layer in (("first", layers[0]), ("last", layers[-1])):
+        w_ih, w_hh = tensors[f"cells.{layer}.weight_ih"], tensors[f"cells.{layer}.weight_hh"]
+        bias = tensors[f"cells.{layer}.bias_ih"] + tensors[f"cells.{layer}.bias_hh"]
+        hidden = w_hh.shape[1]
+        for g, gate in enumerate(("input", "forget", "cell", "output")):
+            rows = slice(g * hidden, (g + 1) * hidden)
+            for block, w in (("ih", w_ih[rows]), ("hh", w_hh[rows]), ("bias", bias[rows])):
+                feats.update({f"gate_stats/{tag}.{gate}.{block}.{k}": v for k, v in moments(w).items()})
+                if block != "bias":
+                    feats.update({f"spectral/{tag}.{gate}.{block}.{k}": v for k, v in spectral(w).items()})
+        if tag == "first" and w_ih.shape[1] == obs_dim and obs_dim % NUM_CHANNELS == 0:
+            per_code = np.linalg.norm(w_ih.reshape(w_ih.shape[0], -1, NUM_CHANNELS), axis=(0, 1))
+            per_code = per_code / (per_code.mean() + 1e-12)
+            feats.update({f"input_codes/{code}": float(v) for code, v in zip(CELL_NAMES, per_code)})
+    return feats
+
+
 @pytest.mark.parametrize("sizes", [(64, 32), (16,), (8, 12, 6)])
-def test_torch_weight_features_equal_the_offline_detectors(sizes):
+def test_weight_features_equal_an_independent_numpy_reference(sizes):
     from seqtrojan.defense.offline import weight_features
 
     obs_dim = EnvConfig().obs_dim
@@ -266,9 +303,12 @@ def test_torch_weight_features_equal_the_offline_detectors(sizes):
     with torch.no_grad():  # away from the orthogonal initialisation, as after training
         for p in agent.parameters():
             p += 0.05 * torch.randn_like(p) + 0.01
-    expected = weight_features({k: v.detach().numpy() for k, v in agent.state_dict().items()}, obs_dim)
+    arrays = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
+    expected = _numpy_reference_features(arrays, obs_dim)
     got = module_features(agent, obs_dim)
-    assert got.keys() == expected.keys()
+    assert got.keys() == expected.keys() == weight_features(arrays, obs_dim).keys()
+    for name, value in weight_features(arrays, obs_dim).items():  # the detector's: the same function, as floats
+        assert value == pytest.approx(expected[name], rel=1e-5, abs=1e-5), name
     for name, value in expected.items():
         assert float(got[name]) == pytest.approx(value, rel=1e-5, abs=1e-5), name
     total = torch.stack(list(got.values())).sum()
