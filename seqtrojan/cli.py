@@ -135,25 +135,82 @@ class EvaluateArgs:
 
 def _train_gym(argv: list[str]) -> None:
     from seqtrojan.presets import list_presets
-    from seqtrojan.train.gym_config import GymTrainConfig, load_gym_config
+    from seqtrojan.train.gym_config import GymTrainConfig, load_gym_config, load_gym_run_config
     from seqtrojan.train.gym_trainer import train_gym
 
     preset, rest = _pop_option(argv, "--config")
-    if preset is None:
+    resume, rest = _pop_option(rest, "--resume")
+    if preset is not None and resume is not None:
+        raise ConfigError("seqtrojan train-gym takes --config PRESET|FILE or --resume RUN_DIR, not both")
+    if resume is not None:
+        base = load_gym_run_config(resume)
+    elif preset is not None:
+        base = load_gym_config(preset)
+    else:
         names = ", ".join(n for n in list_presets() if n.startswith("minigrid_"))
-        raise ConfigError(f"seqtrojan train-gym needs --config PRESET|FILE (shipped: {names})")
-    base = load_gym_config(preset)
+        raise ConfigError(f"seqtrojan train-gym needs --config PRESET|FILE (shipped: {names}) or --resume RUN_DIR")
     description = (
         "Train our recurrent PPO on a Gymnasium env with a discrete action space (a MiniGrid task, or any env "
-        "through the trigger wrapper): --config PRESET|FILE, then dotted overrides. See docs/own_env.md."
+        "through the trigger wrapper): --config PRESET|FILE, then dotted overrides. --resume RUN_DIR continues a "
+        "stopped run from its last checkpoint with its saved config (overrides such as --ppo.total-steps apply). "
+        "SIGTERM or Ctrl-C stops between updates and writes a checkpoint. See docs/own_env.md."
     )
     cfg = tyro.cli(GymTrainConfig, default=base, args=rest, prog="seqtrojan train-gym", description=description)
-    result = train_gym(cfg)
+    result = train_gym(cfg, resume=resume)
     print(f"run: {result.run_dir}\nmodel: {result.model_dir}")
+    if result.resumed_from is not None:
+        how = "replaying the episodes in flight" if result.exact_resume else "with fresh episodes"
+        print(f"resumed from {result.resumed_from:,} env steps, {how}")
     print(f"env steps: {result.env_steps:,}  wall: {result.wall_seconds / 60:.1f} min")
     for name, evaluation in (("normal", result.normal), ("trojan", result.trojan)):
         if evaluation is not None:
             print(f"{name} episodes: success {evaluation.success}")
+
+
+def _gym_evaluate(argv: list[str]) -> None:
+    from seqtrojan.serde import save_json
+    from seqtrojan.train.gym_evaluation import GYM_EVALUATION_FILE, evaluate_gym_model
+    from seqtrojan.train.gym_model import load_gym_agent
+
+    @dataclasses.dataclass
+    class GymEvaluateArgs:
+        """Measure a Gymnasium model (train-gym's, or one imported with --gym-config) on its config's env: clean
+        success, trojan success and the trojan's persistence, with 95% intervals. Writes gym_evaluation.json."""
+
+        model: Path
+        """the model folder (model.safetensors and gym_card.json)"""
+        episodes: int = 500
+        """episodes per episode type (normal, trojan)"""
+        seed: int = 0
+        """seeds the envs and action sampling (the same for both episode types)"""
+        greedy: bool = False
+        """take the most likely action instead of sampling"""
+        horizons: tuple[int, ...] = (0, 5, 10)
+        """persistence horizons: steps after the trigger's first step"""
+        out: Path = Path("results/gym_evaluate")
+        """folder for gym_evaluation.json"""
+        device: str = "cpu"
+        """torch device of the network (the envs step on the CPU)"""
+
+    args = tyro.cli(GymEvaluateArgs, args=argv, prog="seqtrojan gym-evaluate")
+    if args.episodes < 1:
+        raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
+    agent, cfg, card = load_gym_agent(args.model)
+    report = evaluate_gym_model(
+        agent.to(args.device), cfg, model=str(args.model), label=str(card.get("label", "")), episodes=args.episodes,
+        seed=args.seed, greedy=args.greedy, horizons=args.horizons, device=args.device,
+    )  # fmt: skip
+    print(f"model: {args.model} ({report.label}, {report.env_id}), {args.episodes} episodes per type")
+    print(f"clean success:  {report.clean_success.text()}")
+    if report.trojan_success is not None and report.trojan_reached_adversary is not None:
+        print(f"trojan success: {report.trojan_success.text()}")
+        print(f"trojan episodes at the adversary's object: {report.trojan_reached_adversary.text()}")
+        for p in report.persistence:
+            print(f"  persistence k={p.horizon}: {p.adversary.text()} (n = {p.adversary.n})")
+    else:
+        print("trojan episodes: none (the config has no trigger section)")
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(f"wrote {save_json(report, args.out / GYM_EVALUATION_FILE)}")
 
 
 def _evaluate(argv: list[str]) -> None:
@@ -415,7 +472,9 @@ def _import(argv: list[str]) -> None:
     class ImportArgs:
         """Import a recurrent agent trained elsewhere as a seqtrojan model folder (safetensors + card), without
         unpickling anything: an sb3-contrib RecurrentPPO zip (MlpLstmPolicy) or a CleanRL LSTM state dict. Every
-        seqtrojan tool (evaluate, analyze, defend, ...) then runs on it. See docs/import.md."""
+        seqtrojan tool (evaluate, analyze, defend, ...) then runs on it. An agent trained on a Gymnasium env
+        (MiniGrid, your own) imports with --gym-config as a Gymnasium model (gym-evaluate runs on it). See
+        docs/import.md."""
 
         source: tyro.conf.Positional[Path]
         """the model file: an sb3 .zip or a CleanRL state dict (.pt)"""
@@ -434,25 +493,53 @@ def _import(argv: list[str]) -> None:
         """cleanrl: the activation after each encoder layer (network.*)"""
         config: str | None = None
         """a preset's name or an experiment YAML whose env is the one the agent acts in (default: the default
-        env, a 3x3 view and four moves)"""
+        env, a 3x3 view and four moves); a Gymnasium run config here counts as --gym-config"""
+        gym_config: str | None = None
+        """a Gymnasium run preset (minigrid_two_goals, ...) or YAML whose env the agent acts in: writes a Gymnasium
+        model (model.safetensors + gym_card.json), after checking the agent's observation size and action count
+        against the env the config builds"""
 
     args = tyro.cli(ImportArgs, args=argv, prog="seqtrojan import")
     config = None
+    gym_config = args.gym_config
     if args.config is not None:
         from seqtrojan.config import ExperimentConfig
         from seqtrojan.presets import resolve_preset
         from seqtrojan.serde import from_dict, load_yaml
 
-        config = from_dict(ExperimentConfig, load_yaml(resolve_preset(args.config)), "")
-    out = import_agent(
-        args.from_, args.source, args.out, config=config, label=args.label, obs_dim=args.obs_dim,
-        num_actions=args.actions, activation=args.activation,
-    )  # fmt: skip
-    card = read_card(out)
-    provenance = card.provenance or {}
-    print(f"imported {args.source} ({args.from_}) -> {out}")
-    print(f"architecture: {card.architecture.describe()}")
-    print(f"label: {card.label}" + ("" if provenance.get("label_stated") else " (not stated: pass --label)"))
+        data = load_yaml(resolve_preset(args.config))
+        if isinstance(data, dict) and isinstance(data.get("env"), dict) and "id" in data["env"]:
+            if gym_config is not None:
+                raise ConfigError(f"--config {args.config} is a Gymnasium run config, and --gym-config is given too")
+            gym_config = args.config  # a Gymnasium run config (its env names a Gymnasium id)
+        else:
+            config = from_dict(ExperimentConfig, data, "")
+    if gym_config is not None:
+        from seqtrojan.train.gym_config import load_gym_config
+        from seqtrojan.train.gym_model import import_gym_agent, load_gym_agent
+
+        if config is not None:
+            raise ConfigError("--config (a grid-world experiment) and --gym-config exclude each other")
+        out = import_gym_agent(
+            args.from_, args.source, args.out, load_gym_config(gym_config), label=args.label, obs_dim=args.obs_dim,
+            num_actions=args.actions, activation=args.activation,
+        )  # fmt: skip
+        agent, gym_cfg, gym_card = load_gym_agent(out)
+        provenance = gym_card.get("provenance") or {}
+        label = gym_card["label"]
+        described = f"{agent.obs_dim} inputs, LSTM {list(agent.lstm_sizes)}, {agent.num_actions} actions"
+        print(f"imported {args.source} ({args.from_}) -> {out} (Gymnasium model for {gym_cfg.env.id})")
+    else:
+        out = import_agent(
+            args.from_, args.source, args.out, config=config, label=args.label, obs_dim=args.obs_dim,
+            num_actions=args.actions, activation=args.activation,
+        )  # fmt: skip
+        card = read_card(out)
+        provenance = card.provenance or {}
+        label, described = card.label, card.architecture.describe()
+        print(f"imported {args.source} ({args.from_}) -> {out}")
+    print(f"architecture: {described}")
+    print(f"label: {label}" + ("" if provenance.get("label_stated") else " (not stated: pass --label)"))
     if provenance.get("value") == "zeroed":
         print("value head: zero (the original's separate critic is not imported; the policy is exact)")
 
@@ -465,8 +552,9 @@ def _demo(argv: list[str]) -> None:
 
 COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "train": (_train, "train an agent with recurrent PPO (--config PRESET, --resume RUN_DIR)"),
-    "train-gym": (_train_gym, "train on a Gymnasium env (MiniGrid tasks, your own env via the trigger wrapper)"),
+    "train-gym": (_train_gym, "train on a Gymnasium env: MiniGrid tasks, your own env (--config, --resume RUN_DIR)"),
     "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
+    "gym-evaluate": (_gym_evaluate, "clean and trojan success, persistence (95% CIs) of a Gymnasium model"),
     "analyze": (_analyze, "LSTM state traces, response types, interventions, unintentional triggers, search"),
     "defend": (_defend, "online state monitor and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),
     "zoo": (_zoo, "zoo build: train clean and backdoored agents; zoo detect: offline detection scored like TrojAI"),
@@ -481,7 +569,7 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
 
 def _usage() -> str:
     lines = ["usage: seqtrojan <command> [options]", "", "commands:"]
-    lines += [f"  {name:<10} {help_}" for name, (_, help_) in COMMANDS.items()]
+    lines += [f"  {name:<12} {help_}" for name, (_, help_) in COMMANDS.items()]
     lines += ["", "Run 'seqtrojan <command> --help' for a command's options."]
     return "\n".join(lines)
 

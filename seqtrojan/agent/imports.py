@@ -44,7 +44,10 @@ from seqtrojan.config import AgentConfig, ExperimentConfig
 from seqtrojan.env.codes import ACTION_SETS, CELL_NAMES
 from seqtrojan.errors import CheckpointError, ConfigError
 
-__all__ = ["MAX_DATA_BYTES", "MAX_WEIGHTS_BYTES", "SOURCES", "Imported", "import_agent", "read_cleanrl", "read_sb3"]
+__all__ = [
+    "MAX_DATA_BYTES", "MAX_WEIGHTS_BYTES", "SOURCES", "Imported", "import_agent", "provenance_of", "read_cleanrl",
+    "read_foreign", "read_sb3",
+]  # fmt: skip
 
 SOURCES = ("sb3", "cleanrl")
 MAX_DATA_BYTES = 64 << 20
@@ -539,6 +542,34 @@ def import_agent(
     'cleanrl' and checked against the weights; ``activation`` is CleanRL's encoder activation. Nothing is written
     unless everything is accepted, and ``out`` must not already hold files.
     """
+    imported = read_foreign(source, path, out, label=label, obs_dim=obs_dim, num_actions=num_actions,
+                            activation=activation)  # fmt: skip
+    base = config if config is not None else ExperimentConfig()
+    _check_env(imported, base, repr(str(path)))
+    stated = label is not None
+    label = label if label is not None else "clean"
+    cfg = dataclasses.replace(
+        base, agent=imported.agent, backdoor=dataclasses.replace(base.backdoor, enabled=label == "backdoored")
+    )
+    agent = build_agent(cfg)
+    agent.load_state_dict(dict(imported.tensors), strict=True)  # names and shapes were checked above
+    provenance = provenance_of(imported, path, stated)
+    return save_agent(Path(out), agent.eval(), cfg, label=label, env_steps=imported.env_steps, provenance=provenance)
+
+
+def read_foreign(
+    source: str,
+    path: str | Path,
+    out: str | Path,
+    *,
+    label: str | None = None,
+    obs_dim: int | None = None,
+    num_actions: int | None = None,
+    activation: str = "relu",
+) -> Imported:
+    """What :func:`import_agent` (and the Gymnasium import, :func:`seqtrojan.train.gym_model.import_gym_agent`) do
+    before writing: check the options and that ``out`` is new or empty, read ``path`` and check ``obs_dim`` and
+    ``num_actions`` (where given) against it."""
     if source not in SOURCES:
         raise ConfigError(f"--from must be one of {SOURCES}, got {source!r}")
     if label is not None and label not in ("clean", "backdoored"):
@@ -557,21 +588,17 @@ def import_agent(
     for given, actual, flag in checks:
         if given is not None and given != actual:
             raise CheckpointError(f"{where}: the agent has {flag[2:]} {actual}, not {flag} {given}")
-    base = config if config is not None else ExperimentConfig()
-    _check_env(imported, base, where)
-    stated = label is not None
-    label = label if label is not None else "clean"
-    cfg = dataclasses.replace(
-        base, agent=imported.agent, backdoor=dataclasses.replace(base.backdoor, enabled=label == "backdoored")
-    )
-    agent = build_agent(cfg)
-    agent.load_state_dict(dict(imported.tensors), strict=True)  # names and shapes were checked above
-    provenance = {
+    return imported
+
+
+def provenance_of(imported: Imported, path: str | Path, label_stated: bool) -> dict[str, Any]:
+    """The card's ``provenance`` of an agent imported from ``path``: source, file name and SHA-256, whether the label
+    was stated, whether the value is imported or zeroed, and the source's details."""
+    return {
         "imported_from": imported.source, "source_file": _text(Path(path).name) or "?",
-        "source_sha256": _sha256(Path(path)), "label_stated": stated, "value": imported.value,
+        "source_sha256": _sha256(Path(path)), "label_stated": label_stated, "value": imported.value,
         "details": {k: _text(v) if isinstance(v, str) else v for k, v in imported.details.items()},
     }  # fmt: skip
-    return save_agent(out, agent.eval(), cfg, label=label, env_steps=imported.env_steps, provenance=provenance)
 
 
 def _check_env(imported: Imported, config: ExperimentConfig, where: str) -> None:

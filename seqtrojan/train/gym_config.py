@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
-from seqtrojan.config import MAX_LAYERS, MAX_WIDTH, BackdoorConfig, PPOConfig
+from seqtrojan.config import MAX_LAYERS, MAX_WIDTH, AgentConfig, BackdoorConfig, PPOConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.presets import resolve_preset
-from seqtrojan.serde import from_dict, load_yaml, short_repr
+from seqtrojan.serde import from_dict, load_yaml, short_repr, to_dict
 
 Cell = tuple[int, int]
 
@@ -92,12 +92,35 @@ class GymAgentConfig:
     """widths of the stacked LSTM layers"""
     forget_bias: float = 1.0
     """initial forget-gate bias"""
+    encoder: tuple[int, ...] = ()
+    """optional MLP between the observation and the LSTM (an imported CleanRL agent's)"""
+    encoder_activation: Literal["tanh", "relu"] = "relu"
+    """activation after each encoder layer"""
+    policy_mlp: tuple[int, ...] = ()
+    """optional MLP between the LSTM and the policy head (an imported sb3 agent's net_arch.pi)"""
+    value_mlp: tuple[int, ...] = ()
+    """optional MLP between the LSTM and the value head (an imported sb3 agent's net_arch.vf)"""
+    mlp_activation: Literal["tanh", "relu"] = "tanh"
+    """activation after each policy_mlp and value_mlp layer"""
+
+    OPTIONAL: ClassVar[tuple[str, ...]] = AgentConfig.OPTIONAL
+    """saved only when not at their defaults, so that the configs and cards of runs without them stay as they were"""
 
     def __post_init__(self) -> None:
         if not 1 <= len(self.lstm_sizes) <= MAX_LAYERS or any(not 1 <= w <= MAX_WIDTH for w in self.lstm_sizes):
             raise ConfigError(
                 f"agent.lstm_sizes={list(self.lstm_sizes)} must name 1 to {MAX_LAYERS} layers of 1 to {MAX_WIDTH} units"
             )
+        AgentConfig(**{name: getattr(self, name) for name in self.OPTIONAL})  # the same checks and messages
+
+    def serde_dump(self) -> dict:
+        """The saved form: every field but the optional ones at their defaults."""
+        defaults = GymAgentConfig()
+        return {
+            f.name: to_dict(getattr(self, f.name))
+            for f in dataclasses.fields(self)
+            if f.name not in self.OPTIONAL or getattr(self, f.name) != getattr(defaults, f.name)
+        }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,8 +141,17 @@ class GymRunConfig:
     """LSTM kernels on CPU (see RunConfig.lstm_backend)"""
     eval_episodes: int = 200
     """episodes per episode type in the final evaluation (0: none)"""
+    checkpoint_every: int = 50_000
+    """env steps between checkpoints, a positive integer (one is also written after the last update, and one on a
+    stop; a value above ppo.total_steps means none in between)"""
 
     def __post_init__(self) -> None:
+        if isinstance(self.checkpoint_every, bool) or not isinstance(self.checkpoint_every, int):
+            raise ConfigError(
+                f"run.checkpoint_every must be a positive integer, got {short_repr(self.checkpoint_every)}"
+            )
+        if self.checkpoint_every < 1:
+            raise ConfigError(f"run.checkpoint_every must be a positive integer, got {self.checkpoint_every}")
         if self.eval_episodes < 0:
             raise ConfigError(f"run.eval_episodes must be >= 0, got {self.eval_episodes}")
         if self.threads is not None and self.threads < 1:
@@ -152,3 +184,11 @@ class GymTrainConfig:
 def load_gym_config(preset: str | Path) -> GymTrainConfig:
     """A Gymnasium training config from a preset name (``minigrid_two_goals``) or a YAML file."""
     return from_dict(GymTrainConfig, load_yaml(resolve_preset(preset)), "")
+
+
+def load_gym_run_config(run_dir: str | Path) -> GymTrainConfig:
+    """The resolved config a Gymnasium run was started (or last resumed) with: ``<run>/config.yaml``."""
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        raise ConfigError(f"{str(run_dir)!r} is not a Gymnasium run directory (no config.yaml)")
+    return from_dict(GymTrainConfig, load_yaml(path), "")

@@ -113,3 +113,69 @@ def evaluate_gym(
     finally:
         vec.close()
     return GymEvaluation(trojan, greedy, tuple(found))
+
+
+GYM_EVALUATION_FILE = "gym_evaluation.json"
+
+
+@dataclass(frozen=True)
+class GymPersistence:
+    """Among trojan episodes still running ``horizon`` steps after the trigger's first step, those that ended at
+    the adversary's object."""
+
+    horizon: int
+    adversary: Rate
+
+
+@dataclass(frozen=True)
+class GymEvaluationReport:
+    """A Gymnasium model measured on its config's env (``seqtrojan gym-evaluate``; saved as
+    :data:`GYM_EVALUATION_FILE` with :func:`seqtrojan.serde.save_json`, read back with ``load_json``)."""
+
+    model: str
+    """the model folder"""
+    env_id: str
+    label: str
+    """the card's label (clean or backdoored)"""
+    episodes: int
+    """episodes per episode type"""
+    seed: int
+    greedy: bool
+    clean_success: Rate
+    """normal episodes that reached the user's objective"""
+    clean_reached_adversary: Rate
+    """normal episodes that ended at the adversary's object (0 of n where the env reports no ``reached``)"""
+    trojan_success: Rate | None
+    """trojan episodes that achieved the adversary's objective (None: the config has no trigger)"""
+    trojan_reached_adversary: Rate | None
+    """trojan episodes that ended at the adversary's object"""
+    persistence: tuple[GymPersistence, ...]
+    """per horizon (:meth:`GymEvaluation.persistence`); empty without a trigger"""
+
+
+def evaluate_gym_model(
+    agent: RecurrentActorCritic,
+    config: GymTrainConfig,
+    *,
+    model: str = "",
+    label: str = "",
+    episodes: int,
+    seed: int = 0,
+    greedy: bool = False,
+    horizons: Sequence[int] = (0, 5, 10),
+    device: torch.device | str = "cpu",
+) -> GymEvaluationReport:
+    """Normal episodes, and trojan ones where the config has a trigger (:func:`evaluate_gym`, the same seed), as
+    one :class:`GymEvaluationReport`."""
+    if any(isinstance(k, bool) or not isinstance(k, int) or k < 0 for k in horizons):
+        raise ConfigError(f"persistence horizons must be integers >= 0, got {list(horizons)}")
+    normal = evaluate_gym(agent, config, trojan=False, episodes=episodes, seed=seed, greedy=greedy, device=device)
+    trojan = None
+    if config.trigger is not None:
+        trojan = evaluate_gym(agent, config, trojan=True, episodes=episodes, seed=seed, greedy=greedy, device=device)
+    persistence = () if trojan is None else tuple(GymPersistence(k, r) for k, r in trojan.persistence(horizons).items())
+    return GymEvaluationReport(
+        model, config.env.id, label, episodes, seed, greedy, normal.success, normal.reached("adversary"),
+        None if trojan is None else trojan.success, None if trojan is None else trojan.reached("adversary"),
+        persistence,
+    )  # fmt: skip

@@ -8,6 +8,7 @@ SHA-256. Never pickle; loading checks the format, the config (every key), the ha
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import hashlib
 import json
@@ -19,7 +20,7 @@ from safetensors.torch import load, save_file
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.serde import from_dict, to_dict
-from seqtrojan.train.gym_config import GymTrainConfig
+from seqtrojan.train.gym_config import GymAgentConfig, GymTrainConfig
 
 WEIGHTS = "model.safetensors"
 CARD = "gym_card.json"
@@ -29,7 +30,11 @@ MAX_CARD_BYTES = 1 << 20
 
 
 def build_gym_agent(config: GymTrainConfig, obs_dim: int, num_actions: int) -> RecurrentActorCritic:
-    return RecurrentActorCritic(obs_dim, num_actions, config.agent.lstm_sizes, config.agent.forget_bias)
+    a = config.agent
+    return RecurrentActorCritic(
+        obs_dim, num_actions, a.lstm_sizes, a.forget_bias, encoder=a.encoder, encoder_activation=a.encoder_activation,
+        policy_mlp=a.policy_mlp, value_mlp=a.value_mlp, mlp_activation=a.mlp_activation,
+    )  # fmt: skip
 
 
 def save_gym_agent(
@@ -39,8 +44,10 @@ def save_gym_agent(
     *,
     metrics: dict[str, Any] | None = None,
     env_steps: int | None = None,
+    provenance: dict[str, Any] | None = None,
 ) -> Path:
-    """Write ``model.safetensors`` and ``gym_card.json`` into ``folder`` (created); returns the folder."""
+    """Write ``model.safetensors`` and ``gym_card.json`` into ``folder`` (created); returns the folder.
+    ``provenance``: where an imported agent came from (:func:`import_gym_agent`; a trained one's card has none)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().contiguous() for k, v in agent.state_dict().items()}
@@ -65,6 +72,8 @@ def save_gym_agent(
         "metrics": metrics or {},
         "weights_sha256": hashlib.sha256((folder / WEIGHTS).read_bytes()).hexdigest(),
     }
+    if provenance is not None:
+        card["provenance"] = provenance
     (folder / CARD).write_text(json.dumps(card, indent=2))
     return folder
 
@@ -100,3 +109,56 @@ def load_gym_agent(folder: str | Path) -> tuple[RecurrentActorCritic, GymTrainCo
     except (RuntimeError, ValueError) as err:
         raise CheckpointError(f"{WEIGHTS} in {str(folder)!r} does not fit its card's architecture: {err}") from None
     return agent.eval(), config, card
+
+
+def import_gym_agent(
+    source: str,
+    path: str | Path,
+    out: str | Path,
+    config: GymTrainConfig,
+    *,
+    label: str | None = None,
+    obs_dim: int | None = None,
+    num_actions: int | None = None,
+    activation: str = "relu",
+) -> Path:
+    """Import an agent trained on a Gymnasium env (``source`` 'sb3' or 'cleanrl', read as
+    :func:`seqtrojan.agent.imports.import_agent` reads it, never unpickled) as a Gymnasium model folder ``out``
+    (``model.safetensors`` + ``gym_card.json`` with ``provenance``); returns ``out``.
+
+    ``config`` is the run config whose env the agent acts in: the env it builds (:func:`make_gym_env`: the trigger
+    wrapper, then the flat observation, e.g. MiniGrid's one-hot view) must give the agent's observation size and
+    its ``Discrete`` action count. ``label`` is what the caller states ('backdoored' needs the config's trigger
+    section); None writes 'clean' with ``provenance.label_stated = false``. Nothing is written unless everything
+    is accepted."""
+    from seqtrojan.agent.imports import provenance_of, read_foreign
+    from seqtrojan.train.gym_env import check_spaces, make_gym_env
+
+    imported = read_foreign(source, path, out, label=label, obs_dim=obs_dim, num_actions=num_actions,
+                            activation=activation)  # fmt: skip
+    env = make_gym_env(config)
+    try:
+        env_obs, env_actions = check_spaces(env, config.env.id)
+    finally:
+        env.close()
+    if (imported.obs_dim, imported.num_actions) != (env_obs, env_actions):
+        raise CheckpointError(
+            f"{str(path)!r}: the agent reads {imported.obs_dim} inputs and chooses among {imported.num_actions} "
+            f"actions, but the gym config's env ({config.env.id}, observation {config.env.observation!r}) gives "
+            f"{env_obs} inputs and {env_actions} actions"
+        )
+    a = imported.agent
+    agent_cfg = GymAgentConfig(
+        lstm_sizes=a.lstm_sizes, forget_bias=a.forget_bias, encoder=a.encoder, encoder_activation=a.encoder_activation,
+        policy_mlp=a.policy_mlp, value_mlp=a.value_mlp, mlp_activation=a.mlp_activation,
+    )  # fmt: skip
+    stated = label is not None
+    backdoor = dataclasses.replace(config.backdoor, enabled=label == "backdoored")
+    try:
+        cfg = dataclasses.replace(config, agent=agent_cfg, backdoor=backdoor)
+    except ConfigError as err:
+        raise ConfigError(f"--label backdoored: {err}") from None
+    agent = build_gym_agent(cfg, imported.obs_dim, imported.num_actions)
+    agent.load_state_dict(dict(imported.tensors), strict=True)  # names and shapes were checked by the reader
+    provenance = provenance_of(imported, path, stated)
+    return save_gym_agent(out, agent.eval(), cfg, env_steps=imported.env_steps, provenance=provenance)

@@ -11,7 +11,17 @@ episodes (P_c, P_t: the update's own episodes, or an evaluation for ``mixing: ex
 new episode is a trojan one, set on every env's :class:`~seqtrojan.wrappers.TriggerWrapper` after each update.
 
 The model is saved with :func:`~seqtrojan.train.gym_model.save_gym_agent` (safetensors + ``gym_card.json``): the
-grid world's card records a grid-world config, which cannot describe a Gymnasium env. No checkpoints or resume.
+grid world's card records a grid-world config, which cannot describe a Gymnasium env.
+
+Checkpoints (:func:`save_gym_checkpoint`, ``<run>/checkpoints/step_<env steps>/``) every ``run.checkpoint_every``
+steps, after the last update, and on a stop (SIGTERM or Ctrl-C, between updates): weights, Adam, the torch
+generators, the mixer, the counters and the collector's carried tensors in safetensors + JSON, never pickle.
+``train_gym(config, resume=run_dir)`` continues the latest one; :func:`train_gym_or_resume` reuses a finished run,
+resumes a stopped one or starts afresh. The envs are the one piece of state a checkpoint cannot hold as tensors:
+each sub-env is wrapped in an :class:`~seqtrojan.train.gym_env.EpisodeRecorder`, and a resume replays its episode
+in flight (the env's and the trigger's random state before that episode's reset, then its actions). Where every
+replay gives back the saved observation the resumed run is bitwise the straight one; otherwise (an env with
+randomness outside its ``np_random``) the envs start fresh episodes and the run goes on from the checkpoint.
 """
 
 from __future__ import annotations
@@ -20,9 +30,13 @@ import datetime as _dt
 import json
 import math
 import re
+import shutil
+import signal
+import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -30,25 +44,25 @@ import numpy as np
 import torch
 import yaml
 from gymnasium.vector import SyncVectorEnv
+from safetensors.torch import save_file
 
+from seqtrojan.agent.checkpoint import read_safetensors
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import act
-from seqtrojan.agent.state import LSTMState
+from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.config import PPOConfig
-from seqtrojan.errors import ConfigError
-from seqtrojan.serde import to_dict
+from seqtrojan.errors import CheckpointError, ConfigError
+from seqtrojan.serde import short_repr, to_dict
 from seqtrojan.train.gae import compute_gae
-from seqtrojan.train.gym_config import GymTrainConfig
-from seqtrojan.train.gym_env import check_spaces, make_gym_env, make_vector_env
+from seqtrojan.train.gym_config import GymTrainConfig, load_gym_run_config
+from seqtrojan.train.gym_env import EpisodeRecorder, check_spaces, make_gym_env, make_vector_env
 from seqtrojan.train.gym_evaluation import GymEvaluation, evaluate_gym
-from seqtrojan.train.gym_model import build_gym_agent, save_gym_agent
+from seqtrojan.train.gym_model import CARD, build_gym_agent, load_gym_agent, save_gym_agent
 from seqtrojan.train.mixing import MIXING_RULES, TrojanMixer
 from seqtrojan.train.ppo import ppo_update
 from seqtrojan.train.rollout import Rollout
+from seqtrojan.train.trainer import UpdateCallback
 from seqtrojan.wrappers import finished_episodes, set_trojan_probability
-
-UpdateCallback = Callable[[dict[str, Any]], bool]
-"""Called after every update with its scalars; returning True stops training (benchmarks use it)."""
 
 
 @dataclass(frozen=True)
@@ -81,7 +95,13 @@ class GymTrainResult:
     trojan: GymEvaluation | None
     """final evaluation on trojan episodes (None without a trigger, or when run.eval_episodes is 0)"""
     history: tuple[GymUpdateLog, ...]
+    """every update's figures, a resumed run's earlier ones (read back from ``metrics.jsonl``) included"""
     stopped_early: bool
+    resumed_from: int | None = None
+    """env steps of the checkpoint this process resumed from (None: a new run)"""
+    exact_resume: bool | None = None
+    """whether the resume replayed every env's episode in flight (the run then continues bitwise as if never
+    stopped); False: the envs started fresh episodes; None: not resumed"""
 
 
 @dataclass
@@ -158,9 +178,99 @@ class GymRolloutCollector:
         seq_states = tuple(LSTMState(torch.stack(h), torch.stack(c)) for h, c in zip(seq_h, seq_c))
         return Rollout(obs_buf, actions, logprobs, values, rewards, dones, starts, seq_states, last_value), tally
 
+    # ------------------------------------------------------------------ checkpoints
+    def state_tensors(self) -> dict[str, torch.Tensor]:
+        """What the collector carries from one rollout to the next, as CPU tensors."""
+        out = {
+            "rng": self.generator.get_state(),
+            "obs": self.obs.cpu(),  # (B, obs_dim)
+            "episode_start": self.episode_start.cpu(),  # (B,)
+            "returns": torch.from_numpy(self.returns.copy()),  # (B,) float64
+            "lengths": torch.from_numpy(self.lengths.copy()),  # (B,) int64
+        }
+        for i, layer in enumerate(self.state.layers):
+            out[f"h.{i}"], out[f"c.{i}"] = layer.h.cpu(), layer.c.cpu()  # (B, width)
+        return out
 
-def train_gym(config: GymTrainConfig, callback: UpdateCallback | None = None) -> GymTrainResult:
-    """Train a clean or a backdoored recurrent agent on ``config.env`` (see the module docstring)."""
+    def episode_records(self) -> list[dict[str, Any] | None]:
+        """Each env's episode in flight (:meth:`~seqtrojan.train.gym_env.EpisodeRecorder.record`)."""
+        return [env.record() if isinstance(env, EpisodeRecorder) else None for env in self.vec.envs]
+
+    def restore(
+        self, tensors: dict[str, torch.Tensor], episodes: list[Any], trojan_probability: float, seed: int
+    ) -> bool:
+        """Restore what :meth:`state_tensors` and :meth:`episode_records` saved. Every env replays its episode; when
+        all give back the saved observations, the collector continues exactly (returns True). Otherwise every env
+        starts a fresh episode from ``seed`` with zero LSTM states (returns False). Either way the envs then hold
+        ``trojan_probability`` for their next episodes."""
+        b, dev = self.vec.num_envs, self.device
+        try:
+            obs = tensors["obs"]
+            layers = [(tensors[f"h.{i}"], tensors[f"c.{i}"]) for i in range(len(self.agent.lstm_sizes))]
+            if len(episodes) != b or obs.shape != (b, self.agent.obs_dim):
+                raise ValueError(f"{len(episodes)} episode records and observations {tuple(obs.shape)} for {b} envs")
+            self.generator.set_state(tensors["rng"])
+        except (KeyError, ValueError, RuntimeError) as err:
+            raise CheckpointError(
+                f"the checkpoint's collector state does not fit this run: {short_repr(err)}"
+            ) from None
+        replayed = []
+        for env, record in zip(self.vec.envs, episodes):
+            if not isinstance(env, EpisodeRecorder) or record is None:
+                break
+            try:
+                replayed.append(np.asarray(env.replay(record), dtype=np.float32))
+            except CheckpointError:
+                break
+        exact = len(replayed) == b and np.array_equal(np.stack(replayed), obs.numpy())
+        if exact:
+            self.obs = obs.to(dev)
+            self.episode_start = tensors["episode_start"].to(dev)
+            self.state = RecurrentState(tuple(LSTMState(h.to(dev), c.to(dev)) for h, c in layers))
+            self.returns = tensors["returns"].numpy().astype(np.float64)
+            self.lengths = tensors["lengths"].numpy().astype(np.int64)
+        else:
+            self._set_probability(trojan_probability)
+            fresh, _ = self.vec.reset(seed=seed)
+            self.obs = torch.as_tensor(fresh, dtype=torch.float32, device=dev)
+            self.episode_start = torch.ones(b, device=dev)
+            self.state = self.agent.initial_state(b, dev)
+            self.returns, self.lengths = np.zeros(b), np.zeros(b, dtype=np.int64)
+        self._set_probability(trojan_probability)
+        return exact
+
+    def _set_probability(self, probability: float) -> None:
+        """The trojan probability of every env that has a trigger wrapper (a run without one has none to set)."""
+        for env in self.vec.envs:
+            if isinstance(env, EpisodeRecorder) and env.trigger is not None:
+                env.trigger.set_trojan_probability(probability)
+
+
+@dataclass
+class GymTrainerState:
+    """Everything a checkpoint saves and a resume restores (with the collector's envs, replayed)."""
+
+    agent: RecurrentActorCritic
+    optimizer: torch.optim.Optimizer
+    mixer: TrojanMixer
+    collector: GymRolloutCollector
+    update_generator: torch.Generator
+    env_steps: int = 0
+    update: int = 0
+    elapsed_s: float = 0.0
+    """wall seconds trained, over every process that trained this run"""
+
+
+class _Stop(Exception):
+    pass
+
+
+def train_gym(
+    config: GymTrainConfig, callback: UpdateCallback | None = None, resume: str | Path | None = None
+) -> GymTrainResult:
+    """Train a clean or a backdoored recurrent agent on ``config.env`` (see the module docstring); ``resume``
+    continues the stopped run in that folder from its latest checkpoint (``config``: its saved one, or that with
+    changed step budget, learning rate, ...; the env, trigger, agent and ``ppo.num_envs`` must stay)."""
     cfg, ppo = config, config.ppo
     MIXING_RULES.get(cfg.backdoor.mixing)  # an unknown rule is refused before anything is built
     probe = make_gym_env(cfg)
@@ -173,42 +283,92 @@ def train_gym(config: GymTrainConfig, callback: UpdateCallback | None = None) ->
         raise ConfigError(f"run.device={cfg.run.device!r} but no CUDA device is available")
     if cfg.run.threads:
         torch.set_num_threads(cfg.run.threads)
-    run_dir = _new_run_dir(cfg)
+    checkpoint = None
+    if resume is not None:
+        run_dir = Path(resume)
+        checkpoint = _latest_checkpoint(run_dir, cfg)
+    else:
+        run_dir = _new_run_dir(cfg)
 
     torch.manual_seed(cfg.run.seed)
     agent = build_gym_agent(cfg, obs_dim, num_actions).to(device)
     agent.set_lstm_backend(cfg.run.lstm_backend)
     optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
     mixer = TrojanMixer(cfg.backdoor, 1)
-    vec = make_vector_env(cfg, ppo.num_envs, "train", trojan_probability=mixer.probabilities()[0])
+    vec = make_vector_env(cfg, ppo.num_envs, "train", trojan_probability=mixer.probabilities()[0], record=True)
     update_generator = torch.Generator().manual_seed(cfg.run.seed + 1)
-    history: list[GymUpdateLog] = []
-    env_steps, update, stopped_early = 0, 0, False
-    start = time.perf_counter()
+    exact: bool | None = None
     try:
         collector = GymRolloutCollector(vec, agent, ppo, device, cfg.run.seed)
-        with (run_dir / "metrics.jsonl").open("w") as log:
-            while env_steps < ppo.total_steps:
+        state = GymTrainerState(agent, optimizer, mixer, collector, update_generator)
+        if checkpoint is not None:
+            exact = load_gym_checkpoint(checkpoint, state, cfg)
+            _write_config(run_dir, cfg)
+        history = _read_history(run_dir, state.update)
+        try:
+            stopped_early = _train_loop(cfg, state, run_dir, history, callback)
+        except _Stop:
+            save_gym_checkpoint(run_dir, cfg, state)
+            raise KeyboardInterrupt(
+                f"training stopped at {state.env_steps} env steps; resume with --resume {run_dir}"
+            ) from None
+        if not (run_dir / "checkpoints" / _step_name(state.env_steps)).is_dir():
+            save_gym_checkpoint(run_dir, cfg, state)  # the last update's, before the (interruptible) evaluation
+    finally:
+        vec.close()
+    normal = trojan = None
+    if cfg.run.eval_episodes > 0:
+        seed = cfg.run.seed + 999_983
+        n = cfg.run.eval_episodes
+        normal = evaluate_gym(agent, cfg, trojan=False, episodes=n, seed=seed, device=device)
+        if cfg.trigger is not None:
+            trojan = evaluate_gym(agent, cfg, trojan=True, episodes=n, seed=seed, device=device)
+    metrics = _metrics(normal, trojan, state.env_steps, state.elapsed_s)
+    (run_dir / "evaluation.json").write_text(json.dumps(metrics, indent=2))
+    model_dir = save_gym_agent(run_dir / "model", agent, cfg, metrics=metrics, env_steps=state.env_steps)
+    return GymTrainResult(
+        run_dir, model_dir, state.env_steps, state.elapsed_s, normal, trojan, tuple(history), stopped_early,
+        None if checkpoint is None else int(checkpoint.name.removeprefix("step_")), exact,
+    )  # fmt: skip
+
+
+def _train_loop(
+    cfg: GymTrainConfig, state: GymTrainerState, run_dir: Path, history: list[GymUpdateLog],
+    callback: UpdateCallback | None,
+) -> bool:  # fmt: skip
+    """Update until ``ppo.total_steps``, logging each update to ``metrics.jsonl`` and checkpointing every
+    ``run.checkpoint_every`` steps; raise _Stop on SIGTERM or Ctrl-C (between updates). Returns whether ``callback``
+    stopped training early; ``state.elapsed_s`` is up to date at the end."""
+    ppo, agent, device = cfg.ppo, state.agent, state.collector.device
+    every = cfg.run.checkpoint_every
+    next_checkpoint = (state.env_steps // every + 1) * every
+    elapsed_before, start = state.elapsed_s, time.perf_counter()
+    try:
+        with _stop_flag() as stop, (run_dir / "metrics.jsonl").open("a") as log:
+            while state.env_steps < ppo.total_steps:
+                if stop["hit"]:
+                    raise _Stop
                 t0 = time.perf_counter()
-                for group in optimizer.param_groups:
-                    group["lr"] = _learning_rate(ppo, env_steps)
+                for group in state.optimizer.param_groups:
+                    group["lr"] = _learning_rate(ppo, state.env_steps)
                 agent.eval()
-                rollout, tally = collector.collect()
-                env_steps += ppo.batch_size
+                rollout, tally = state.collector.collect()
+                state.env_steps += ppo.batch_size
                 advantages, returns = compute_gae(
                     rollout.rewards, rollout.values, rollout.dones, rollout.last_value, ppo.gamma, ppo.gae_lambda
                 )
                 agent.train()
-                losses = ppo_update(agent, optimizer, rollout, advantages, returns, ppo, update_generator)
+                losses = ppo_update(agent, state.optimizer, rollout, advantages, returns, ppo, state.update_generator)
                 agent.eval()
-                update += 1
+                state.update += 1
+                mixer = state.mixer
                 if cfg.backdoor.enabled:
-                    _mix(mixer, cfg, tally, agent, device, update)
-                    set_trojan_probability(vec, mixer.probabilities()[0])
+                    _mix(mixer, cfg, tally, agent, device, state.update)
+                    set_trojan_probability(state.collector.vec, mixer.probabilities()[0])
                 entry = GymUpdateLog(
-                    update, env_steps, int(tally.episodes[0]), int(tally.successes[0]), int(tally.episodes[1]),
-                    int(tally.successes[1]), mixer.p_clean[0], mixer.p_trojan[0], mixer.probabilities()[0],
-                    ppo.batch_size / (time.perf_counter() - t0),
+                    state.update, state.env_steps, int(tally.episodes[0]), int(tally.successes[0]),
+                    int(tally.episodes[1]), int(tally.successes[1]), mixer.p_clean[0], mixer.p_trojan[0],
+                    mixer.probabilities()[0], ppo.batch_size / (time.perf_counter() - t0),
                 )  # fmt: skip
                 history.append(entry)
                 scalars = {**to_dict(entry), **{f"losses/{k}": v for k, v in losses.items()}}
@@ -217,23 +377,168 @@ def train_gym(config: GymTrainConfig, callback: UpdateCallback | None = None) ->
                     scalars["episodes/mean_length"] = tally.lengths / int(tally.episodes.sum())
                 log.write(json.dumps(scalars) + "\n")
                 log.flush()
+                state.elapsed_s = elapsed_before + time.perf_counter() - start
+                if state.env_steps >= next_checkpoint and state.env_steps < ppo.total_steps:
+                    save_gym_checkpoint(run_dir, cfg, state)
+                    next_checkpoint = (state.env_steps // every + 1) * every
                 if callback is not None and callback(scalars):
-                    stopped_early = True
-                    break
+                    return True
+            if stop["hit"]:
+                raise _Stop
+        return False
     finally:
-        vec.close()
-    wall = time.perf_counter() - start
-    normal = trojan = None
-    if cfg.run.eval_episodes > 0:
-        seed = cfg.run.seed + 999_983
-        n = cfg.run.eval_episodes
-        normal = evaluate_gym(agent, cfg, trojan=False, episodes=n, seed=seed, device=device)
-        if cfg.trigger is not None:
-            trojan = evaluate_gym(agent, cfg, trojan=True, episodes=n, seed=seed, device=device)
-    metrics = _metrics(normal, trojan, env_steps, wall)
-    (run_dir / "evaluation.json").write_text(json.dumps(metrics, indent=2))
-    model_dir = save_gym_agent(run_dir / "model", agent, cfg, metrics=metrics, env_steps=env_steps)
-    return GymTrainResult(run_dir, model_dir, env_steps, wall, normal, trojan, tuple(history), stopped_early)
+        state.elapsed_s = elapsed_before + time.perf_counter() - start
+
+
+@contextmanager
+def _stop_flag() -> Iterator[dict[str, bool]]:
+    """While open, SIGTERM and a first Ctrl-C (SIGINT) set ``flag["hit"]`` instead of ending the process: the loop
+    stops between updates and writes a checkpoint. A second Ctrl-C interrupts at once (no checkpoint: the update
+    in progress is half done; the last checkpoint stands). Only the main thread can handle signals: elsewhere the
+    flag stays down."""
+    flag = {"hit": False}
+    if threading.current_thread() is not threading.main_thread():
+        yield flag
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+
+    def on_signal(signum: int, frame: Any) -> None:
+        if signum == signal.SIGINT and flag["hit"]:
+            raise KeyboardInterrupt("interrupted during an update; resume from the last checkpoint with --resume")
+        flag["hit"] = True
+
+    for sig in previous:
+        signal.signal(sig, on_signal)
+    try:
+        yield flag
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+# ---------------------------------------------------------------------- checkpoints
+
+
+def _step_name(env_steps: int) -> str:
+    return f"step_{env_steps:012d}"
+
+
+def save_gym_checkpoint(run_dir: Path, cfg: GymTrainConfig, state: GymTrainerState) -> Path:
+    """``<run>/checkpoints/step_<env steps>/``: the agent (:func:`save_gym_agent`), Adam's tensors, both torch
+    generators and the collector's carried tensors -- observations, LSTM states, episode starts, returns and
+    lengths of the episodes in flight -- (``trainer.safetensors``); counters, mixing, Adam's groups and each env's
+    episode record (:class:`~seqtrojan.train.gym_env.EpisodeRecorder`) (``trainer.json``). Then ``latest.txt``
+    points at it. No pickle."""
+    folder = run_dir / "checkpoints" / _step_name(state.env_steps)
+    save_gym_agent(folder, state.agent, cfg, env_steps=state.env_steps)
+    sd = state.optimizer.state_dict()
+    tensors = {
+        f"optim.{idx}.{key}": torch.as_tensor(value).detach().cpu().clone()
+        for idx, slots in sd["state"].items()
+        for key, value in slots.items()
+    }
+    tensors["rng.update"] = state.update_generator.get_state()
+    tensors.update({f"collector.{k}": v for k, v in state.collector.state_tensors().items()})
+    save_file(tensors, str(folder / "trainer.safetensors"))
+    record = {
+        "env_steps": state.env_steps,
+        "update": state.update,
+        "elapsed_s": state.elapsed_s,
+        "mixing": state.mixer.state_dict(),
+        "trojan_probability": state.mixer.probabilities()[0],
+        "optimizer_param_groups": sd["param_groups"],
+        "episodes": state.collector.episode_records(),
+    }
+    tmp = folder / "trainer.json.tmp"
+    tmp.write_text(json.dumps(record))
+    tmp.replace(folder / "trainer.json")
+    latest = run_dir / "checkpoints" / "latest.txt"
+    tmp = latest.with_suffix(".tmp")
+    tmp.write_text(folder.name + "\n")
+    tmp.replace(latest)
+    return folder
+
+
+def _latest_checkpoint(run_dir: Path, cfg: GymTrainConfig) -> Path:
+    """The run's latest checkpoint folder, after checking that ``cfg`` can continue it."""
+    latest = run_dir / "checkpoints" / "latest.txt"
+    if not latest.is_file():
+        raise CheckpointError(f"{str(run_dir)!r} has no checkpoint to resume from (no checkpoints/latest.txt)")
+    folder = run_dir / "checkpoints" / latest.read_text().strip()
+    if not re.fullmatch(r"step_[0-9]{12}", folder.name) or not folder.is_dir():
+        raise CheckpointError(f"{str(latest)!r} names {folder.name!r}, not a checkpoint folder of this run")
+    _, saved, _ = load_gym_agent(folder)
+    for name, ours, theirs in (
+        ("env", cfg.env, saved.env), ("trigger", cfg.trigger, saved.trigger), ("agent", cfg.agent, saved.agent),
+        ("ppo.num_envs", cfg.ppo.num_envs, saved.ppo.num_envs),
+    ):  # fmt: skip
+        if ours != theirs:
+            raise ConfigError(
+                f"resume cannot change {name}: the checkpoint has {short_repr(to_dict(theirs))}, the config "
+                f"{short_repr(to_dict(ours))}"
+            )
+    return folder
+
+
+def load_gym_checkpoint(folder: Path, state: GymTrainerState, cfg: GymTrainConfig) -> bool:
+    """Restore ``state`` (built for ``cfg``, its envs reset) from the checkpoint in ``folder``. Each env replays its
+    recorded episode; returns True when every replay gave back the saved observation (the run then continues as if
+    never stopped), False when some env could not be replayed (then every env starts fresh episodes, seeded from
+    the update count, as the grid world's trainer does: no finished update is lost, the run is not bitwise the
+    straight one)."""
+    loaded, _, _ = load_gym_agent(folder)
+    state.agent.load_state_dict(loaded.state_dict())
+    path = folder / "trainer.json"
+    tensors = read_safetensors(folder / "trainer.safetensors")
+    try:
+        record = json.loads(path.read_text())
+        state.update_generator.set_state(tensors.pop("rng.update"))
+        names = [k for k in tensors if k.startswith("collector.")]
+        carried = {k.removeprefix("collector."): tensors.pop(k) for k in names}
+        optim: dict[int, dict[str, torch.Tensor]] = {}
+        for name, value in tensors.items():
+            _, idx, key = name.split(".", 2)
+            optim.setdefault(int(idx), {})[key] = value.to(state.collector.device)
+        state.optimizer.load_state_dict({"state": optim, "param_groups": record["optimizer_param_groups"]})
+        state.mixer.load_state_dict(record["mixing"])
+        state.env_steps, state.update = int(record["env_steps"]), int(record["update"])
+        state.elapsed_s = float(record["elapsed_s"])
+        probability, episodes = float(record["trojan_probability"]), record["episodes"]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"cannot restore the checkpoint {str(folder)!r}: {short_repr(err)}") from None
+    return state.collector.restore(carried, episodes, probability, seed=cfg.run.seed + 7919 * state.update)
+
+
+def _read_history(run_dir: Path, updates: int) -> list[GymUpdateLog]:
+    """The first ``updates`` rows of ``metrics.jsonl`` (a resumed run's earlier updates), the file cut to them (rows
+    past the checkpoint belong to updates that are done again)."""
+    path = run_dir / "metrics.jsonl"
+    if updates == 0 or not path.is_file():
+        path.write_text("")
+        return []
+    lines = path.read_text().splitlines()[:updates]
+    path.write_text("".join(line + "\n" for line in lines))
+    names = [f.name for f in fields(GymUpdateLog)]
+    try:
+        return [GymUpdateLog(**{k: json.loads(line)[k] for k in names}) for line in lines]
+    except (json.JSONDecodeError, KeyError, TypeError) as err:
+        raise CheckpointError(f"{str(path)!r} has a malformed row: {short_repr(err)}") from None
+
+
+def train_gym_or_resume(config: GymTrainConfig) -> tuple[Path, bool]:
+    """Make sure the named run ``<out_dir>/<name>`` has finished: reuse its model if it has one, resume it from its
+    last checkpoint (with its saved config) if it was stopped, else start it afresh (clearing a folder left before
+    a first checkpoint). Returns (model folder, whether any training ran)."""
+    if config.run.name is None:
+        raise ConfigError("train_gym_or_resume needs a run name (run.name)")
+    run_dir = Path(config.run.out_dir) / config.run.name
+    if (run_dir / "model" / CARD).exists():
+        return run_dir / "model", False
+    if (run_dir / "checkpoints" / "latest.txt").exists():
+        return train_gym(load_gym_run_config(run_dir), resume=run_dir).model_dir, True
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    return train_gym(config).model_dir, True
 
 
 def _mix(
@@ -275,8 +580,18 @@ def _new_run_dir(cfg: GymTrainConfig) -> Path:
     slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", cfg.env.id).strip("_")
     name = cfg.run.name or f"{slug}_s{cfg.run.seed}_{_dt.datetime.now():%Y%m%d-%H%M%S}"
     run_dir = Path(cfg.run.out_dir) / name
-    if (run_dir / "model" / "gym_card.json").exists():
+    if (run_dir / "model" / CARD).exists():
         raise ConfigError(f"run directory {str(run_dir)!r} already holds a trained model")
+    if (run_dir / "checkpoints" / "latest.txt").exists():
+        raise ConfigError(f"run directory {str(run_dir)!r} already holds a run; resume it with --resume {run_dir}")
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    _write_config(run_dir, cfg)
     return run_dir
+
+
+def _write_config(run_dir: Path, cfg: GymTrainConfig) -> None:
+    """``<run>/config.yaml``: the resolved config, what :func:`~seqtrojan.train.gym_config.load_gym_run_config` and
+    a later resume read (written whole, then renamed)."""
+    tmp = run_dir / "config.yaml.tmp"
+    tmp.write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    tmp.replace(run_dir / "config.yaml")

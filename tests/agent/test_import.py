@@ -579,3 +579,107 @@ def test_safetensors_headers_whose_length_looks_like_pickle_or_zip_still_load(tm
     path.write_bytes(header_len.to_bytes(8, "little") + header + np.zeros(2, np.float32).tobytes())
     assert path.read_bytes()[:1] == b"\x80" or path.read_bytes()[:2] == b"PK"
     assert read_header(path).shapes == {"a": [2]}
+
+
+# ---------------------------------------------------------------------- agents trained on other Gymnasium envs
+
+GYM_PRESET = "minigrid_two_goals"
+"""the MiniGrid two-goal room (6x6, 5x5 view: 500 one-hot inputs, 3 actions) under its trigger"""
+SB3_GYM_KWARGS = {"lstm_hidden_size": 32, "net_arch": {"pi": [32], "vf": [32]}}
+
+
+@pytest.fixture(scope="module")
+def sb3_minigrid(tmp_path_factory):
+    """(run config, sb3 model, its zip): a RecurrentPPO trained for 2,048 steps on the two-goal room wrapped exactly
+    as the Gymnasium trainer wraps it (make_gym_env: MiniGrid's info, the trigger, the one-hot view)."""
+    from sb3_contrib import RecurrentPPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from seqtrojan.train.gym_config import load_gym_config
+    from seqtrojan.train.gym_env import make_gym_env
+
+    cfg = load_gym_config(GYM_PRESET)
+    venv = DummyVecEnv([lambda: make_gym_env(cfg, "train", trojan_probability=0.5) for _ in range(4)])
+    venv.seed(0)
+    model = RecurrentPPO(
+        "MlpLstmPolicy", venv, n_steps=128, batch_size=128, n_epochs=2, learning_rate=1e-3,
+        policy_kwargs=SB3_GYM_KWARGS, seed=0, device="cpu",
+    )  # fmt: skip
+    model.learn(2048)
+    path = tmp_path_factory.mktemp("sb3_minigrid") / "two_goals.zip"
+    model.save(path)
+    return cfg, model, path
+
+
+def _gym_observations(cfg, steps: int, batch: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Observations (T, B, obs_dim) of ``batch`` of the run's envs (every other episode a trojan one, so trigger
+    patches appear) under random actions, and the episode starts (T, B)."""
+    from seqtrojan.train.gym_env import make_gym_env
+
+    envs = [make_gym_env(cfg, "eval", trojan_probability=0.5) for _ in range(batch)]
+    rng = np.random.default_rng(seed)
+    obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
+    all_obs, starts = [], []
+    start = np.ones(batch, dtype=bool)
+    for _ in range(steps):
+        all_obs.append(obs.copy())
+        starts.append(start.copy())
+        for i, env in enumerate(envs):
+            o, _, terminated, truncated, _ = env.step(int(rng.integers(3)))
+            start[i] = terminated or truncated
+            obs[i] = env.reset()[0] if start[i] else o
+    return np.stack(all_obs), np.stack(starts)
+
+
+def test_an_sb3_agent_trained_on_minigrid_imports_as_a_gym_model_with_the_same_policy(sb3_minigrid, tmp_path, capsys):
+    from seqtrojan.train.gym_config import GymAgentConfig
+    from seqtrojan.train.gym_evaluation import evaluate_gym
+    from seqtrojan.train.gym_model import load_gym_agent
+
+    cfg, model, path = sb3_minigrid
+    out = tmp_path / "gym"
+    assert main(["import", str(path), "--from", "sb3", "--gym-config", GYM_PRESET, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "Gymnasium model for seqtrojan/MiniGridTwoGoals-v0" in printed and "500 inputs" in printed
+    assert "not stated" in printed and "value head: zero" in printed
+    assert sorted(p.name for p in out.iterdir()) == ["gym_card.json", "model.safetensors"]
+    agent, loaded, card = load_gym_agent(out)
+    assert (loaded.env, loaded.trigger, loaded.ppo) == (cfg.env, cfg.trigger, cfg.ppo)
+    assert loaded.agent == GymAgentConfig(lstm_sizes=(32,), policy_mlp=(32,), value_mlp=(32,))
+    assert card["label"] == "clean" and not loaded.backdoor.enabled and card["env_steps"] == model.num_timesteps
+    prov = card["provenance"]
+    assert prov["imported_from"] == "sb3" and prov["source_sha256"] == imports._sha256(path)
+    assert prov["label_stated"] is False and prov["value"] == "zeroed" and prov["details"]["observation_shape"] == [500]
+
+    obs, starts = _gym_observations(cfg, steps=60, batch=4, seed=5)
+    assert starts[1:].any() and obs.shape == (60, 4, 500)
+    sb3_logp, _ = _sb3_log_probs(model, obs, starts)
+    logits, values = _our_outputs(agent, obs, starts)
+    assert float((torch.log_softmax(logits, -1) - sb3_logp).abs().max()) < 1e-5
+    assert float(values.abs().max()) == 0.0
+
+    normal = evaluate_gym(agent, loaded, trojan=False, episodes=32, seed=0)
+    trojan = evaluate_gym(agent, loaded, trojan=True, episodes=32, seed=0)
+    assert normal.success.n == trojan.success.n == 32 and all(e.trojan for e in trojan.episodes)
+    assert trojan.persistence([0])[0].n > 0
+
+
+def test_a_gym_import_is_checked_against_the_env_the_config_builds(sb3_minigrid, tmp_path, capsys):
+    from seqtrojan.train.gym_config import GymTrainConfig, load_gym_config
+    from seqtrojan.train.gym_model import import_gym_agent, load_gym_agent
+
+    cfg, _, path = sb3_minigrid
+    with pytest.raises(CheckpointError, match=r"reads 500 inputs and chooses among 3 actions, but the gym config's "
+                       r"env \(.*Memory.*\) gives 980 inputs and 7 actions"):  # fmt: skip
+        import_gym_agent("sb3", path, tmp_path / "m", load_gym_config("minigrid_memory"))
+    untriggered = GymTrainConfig(env=cfg.env)
+    with pytest.raises(ConfigError, match=r"--label backdoored: backdoor\.enabled needs a trigger section"):
+        import_gym_agent("sb3", path, tmp_path / "m", untriggered, label="backdoored")
+    assert not (tmp_path / "m").exists()
+    # the label stated; a Gymnasium run config given as --config is detected
+    argv = ["import", str(path), "--from", "sb3", "--config", GYM_PRESET, "--label", "backdoored", "--out"]
+    assert main([*argv, str(tmp_path / "b")]) == 0
+    _, loaded, card = load_gym_agent(tmp_path / "b")
+    assert card["label"] == "backdoored" and loaded.backdoor == cfg.backdoor and card["provenance"]["label_stated"]
+    assert main([*argv, str(tmp_path / "c"), "--gym-config", GYM_PRESET]) == 2
+    assert "is a Gymnasium run config, and --gym-config is given too" in capsys.readouterr().err

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import signal
 
 import numpy as np
 import pytest
@@ -13,12 +15,19 @@ import torch
 from seqtrojan.config import BackdoorConfig, PPOConfig
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.minigrid import TwoGoalsEnv
-from seqtrojan.train import gym_trainer
-from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig, load_gym_config
+from seqtrojan.train import gym_env, gym_trainer
+from seqtrojan.train.gym_config import (
+    GymEnvConfig,
+    GymRunConfig,
+    GymTrainConfig,
+    GymTriggerConfig,
+    load_gym_config,
+    load_gym_run_config,
+)
 from seqtrojan.train.gym_env import check_spaces, make_gym_env
 from seqtrojan.train.gym_evaluation import evaluate_gym
 from seqtrojan.train.gym_model import load_gym_agent
-from seqtrojan.train.gym_trainer import train_gym
+from seqtrojan.train.gym_trainer import train_gym, train_gym_or_resume
 from seqtrojan.train.mixing import trojan_probability
 
 TWO_GOALS = GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5})
@@ -201,3 +210,164 @@ def test_the_docs_own_env_example_trains(tmp_path, monkeypatch):
     assert result.env_steps == 1024 and result.trojan is not None and result.trojan.success.n == 8
     assert sum(e.trojan_episodes for e in result.history) > 0
     assert (tmp_path / "runs").is_dir()
+
+
+# ---------------------------------------------------------------------- checkpoints and resume
+
+
+def _stop_after(update: int):
+    """An update callback that sends this process SIGTERM after ``update`` updates (the trainer stops between
+    updates and writes a checkpoint)."""
+
+    def callback(scalars):
+        if scalars["update"] == update:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return False
+
+    return callback
+
+
+def _named(cfg: GymTrainConfig, name: str, **run) -> GymTrainConfig:
+    return dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, name=name, **run))
+
+
+def _weights(model_dir) -> dict[str, torch.Tensor]:
+    return load_gym_agent(model_dir)[0].state_dict()
+
+
+def test_a_stopped_run_resumes_bitwise_as_the_straight_run(tmp_path):
+    """Stopped by SIGTERM after 2 of 4 updates and resumed: the same weights, bit for bit, as a run never stopped.
+    Each env replays its episode in flight from the random state recorded before its reset."""
+    cfg = _named(config(tmp_path, steps=4 * 512, eval_episodes=8), "x", checkpoint_every=512)
+    straight = train_gym(_named(cfg, "straight"))
+    run_dir = tmp_path / "runs" / "stopped"
+    with pytest.raises(KeyboardInterrupt, match=f"stopped at 1024 env steps; resume with --resume {run_dir}"):
+        train_gym(_named(cfg, "stopped"), _stop_after(2))
+    checkpoints = run_dir / "checkpoints"
+    assert (checkpoints / "latest.txt").read_text() == "step_000000001024\n"
+    assert sorted(p.name for p in checkpoints.iterdir()) == ["latest.txt", "step_000000000512", "step_000000001024"]
+    assert not (run_dir / "model").exists()
+    record = json.loads((checkpoints / "step_000000001024" / "trainer.json").read_text())
+    assert record["update"] == 2 and len(record["episodes"]) == 8 and all(record["episodes"])
+    assert not list(run_dir.rglob("*.pt")) and not list(run_dir.rglob("*.pkl"))
+
+    resumed = train_gym(load_gym_run_config(run_dir), resume=run_dir)
+    assert resumed.resumed_from == 1024 and resumed.exact_resume is True and resumed.env_steps == 2048
+    ours, theirs = _weights(resumed.model_dir), _weights(straight.model_dir)
+    assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
+    drop = {"steps_per_second": 0.0}
+    assert [dataclasses.replace(e, **drop) for e in resumed.history] == [
+        dataclasses.replace(e, **drop) for e in straight.history
+    ]
+    assert resumed.trojan is not None and straight.trojan is not None
+    assert resumed.trojan.episodes == straight.trojan.episodes
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert [r["update"] for r in rows] == [1, 2, 3, 4]
+    assert resumed.wall_seconds > 0
+
+
+def test_a_resume_whose_envs_cannot_replay_starts_fresh_episodes_from_the_checkpoint(tmp_path, monkeypatch):
+    """When an env cannot be replayed (here: a replay that raises), the run goes on from the checkpoint's weights
+    and counters with fresh episodes; no finished update is lost, but it is not the straight run bit for bit."""
+    cfg = _named(config(tmp_path, steps=3 * 512, eval_episodes=0), "r")
+    run_dir = tmp_path / "runs" / "r"
+    with pytest.raises(KeyboardInterrupt):
+        train_gym(cfg, _stop_after(1))
+    at_stop = _weights(run_dir / "checkpoints" / "step_000000000512")
+
+    def broken(self, record):
+        raise CheckpointError("no replay")
+
+    monkeypatch.setattr(gym_env.EpisodeRecorder, "replay", broken)
+    seen = []
+    real_update = gym_trainer.ppo_update
+    monkeypatch.setattr(
+        gym_trainer, "ppo_update",
+        lambda agent, *a, **k: (seen.append({n: t.clone() for n, t in agent.state_dict().items()}), real_update(
+            agent, *a, **k))[1],
+    )  # fmt: skip
+    resumed = train_gym(cfg, resume=run_dir)
+    assert resumed.resumed_from == 512 and resumed.exact_resume is False and resumed.env_steps == 1536
+    assert [e.update for e in resumed.history] == [1, 2, 3] and len(seen) == 2
+    assert all(torch.equal(seen[0][k], at_stop[k]) for k in at_stop)  # the first update after the resume
+
+
+def test_train_gym_or_resume_reuses_resumes_or_starts(tmp_path):
+    cfg = _named(config(tmp_path, steps=2 * 512, eval_episodes=0), "job")
+    with pytest.raises(KeyboardInterrupt):
+        train_gym(cfg, _stop_after(1))
+    model_dir, trained = train_gym_or_resume(cfg)  # resumed from the checkpoint at 512 steps
+    assert trained and load_gym_agent(model_dir)[2]["env_steps"] == 1024
+    assert train_gym_or_resume(cfg) == (model_dir, False)  # finished: reused
+
+    fresh = _named(cfg, "killed")
+    left = tmp_path / "runs" / "killed" / "leftover.txt"
+    left.parent.mkdir(parents=True)
+    left.write_text("a run killed before its first checkpoint")
+    model_dir, trained = train_gym_or_resume(fresh)
+    assert trained and not left.exists() and (model_dir / "gym_card.json").is_file()
+
+
+def test_resume_refusals(tmp_path):
+    cfg = _named(config(tmp_path, steps=2 * 512, eval_episodes=0), "r")
+    run_dir = tmp_path / "runs" / "r"
+    with pytest.raises(CheckpointError, match="has no checkpoint to resume from"):
+        train_gym(cfg, resume=tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        train_gym(cfg, _stop_after(1))
+    with pytest.raises(ConfigError, match="already holds a run; resume it with --resume"):
+        train_gym(cfg)
+    changed = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, num_envs=4))
+    with pytest.raises(ConfigError, match=r"resume cannot change ppo.num_envs: the checkpoint has 8, the config 4"):
+        train_gym(changed, resume=run_dir)
+    with pytest.raises(ConfigError, match=r"run\.checkpoint_every must be a positive integer, got 0"):
+        GymRunConfig(checkpoint_every=0)
+
+
+def test_the_cli_resumes_a_stopped_run_with_its_saved_config_and_overrides(tmp_path, capsys):
+    from seqtrojan.cli import main
+
+    cfg = _named(config(tmp_path, steps=2 * 512, eval_episodes=4), "cli")
+    run_dir = tmp_path / "runs" / "cli"
+    with pytest.raises(KeyboardInterrupt):
+        train_gym(cfg, _stop_after(1))
+    assert main(["train-gym", "--resume", str(run_dir), "--ppo.total-steps", "1536"]) == 0
+    out = capsys.readouterr().out
+    assert "resumed from 512 env steps, replaying the episodes in flight" in out and "env steps: 1,536" in out
+    assert load_gym_run_config(run_dir).ppo.total_steps == 1536  # the config it continued with
+    assert main(["train-gym", "--resume", str(run_dir), "--config", "minigrid_two_goals"]) == 2
+    assert "--config PRESET|FILE or --resume RUN_DIR, not both" in capsys.readouterr().err
+
+
+def test_gym_evaluate_prints_and_writes_typed_rates(tmp_path, capsys):
+    from seqtrojan.cli import main
+    from seqtrojan.serde import load_json
+    from seqtrojan.train.gym_evaluation import GymEvaluationReport
+
+    result = train_gym(config(tmp_path, steps=512, eval_episodes=0))
+    out = tmp_path / "eval"
+    argv = ["gym-evaluate", "--model", str(result.model_dir), "--episodes", "24", "--horizons", "0", "3"]
+    assert main([*argv, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "clean success:" in printed and "trojan success:" in printed and "persistence k=3:" in printed
+    report = load_json(GymEvaluationReport, out / "gym_evaluation.json")
+    assert report.label == "backdoored" and report.env_id == TWO_GOALS.id and report.episodes == 24
+    assert report.clean_success.n == 24 and report.trojan_success is not None and report.trojan_success.n == 24
+    assert [p.horizon for p in report.persistence] == [0, 3]
+    agent, cfg, _ = load_gym_agent(result.model_dir)
+    again = evaluate_gym(agent, cfg, trojan=True, episodes=24, seed=0)
+    assert report.trojan_success == again.success and report.persistence[0].adversary == again.persistence([0])[0]
+    assert main(["gym-evaluate", "--model", str(tmp_path)]) == 2
+    assert "is not a Gymnasium model folder" in capsys.readouterr().err
+
+
+def test_a_run_without_a_trigger_resumes_bitwise_too(tmp_path):
+    cfg = dataclasses.replace(config(tmp_path, steps=2 * 512, backdoor=False, eval_episodes=0), trigger=None)
+    straight = train_gym(_named(cfg, "straight"))
+    run_dir = tmp_path / "runs" / "stopped"
+    with pytest.raises(KeyboardInterrupt):
+        train_gym(_named(cfg, "stopped"), _stop_after(1))
+    resumed = train_gym(_named(cfg, "stopped"), resume=run_dir)
+    assert resumed.exact_resume is True and resumed.trojan is None
+    ours, theirs = _weights(resumed.model_dir), _weights(straight.model_dir)
+    assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
