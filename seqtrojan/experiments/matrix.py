@@ -272,19 +272,32 @@ def run_matrix(cfg: MatrixConfig, out: Path, scale: str = "custom", log: Callabl
     for job in jobs:
         attack, seed = job.id.rsplit("_s", 1)
         path = measured_dir / f"{job.id}.json"
-        if path.exists():
-            agents.append(load_json(AgentMeasurement, path))
+        kept = _saved_measurement(path, log)
+        if kept is not None:
+            agents.append(kept)
             continue
         log(f"measuring {job.id} ...")
         own = {name: by_agent[job.id] for name, by_agent in scores.items()}
         measurement = measure_agent(job, attack, int(seed), cfg, out, own)
-        save_json(measurement, path)
+        save_json(measurement, path.with_suffix(".tmp"))
+        path.with_suffix(".tmp").replace(path)  # a stop mid-write leaves no half-written measurement
         agents.append(measurement)
     result = assemble(cfg, agents, scale)
     save_json(result, out / MATRIX_FILE)
     plot_matrix(result, out / MATRIX_FIGURE)
     (out / "report.html").write_text(matrix_page(result, out / MATRIX_FIGURE))
     return result
+
+
+def _saved_measurement(path: Path, log: Callable[[str], None]) -> AgentMeasurement | None:
+    """A finished measurement of an earlier call, or None (none, or one that does not load: it is measured again)."""
+    if not path.exists():
+        return None
+    try:
+        return load_json(AgentMeasurement, path)
+    except ConfigError as err:
+        log(f"  measuring again: {err}")
+        return None
 
 
 def _over(values: Sequence[Rate]) -> tuple[OverSeeds, Rate]:

@@ -75,6 +75,9 @@ def test_a_second_call_reuses_trainings_and_measurements(tiny_matrix):
     assert run_matrix(cfg, out, scale="tiny", log=lambda *_: None) == result
     assert (measured.stat().st_mtime, (out / "runs" / "clean_s0" / "model" / "card.json").stat().st_mtime) == before
     assert load_json(AgentMeasurement, measured).agent == "dedicated_code_s0"
+    measured.write_text(measured.read_text()[:100])  # cut short, as by a kill mid-write: measured again
+    assert run_matrix(cfg, out, scale="tiny", log=lambda *_: None) == result
+    assert load_json(AgentMeasurement, measured).agent == "dedicated_code_s0"
 
 
 def test_from_clean_attacks_start_from_their_seeds_clean_agent(tmp_path):
