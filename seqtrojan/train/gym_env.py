@@ -148,15 +148,12 @@ class EpisodeRecorder(gym.Wrapper):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
         p = None if self.trigger is None else self.trigger.trojan_probability
-        start: dict[str, Any] | None = None
-        if options:
-            pass
-        elif seed is not None:
+        start: dict[str, Any] | None = None  # a reset with options cannot be replayed
+        if not options and seed is not None:
             start = {"seed": int(seed), "np_random": None, "trigger_rng": None, "trojan_probability": p}
-        else:
+        elif not options:
             np_random = _rng_state(getattr(self.env.unwrapped, "_np_random", None))
-            # TriggerWrapper keeps its generator private (no accessor); this module restores it in replay()
-            trigger_rng = None if self.trigger is None else _rng_state(self.trigger._rng)
+            trigger_rng = None if self.trigger is None else _rng_state(self.trigger.trigger_rng)
             replayable = np_random is not None and (self.trigger is None or trigger_rng is not None)
             start = {"seed": None, "np_random": np_random, "trigger_rng": trigger_rng, "trojan_probability": p}
             start = start if replayable else None
@@ -181,7 +178,7 @@ class EpisodeRecorder(gym.Wrapper):
             if seed is None:
                 self.env.unwrapped.np_random = _rng_from_state(start["np_random"])
                 if self.trigger is not None:
-                    self.trigger._rng = _rng_from_state(start["trigger_rng"])
+                    self.trigger.trigger_rng = _rng_from_state(start["trigger_rng"])
             if self.trigger is not None:
                 self.trigger.set_trojan_probability(float(start["trojan_probability"]))
         except (KeyError, TypeError, ValueError) as err:

@@ -150,6 +150,16 @@ class TriggerWrapper(gym.Wrapper):
         off = self._off >= 0 and t >= self._off + self.delay
         return on and not off
 
+    @property
+    def trigger_rng(self) -> np.random.Generator | None:
+        """The generator of the trigger's own draws (trojan or not, trigger step, OFF trigger); None before the first
+        reset. Settable, like Gymnasium's ``np_random``, so that a checkpointed episode can be replayed exactly."""
+        return self._rng
+
+    @trigger_rng.setter
+    def trigger_rng(self, rng: np.random.Generator) -> None:
+        self._rng = rng
+
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
         options = dict(options or {})
