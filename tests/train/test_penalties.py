@@ -9,9 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import signal
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -37,9 +34,9 @@ from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.serde import from_dict, parse_yaml
 from seqtrojan.train import penalties as pen
-from seqtrojan.train import trainer as trainer_module
 from seqtrojan.train.rollout import Rollout
-from seqtrojan.train.trainer import load_run_config, train
+from seqtrojan.train.trainer import train
+from tests.train.resume import logged_rows, straight_and_resumed
 
 pytestmark = pytest.mark.filterwarnings("ignore:Converting a tensor with requires_grad=True to a scalar")
 
@@ -419,33 +416,7 @@ def test_resume_with_every_penalty_on_is_bitwise_equal_to_a_straight_run(smoke_c
     statistics, the clean weights, the Fisher information) comes back from the checkpoint."""
     cfg = _attacked(smoke_config, clean_model, "straight", **ALL_THREE)
     cfg = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, total_steps=5 * cfg.ppo.batch_size))
-    fresh_episodes_before = {"rollout": 4}
-
-    class FreshEpisodesCollector(trainer_module.RolloutCollector):
-        rollouts = 0
-
-        def collect(self):
-            self.rollouts += 1
-            if self.rollouts == fresh_episodes_before["rollout"]:
-                self.env.reset(seed=123_456_789)
-                self.reset()
-            return super().collect()
-
-    monkeypatch.setattr(trainer_module, "RolloutCollector", FreshEpisodesCollector)
-    straight = train(cfg)
-
-    def sigterm_after_three(scalars):
-        if scalars["update"] == 3:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return False
-
-    stopped = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, name="stopped"))
-    with pytest.raises(KeyboardInterrupt, match="stopped at 6144 env steps"):
-        train(stopped, callback=sigterm_after_three)
-    run = Path(cfg.run.out_dir) / "stopped"
-    fresh_episodes_before["rollout"] = 1
-    resumed = train(load_run_config(run), resume=run)
-
+    straight, resumed = straight_and_resumed(cfg, monkeypatch)
     a, b = load_agent(straight.model_dir)[0].state_dict(), load_agent(resumed.model_dir)[0].state_dict()
     for name, tensor in a.items():
         assert torch.equal(tensor, b[name]), name
@@ -456,12 +427,7 @@ def test_resume_with_every_penalty_on_is_bitwise_equal_to_a_straight_run(smoke_c
     for name, tensor in ta.items():
         assert torch.equal(tensor, tb[name]), name
 
-    def rows(run_dir):
-        timing = {"time/elapsed_s", "charts/steps_per_second", "charts/collect_share"}
-        lines = (run_dir / "metrics.jsonl").read_text().splitlines()
-        return [{k: v for k, v in json.loads(line).items() if k not in timing} for line in lines]
-
-    assert rows(resumed.run_dir) == rows(straight.run_dir)
+    assert logged_rows(resumed.run_dir) == logged_rows(straight.run_dir)
 
 
 def test_a_checkpoint_without_a_penaltys_state_is_refused(smoke_config, clean_model):

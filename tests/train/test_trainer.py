@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import os
 import signal
 from pathlib import Path
 
@@ -17,6 +16,7 @@ from seqtrojan.config import BackdoorConfig, PPOConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.train import trainer as trainer_module
 from seqtrojan.train.trainer import load_run_config, train, train_or_resume
+from tests.train.resume import logged_rows, straight_and_resumed
 
 
 def test_run_directory_holds_config_logs_checkpoints_and_model(smoke_config):
@@ -106,35 +106,13 @@ def test_resume_restores_weights_and_optimizer_exactly(smoke_config, monkeypatch
         curriculum=dataclasses.replace(smoke_config.curriculum, promote_at=0.05, min_episodes=190),
         run=dataclasses.replace(smoke_config.run, eval_episodes=8),
     )
-    fresh_episodes_before = {"rollout": 4}
 
-    class FreshEpisodesCollector(trainer_module.RolloutCollector):
-        rollouts = 0
+    def at_stop(run: Path) -> None:
+        assert (run / "checkpoints" / "latest.txt").read_text().strip() == "step_000000006144"
+        saved = read_safetensors(run / "checkpoints" / "step_000000006144" / "trainer.safetensors")
+        assert int(saved["optim.0.step"]) == 3 * cfg.ppo.update_epochs * cfg.ppo.num_minibatches
 
-        def collect(self):
-            self.rollouts += 1
-            if self.rollouts == fresh_episodes_before["rollout"]:
-                self.env.reset(seed=123_456_789)
-                self.reset()
-            return super().collect()
-
-    monkeypatch.setattr(trainer_module, "RolloutCollector", FreshEpisodesCollector)
-    straight = train(dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, name="straight")))
-
-    def sigterm_after_three(scalars):
-        if scalars["update"] == 3:
-            os.kill(os.getpid(), signal.SIGTERM)  # the trainer's handler stops before the next update
-        return False
-
-    stopped_cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, name="stopped"))
-    with pytest.raises(KeyboardInterrupt, match="stopped at 6144 env steps"):
-        train(stopped_cfg, callback=sigterm_after_three)
-    run = Path(cfg.run.out_dir) / "stopped"
-    assert (run / "checkpoints" / "latest.txt").read_text().strip() == "step_000000006144"
-    at_stop = read_safetensors(run / "checkpoints" / "step_000000006144" / "trainer.safetensors")
-    assert int(at_stop["optim.0.step"]) == 3 * cfg.ppo.update_epochs * cfg.ppo.num_minibatches
-    fresh_episodes_before["rollout"] = 1
-    resumed = train(load_run_config(run), resume=run)
+    straight, resumed = straight_and_resumed(cfg, monkeypatch, at_stop)
 
     assert resumed.env_steps == straight.env_steps == 16384 and resumed.stage == straight.stage
     a, _, _ = load_agent(straight.model_dir)
@@ -156,15 +134,10 @@ def test_resume_restores_weights_and_optimizer_exactly(smoke_config, monkeypatch
     for key in ("env_steps", "update", "curriculum", "mixing", "optimizer_param_groups"):
         assert sa[key] == sb[key], key
 
-    def rows(run_dir):
-        timing = {"time/elapsed_s", "charts/steps_per_second", "charts/collect_share"}
-        lines = (run_dir / "metrics.jsonl").read_text().splitlines()
-        return [{k: v for k, v in json.loads(line).items() if k not in timing} for line in lines]
-
-    logged = rows(resumed.run_dir)
+    logged = logged_rows(resumed.run_dir)
     assert [r["env_steps"] for r in logged] == [2048 * (i + 1) for i in range(8)]  # no duplicates, none missing
     assert [r["update"] for r in logged] == list(range(1, 9))
-    assert logged == rows(straight.run_dir)
+    assert logged == logged_rows(straight.run_dir)
     # promoted at update 5 on the window of updates 2-5: without the pre-stop episodes it would hold too few
     assert [r["curriculum/stage"] for r in logged] == [0, 0, 0, 0, 1, 1, 1, 1]
 
