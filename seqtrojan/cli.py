@@ -51,7 +51,7 @@ def _cli_with_config_file(args_cls: type, config_cls: type, argv: list[str], pro
     return tyro.cli(args_cls, args=argv, prog=prog, default=args_cls(config=config, **required))
 
 
-NOT_TRAINING_PRESETS = ("reproduce_", "matrix_", "minigrid_")
+NOT_TRAINING_PRESETS = ("reproduce_", "matrix_", "minigrid_", "cells_")
 """shipped presets that are not grid-world training configs (reproduction scales, matrix scales, Gymnasium runs)"""
 
 
@@ -317,6 +317,49 @@ def _matrix(argv: list[str]) -> None:
     print(f"wrote {out / 'matrix.json'} and {out / 'report.html'}")
 
 
+@dataclasses.dataclass
+class CellsArgs:
+    """Train the same backdoor into each sequence model (LSTM, peephole LSTM, GRU, windowed Transformer) over
+    several seeds and measure each the same way (resumable). Writes cells.json, cells.png and report.html."""
+
+    scale: str = "smoke"
+    """a shipped scale ('smoke'; 'paper'; see seqtrojan/presets/cells_*.yaml) or a YAML file"""
+    out: Path | None = None
+    """output folder (default: results/cells_<scale>)"""
+    cells: str | None = None
+    """comma-separated cell names (default: the scale file's, or all)"""
+    seeds: int | None = None
+    device: str | None = None
+    backend: Literal["serial", "pool", "ray"] | None = None
+    workers: int | None = None
+    ray_address: str | None = None
+    threads: int | None = None
+
+
+def _cells(argv: list[str]) -> None:
+    from seqtrojan.experiments.cells import load_cells_config, run_cells
+
+    args = tyro.cli(CellsArgs, args=argv, prog="seqtrojan cells")
+    config = load_cells_config(args.scale)
+    changes: dict[str, Any] = {}
+    if args.cells is not None:
+        changes["cells"] = tuple(c.strip() for c in args.cells.split(",") if c.strip())
+    if args.seeds is not None:
+        changes["seeds"] = args.seeds
+    if args.device is not None:
+        changes["device"] = args.device
+    chosen: dict[str, Any] = {"backend": args.backend, "workers": args.workers, "ray_address": args.ray_address,
+                              "threads": args.threads}  # fmt: skip
+    changes["jobs"] = dataclasses.replace(config.jobs, **{k: v for k, v in chosen.items() if v is not None})
+    config = dataclasses.replace(config, **changes)
+    scale = Path(args.scale).stem.removeprefix("cells_")
+    out = args.out or Path("results") / f"cells_{scale}"
+    result = run_cells(config, out, scale=scale)
+    for s in result.summaries:
+        print(f"{s.cell:<14} clean success {s.clean_success.text()}  attack success {s.attack_success.text()}")
+    print(f"wrote {out / 'cells.json'} and {out / 'report.html'}")
+
+
 def _analyze(argv: list[str]) -> None:
     from seqtrojan.analysis.pipeline import ANALYSIS_FILE, AnalysisConfig, run_analysis
 
@@ -560,6 +603,7 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "zoo": (_zoo, "zoo build: train clean and backdoored agents; zoo detect: offline detection scored like TrojAI"),
     "reproduce": (_reproduce, "train, evaluate, plot and write the HTML report (--scale smoke|paper)"),
     "matrix": (_matrix, "every attack against every defense over seeds (--scale smoke|paper) -> matrix.json"),
+    "cells": (_cells, "LSTM, peephole LSTM, GRU and Transformer agents compared over seeds -> cells.json"),
     "attacks": (_attacks, "list the registered attacks: trigger kinds, mixing rules, rewards"),
     "defenses": (_defenses, "list the registered defenses: monitors, detectors, mitigations"),
     "import": (_import, "import an agent trained elsewhere (sb3-contrib RecurrentPPO zip, CleanRL LSTM state dict)"),

@@ -42,12 +42,23 @@ MAX_WIDTH = 4096
 
 
 ACTIVATIONS = ("tanh", "relu")
+CELLS = ("lstm", "lstm_peephole", "gru", "transformer")
+"""the sequence models an agent's layers can be (:mod:`seqtrojan.agent.cells`)"""
+MAX_WINDOW = 256
+"""longest Transformer context window (in steps)"""
+MAX_HEADS = 64
+"""most attention heads of a Transformer layer"""
 """activation functions of the optional MLP layers (``agent.encoder``, ``agent.policy_mlp``, ``agent.value_mlp``)"""
 
 
 @dataclasses.dataclass(frozen=True)
 class AgentConfig:
-    """The recurrent actor-critic: stacked LSTM layers, then a policy head and a value head.
+    """The recurrent actor-critic: stacked sequence-model layers (LSTM by default), then a policy head and a value
+    head.
+
+    ``cell`` picks the sequence model of every layer (:data:`CELLS`; see :mod:`seqtrojan.agent.cells`): ``lstm``
+    (the paper's), ``lstm_peephole``, ``gru`` or ``transformer`` (a causal attention layer over the last ``window``
+    layer inputs, with ``heads`` heads). ``lstm_sizes`` are the layer widths whatever the cell.
 
     The optional MLP parts (all empty by default, so that the paper's network is unchanged) describe agents
     imported from elsewhere (:mod:`seqtrojan.agent.imports`): ``encoder`` layers between the observation and the
@@ -74,8 +85,17 @@ class AgentConfig:
     """widths of MLP layers between the last LSTM layer and the value head (none by default)"""
     mlp_activation: Literal["tanh", "relu"] = "tanh"
     """activation after each policy_mlp and value_mlp layer (sb3's default: tanh)"""
+    cell: str = "lstm"
+    """the sequence model of every layer: lstm, lstm_peephole, gru or transformer"""
+    window: int = 8
+    """transformer only: the context, the current input and the window - 1 before it (a one-step trigger leaves the
+    Transformer's state after window - 1 steps)"""
+    heads: int = 1
+    """transformer only: attention heads per layer (each layer width must be divisible by it)"""
 
-    OPTIONAL = ("encoder", "encoder_activation", "policy_mlp", "value_mlp", "mlp_activation")
+    OPTIONAL = (
+        "encoder", "encoder_activation", "policy_mlp", "value_mlp", "mlp_activation", "cell", "window", "heads",
+    )  # fmt: skip
     """fields left out of the saved form while at their defaults"""
 
     def __post_init__(self) -> None:
@@ -100,6 +120,17 @@ class AgentConfig:
         for name in ("encoder_activation", "mlp_activation"):
             if getattr(self, name) not in ACTIVATIONS:
                 raise ConfigError(f"agent.{name} must be one of {ACTIVATIONS}, got {short_repr(getattr(self, name))}")
+        if self.cell not in CELLS:
+            raise ConfigError(f"agent.cell must be one of {CELLS}, got {short_repr(self.cell)}")
+        for name, top in (("window", MAX_WINDOW), ("heads", MAX_HEADS)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= top:
+                raise ConfigError(f"agent.{name} must be an integer in [1, {top}], got {short_repr(value)}")
+        if self.cell == "transformer" and any(w % self.heads for w in self.lstm_sizes):
+            raise ConfigError(
+                f"agent.lstm_sizes {list(self.lstm_sizes)} must be divisible by agent.heads={self.heads} "
+                "(each head reads an equal share of a transformer layer)"
+            )
 
     def serde_dump(self) -> dict:
         """The saved form: every field but the optional ones at their defaults."""

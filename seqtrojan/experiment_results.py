@@ -199,3 +199,123 @@ class MatrixResult:
     attacks: tuple[AttackSummary, ...]
     cells: tuple[MatrixCell, ...]
     agents: tuple[AgentMeasurement, ...]
+
+
+# --- sequence models compared (seqtrojan.experiments.cells)
+
+CELLS_FILE = "cells.json"
+
+
+@dataclass(frozen=True)
+class PersistenceBin:
+    """Trojan-env episodes that reached a goal between ``lo`` and ``hi`` steps (inclusive) after the trigger's
+    last step: how many of them reached the adversary's goal. A switch that fades shows as a falling rate."""
+
+    lo: int
+    hi: int
+    adversary: Rate
+
+
+@dataclass(frozen=True)
+class UnitsToSwitch:
+    """The intervention experiment: in normal episodes, from the trigger step on, set the ``k`` most persistent
+    goal units (step-type units ranked by their late deviation) to their trojan-episode means; the rate at which
+    the agent then reaches the adversary's goal, for each ``k``, beside ``k`` random units of the same layer."""
+
+    layer: int
+    which: str
+    units: tuple[int, ...]
+    """the ranked units (the first ``k`` are edited)"""
+    counts: tuple[int, ...]
+    activation: tuple[Rate, ...]
+    random_activation: tuple[Rate, ...]
+
+    def needed(self, at: float = 0.5) -> int | None:
+        """The fewest edited units that switch the goal in at least ``at`` of the episodes (None: none did)."""
+        return next((k for k, r in zip(self.counts, self.activation) if r.value >= at), None)
+
+
+@dataclass(frozen=True)
+class Settling:
+    """Does the state settle before the trigger? ``change[t]`` is the mean over running normal episodes of
+    ``|s_t - s_{t-1}| / |s_{t-1}|`` (s: every layer's recurrent state); beside it, the attack success when the
+    trigger comes at each of ``trigger_steps``, on the same grid."""
+
+    grid: str
+    steps: tuple[int, ...]
+    change: tuple[float, ...]
+    trigger_steps: tuple[int, ...]
+    attack_success: tuple[Rate, ...]
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    grid: str
+    activation: Rate
+    """normal-env episodes that reached the adversary's goal (an unintentional activation)"""
+
+
+@dataclass(frozen=True)
+class CellMeasurement:
+    """One trained agent of one sequence model. Saved per agent (``measured/<agent>.json``) so a stopped study
+    resumes."""
+
+    agent: str
+    """``<cell>_<label>_s<seed>``"""
+    cell: str
+    label: str
+    """clean or backdoored"""
+    seed: int
+    grid: str
+    clean_success: Rate
+    attack_success: Rate
+    """trojan-env episodes (trigger at the evaluation steps) that reached the adversary's goal"""
+    persistence: tuple[PersistenceBin, ...]
+    trigger_steps: tuple[int, ...]
+    by_trigger_step: tuple[Rate, ...]
+    """the adversary's-goal rate with the trigger at each of ``trigger_steps``"""
+    sweep: tuple[SweepPoint, ...]
+    monitor: dict[str, OnlineArm]
+    units: UnitsToSwitch | None
+    """backdoored agents only"""
+    settling: Settling | None
+    offline_score: float | None
+    """the weight detector's probability 'backdoored' (trained on a zoo of this cell); None without a zoo"""
+
+
+@dataclass(frozen=True)
+class CellSummary:
+    """One sequence model over its training seeds (backdoored agents unless named clean)."""
+
+    cell: str
+    seeds: tuple[int, ...]
+    clean_model_success: OverSeeds
+    """the clean agents' normal-env success"""
+    clean_success: OverSeeds
+    """the backdoored agents' normal-env success"""
+    attack_success: OverSeeds
+    attack_success_pooled: Rate
+    persistence: tuple[tuple[int, int, OverSeeds, Rate], ...]
+    """per bin: lo, hi, the per-seed adversary rate (seeds with episodes in the bin), pooled"""
+    by_trigger_step: tuple[tuple[int, OverSeeds], ...]
+    unintentional_mean: OverSeeds
+    """per seed: the mean activation rate over the sweep's configs"""
+    unintentional_pooled: Rate
+    monitor_detection: dict[str, OverSeeds]
+    monitor_false_alarm: dict[str, OverSeeds]
+    units_needed: tuple[int | None, ...]
+    """per seed: the fewest edited units that switch the goal in >= half the episodes (None: no count did)"""
+    auc: float | None
+    auc_interval: tuple[float, float] | None
+
+
+@dataclass(frozen=True)
+class CellsResult:
+    """``cells.json``: one summary per sequence model, then each agent's measurement."""
+
+    scale: str
+    grid: str
+    window: int
+    """the Transformer's window"""
+    summaries: tuple[CellSummary, ...]
+    agents: tuple[CellMeasurement, ...]

@@ -34,7 +34,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from seqtrojan.config import ACTIVATIONS, MAX_LAYERS, MAX_WIDTH, ExperimentConfig
+from seqtrojan.agent.cells import layer_shapes
+from seqtrojan.config import ACTIVATIONS, CELLS, MAX_HEADS, MAX_LAYERS, MAX_WIDTH, MAX_WINDOW, ExperimentConfig
 from seqtrojan.errors import CheckpointError, SeqTrojanError
 from seqtrojan.serde import from_dict
 
@@ -88,6 +89,8 @@ _ARCH_REQUIRED = ("type", "obs_dim", "num_actions", "lstm_sizes")
 _ARCH_MLPS = ("encoder", "policy_mlp", "value_mlp")
 _ARCH_ACTIVATIONS = {"encoder_activation": "relu", "mlp_activation": "tanh"}
 """the optional activations and their defaults (those of :class:`seqtrojan.config.AgentConfig`)"""
+_ARCH_CELL = ("cell", "window", "heads")
+"""the sequence model (absent: an LSTM); window and heads are written for a transformer only"""
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _STRINGS = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*(?:"|\\?\Z)', re.DOTALL)
 """a JSON string; one left open runs to the end of the text (so a match never fails and never backtracks far)"""
@@ -102,7 +105,8 @@ for _c in b"]}":
 @dataclasses.dataclass(frozen=True)
 class Architecture:
     """The network a card describes: ``RecurrentActorCritic(obs_dim, num_actions, lstm_sizes, ...)`` with its
-    optional MLP parts (empty by default)."""
+    optional MLP parts (empty by default) and its sequence model (``cell``; ``window`` and ``heads`` mean something
+    for a transformer only and are at their defaults otherwise)."""
 
     obs_dim: int
     num_actions: int
@@ -112,14 +116,19 @@ class Architecture:
     policy_mlp: tuple[int, ...] = ()
     value_mlp: tuple[int, ...] = ()
     mlp_activation: str = "tanh"
+    cell: str = "lstm"
+    window: int = 8
+    heads: int = 1
 
     @classmethod
     def of_config(cls, config: ExperimentConfig) -> Architecture:
         """The architecture ``config`` builds (:func:`seqtrojan.agent.checkpoint.build_agent`)."""
         a = config.agent
+        attention = a.cell == "transformer"
         return cls(
             config.env.obs_dim, config.env.num_actions, tuple(a.lstm_sizes), tuple(a.encoder), a.encoder_activation,
-            tuple(a.policy_mlp), tuple(a.value_mlp), a.mlp_activation,
+            tuple(a.policy_mlp), tuple(a.value_mlp), a.mlp_activation, a.cell, a.window if attention else 8,
+            a.heads if attention else 1,
         )  # fmt: skip
 
     def optional_parts(self) -> dict[str, Any]:
@@ -131,6 +140,10 @@ class Architecture:
         for name, default in _ARCH_ACTIVATIONS.items():
             if getattr(self, name) != default:
                 out[name] = getattr(self, name)
+        if self.cell != "lstm":
+            out["cell"] = self.cell
+        if self.cell == "transformer":
+            out["window"], out["heads"] = self.window, self.heads
         return out
 
     def to_card(self) -> dict[str, Any]:
@@ -145,10 +158,8 @@ class Architecture:
         shapes: dict[str, tuple[int, ...]] = {}
         inputs = (self.encoder[-1] if self.encoder else self.obs_dim, *self.lstm_sizes[:-1])
         for i, (n_in, width) in enumerate(zip(inputs, self.lstm_sizes)):
-            shapes[f"cells.{i}.weight_ih"] = (4 * width, n_in)
-            shapes[f"cells.{i}.weight_hh"] = (4 * width, width)
-            shapes[f"cells.{i}.bias_ih"] = (4 * width,)
-            shapes[f"cells.{i}.bias_hh"] = (4 * width,)
+            for name, shape in layer_shapes(self.cell, n_in, width, self.window, self.heads).items():
+                shapes[f"cells.{i}.{name}"] = shape
         last = self.lstm_sizes[-1]
         shapes["policy_head.weight"] = (self.num_actions, self.policy_mlp[-1] if self.policy_mlp else last)
         shapes["policy_head.bias"] = (self.num_actions,)
@@ -281,7 +292,7 @@ def parse_card(raw: bytes | str, where: str = CARD) -> ModelCard:
 def _architecture(value: Any, where: str) -> Architecture:
     if not isinstance(value, dict):
         raise CheckpointError(f"{where}: architecture must be a mapping, got {type(value).__name__}")
-    keys, optional = set(_ARCH_REQUIRED), {*_ARCH_MLPS, *_ARCH_ACTIVATIONS}
+    keys, optional = set(_ARCH_REQUIRED), {*_ARCH_MLPS, *_ARCH_ACTIVATIONS, *_ARCH_CELL}
     if not keys <= set(value) <= keys | optional:
         missing, extra = sorted(keys - set(value)), sorted(set(value) - keys - optional)
         raise CheckpointError(
@@ -311,7 +322,22 @@ def _architecture(value: Any, where: str) -> Architecture:
         mlps[name] = value.get(name, default)
         if mlps[name] not in ACTIVATIONS:
             raise CheckpointError(f"{where}: architecture.{name} must be one of {ACTIVATIONS}, got {_clip(mlps[name])}")
-    arch = Architecture(obs_dim, num_actions, widths, **mlps)
+    cell = value.get("cell", "lstm")
+    if cell not in CELLS:
+        raise CheckpointError(f"{where}: architecture.cell must be one of {CELLS}, got {_clip(cell)}")
+    if cell == "transformer":
+        if "window" not in value or "heads" not in value:
+            raise CheckpointError(f"{where}: a transformer's architecture must give its window and heads")
+        mlps["window"] = _bounded_int(value["window"], 1, MAX_WINDOW, f"{where}: architecture.window")
+        mlps["heads"] = _bounded_int(value["heads"], 1, MAX_HEADS, f"{where}: architecture.heads")
+        if any(w % mlps["heads"] for w in widths):
+            raise CheckpointError(
+                f"{where}: architecture.lstm_sizes {list(widths)} must be divisible by "
+                f"architecture.heads={mlps['heads']}"
+            )
+    elif "window" in value or "heads" in value:
+        raise CheckpointError(f"{where}: architecture.window and heads belong to a transformer, not to a {cell}")
+    arch = Architecture(obs_dim, num_actions, widths, **mlps, cell=cell)
     if arch.num_parameters > MAX_PARAMETERS:
         raise CheckpointError(
             f"{where}: architecture ({arch.describe()}) has {arch.num_parameters} parameters, more than the "

@@ -66,7 +66,7 @@ def build_agent(config: ExperimentConfig) -> RecurrentActorCritic:
     return RecurrentActorCritic(
         config.env.obs_dim, config.env.num_actions, a.lstm_sizes, a.forget_bias, a.memory, encoder=a.encoder,
         encoder_activation=a.encoder_activation, policy_mlp=a.policy_mlp, value_mlp=a.value_mlp,
-        mlp_activation=a.mlp_activation,
+        mlp_activation=a.mlp_activation, cell=a.cell, window=a.window, heads=a.heads,
     )  # fmt: skip
 
 
@@ -75,7 +75,9 @@ def architecture_of(agent: RecurrentActorCritic) -> Architecture:
     return Architecture(
         agent.obs_dim, agent.num_actions, agent.lstm_sizes, encoder=agent.encoder_sizes,
         encoder_activation=agent.encoder_activation, policy_mlp=agent.policy_mlp_sizes,
-        value_mlp=agent.value_mlp_sizes, mlp_activation=agent.mlp_activation,
+        value_mlp=agent.value_mlp_sizes, mlp_activation=agent.mlp_activation, cell=agent.cell,
+        window=agent.window if agent.cell == "transformer" else 8,
+        heads=agent.attention_heads if agent.cell == "transformer" else 1,
     )  # fmt: skip
 
 

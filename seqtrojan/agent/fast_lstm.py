@@ -1,5 +1,8 @@
 """Optional CPU accelerator for the masked LSTM stack: fused C++ forward/BPTT kernels (``csrc/fast_lstm.cpp``).
 
+The same kernels serve a peephole LSTM layer (:func:`unroll_peephole_layer`, :func:`step_peephole_layer`) and,
+in ``csrc/gru.cpp``, a GRU layer (:func:`unroll_gru_layer`, :func:`step_gru_layer`); all are one extension.
+
 Why: on a 2-core CPU, PyTorch's per-op dispatch and per-op thread fork/join dominate a step-by-step LSTM. The
 kernels split the batch into one block per thread and run the whole time loop of a block on its thread: one
 GEMM per step on ``[x_t | h_{t-1} * mask | 1]``, fused gate math, and a hand-written BPTT that accumulates the
@@ -7,16 +10,16 @@ weight gradients while each step's data is still in cache. Measured on this proj
 about 520k samples/s forward + backward for the paper's 54 -> 64 -> 32 network versus about 280k/s for the
 PyTorch path (see benchmarks/train_throughput.py).
 
-The extension is compiled once per machine on first use (about 30 s; needs a C++ compiler, which the PyTorch
-CPU wheels already require for this) into ``~/.cache/seqtrojan`` (``SEQTROJAN_CACHE`` overrides), in a folder keyed
-by the source (its bytes and its path), the Python environment (``sys.prefix``), the torch version and the CPU, so
-that two clones or virtual environments never share one. A build runs in a fresh temporary folder under an
-``fcntl.flock`` lock of our own and is renamed into place when complete: a killed build leaves neither a half-built
-extension nor a lock (the kernel drops a dead process's flock), and loading a built extension takes no lock at all.
-A process that finds another one building waits up to ``SEQTROJAN_KERNEL_WAIT`` seconds (default 300), saying so on
-stderr, and then uses the PyTorch path. Where it cannot be built, or on CUDA, or when an intervention must see
-every step, :mod:`seqtrojan.agent.network` uses its PyTorch path, which computes the same function.
-``SEQTROJAN_LSTM_BACKEND=torch`` disables the extension.
+The extension is compiled once per machine on first use (about 30 s; needs a C++ compiler, which the PyTorch CPU
+wheels already require for this) into ``~/.cache/seqtrojan`` (``SEQTROJAN_CACHE`` overrides), in a folder keyed by
+the sources (the bytes of every file in ``csrc`` and their path), the Python environment (``sys.prefix``), the torch
+version and the CPU, so that two clones or virtual environments never share one. A build runs in a fresh temporary
+folder under an ``fcntl.flock`` lock of our own and is renamed into place when complete: a killed build leaves
+neither a half-built extension nor a lock (the kernel drops a dead process's flock), and loading a built extension
+takes no lock at all. A process that finds another one building waits up to ``SEQTROJAN_KERNEL_WAIT`` seconds
+(default 300), saying so on stderr, and then uses the PyTorch path. Where it cannot be built, or on CUDA, or when an
+intervention must see every step, :mod:`seqtrojan.agent.network` uses its PyTorch path, which computes the same
+function. ``SEQTROJAN_LSTM_BACKEND=torch`` disables the extension.
 
 Semantics are exactly those of the PyTorch path (tested, including gradcheck in float64). Activations in
 float32 use inline approximations with about 3e-7 maximum error, the size of float32 rounding.
@@ -34,6 +37,7 @@ import sys
 import tempfile
 import threading
 import time
+import weakref
 from pathlib import Path
 from types import ModuleType
 
@@ -47,7 +51,10 @@ try:
 except ImportError:  # not POSIX: no build lock, and the PyTorch path is used
     fcntl = None  # type: ignore[assignment]
 
-_SOURCE = Path(__file__).parent / "csrc" / "fast_lstm.cpp"
+_CSRC = Path(__file__).parent / "csrc"
+# One extension for all cells: fast_lstm.cpp (LSTM, peephole LSTM and the Python module), gru.cpp, common.h.
+_SOURCES = (_CSRC / "fast_lstm.cpp", _CSRC / "gru.cpp")
+_HEADERS = (_CSRC / "common.h",)
 _NAME = "seqtrojan_fast_lstm"
 # -fopenmp is required: at::parallel_for is an inline OpenMP template (without it the batch blocks run one after
 # another). -ffast-math at compile time only: linking with it would set flush-to-zero for the whole process.
@@ -83,8 +90,8 @@ def cache_root() -> Path:
 def _build_dir() -> Path:
     """The folder of the built extension for this source, environment, torch and CPU (it may not exist yet)."""
     parts: list[bytes | str] = [
-        _SOURCE.read_bytes(),
-        str(_SOURCE.resolve()),  # two clones never share (or fight over) one folder
+        *(part for path in _SOURCES + _HEADERS for part in (path.name, path.read_bytes())),
+        str(_CSRC.resolve()),  # two clones never share (or fight over) one folder
         sys.prefix,  # nor do two virtual environments
         torch.__version__,
         str(Path(torch.__file__).resolve().parent),
@@ -183,7 +190,7 @@ def _build(build_dir: Path):
     try:
         module = load(
             name=_NAME,
-            sources=[str(_SOURCE)],
+            sources=[str(path) for path in _SOURCES],
             extra_cflags=list(_CFLAGS),
             extra_ldflags=list(_LDFLAGS),
             build_directory=str(tmp),
@@ -289,35 +296,62 @@ class _Releaser:
             _pool_put(*self.buffers)
 
 
+# ---------------------------------------------------------------------------------------------- GEMM matrices
+def _lstm_weight(w_ih: torch.Tensor, w_hh: torch.Tensor, b_ih: torch.Tensor, b_hh: torch.Tensor) -> torch.Tensor:
+    """The (4H, I+H+1) GEMM matrix ``[W_ih | W_hh | b_ih + b_hh]`` of one LSTM step (plain or peephole)."""
+    return torch.cat([w_ih, w_hh, (b_ih + b_hh).unsqueeze(1)], 1).contiguous()
+
+
+def _gru_weight(w_ih: torch.Tensor, w_hh: torch.Tensor, b_ih: torch.Tensor, b_hh: torch.Tensor) -> torch.Tensor:
+    """The (4H, I+H+1) GEMM matrix of one GRU step, rows r, z, n_x, n_h (see csrc/gru.cpp).
+
+    n = tanh(n_x + r * n_h) needs the input and the hidden part of the new gate apart, hence four row blocks
+    where nn.GRUCell has three: ``[W_ir|W_hr|b_ir+b_hr], [W_iz|W_hz|b_iz+b_hz], [W_in|0|b_in], [0|W_hn|b_hn]``."""
+    hidden, n_in = w_hh.shape[1], w_ih.shape[1]
+    h2, h3 = 2 * hidden, 3 * hidden
+    wc = w_ih.new_zeros(4 * hidden, n_in + hidden + 1)
+    wc[:h3, :n_in] = w_ih
+    wc[:h2, n_in:-1] = w_hh[:h2]
+    wc[h3:, n_in:-1] = w_hh[h2:]
+    wc[:h2, -1] = b_ih[:h2] + b_hh[:h2]
+    wc[h2:h3, -1] = b_ih[h2:]
+    wc[h3:, -1] = b_hh[h2:]
+    return wc
+
+
 # ---------------------------------------------------------------------------------------------- autograd
 class _MaskedLSTMLayer(torch.autograd.Function):
-    """One LSTM layer over T steps; the state is multiplied by ``keep[t]`` before step t."""
+    """One LSTM layer over T steps; the state is multiplied by ``keep[t]`` before step t.
+
+    With ``peephole`` (3, H) it is the peephole LSTM of :func:`unroll_peephole_layer`; None is the plain LSTM
+    (the kernels compile the peephole terms out, so the plain path is not slowed)."""
 
     @staticmethod
-    def forward(ctx, x, keep, h0, c0, w_ih, w_hh, b_ih, b_hh, return_c_seq: bool):
+    def forward(ctx, x, keep, h0, c0, w_ih, w_hh, b_ih, b_hh, return_c_seq: bool, peephole=None):
         steps, batch, n_in = x.shape
         hidden = w_hh.shape[1]
         k = n_in + hidden + 1
         dtype = x.dtype
-        wc = torch.cat([w_ih, w_hh, (b_ih + b_hh).unsqueeze(1)], 1).contiguous()  # (4H, K)
+        wc = _lstm_weight(w_ih, w_hh, b_ih, b_hh)  # (4H, K)
         xh = _pool_get((steps, batch, k), dtype)
         gates = _pool_get((steps, batch, 4 * hidden), dtype)
         c_prev = _pool_get((steps, batch, hidden), dtype)
         c_seq = x.new_empty(steps, batch, hidden) if return_c_seq else _pool_get((steps, batch, hidden), dtype)
         h_seq = x.new_empty(steps, batch, hidden)
+        peep = None if peephole is None else peephole.contiguous()
         assert _ext is not None  # callers run only after extension() loaded it
         _ext.lstm_fwd_cat(
-            x.contiguous(), keep, h0.contiguous(), c0.contiguous(), wc, xh, gates, h_seq, c_seq, c_prev,
+            x.contiguous(), keep, h0.contiguous(), c0.contiguous(), wc, peep, xh, gates, h_seq, c_seq, c_prev,
             _num_chunks(batch),
         )  # fmt: skip
         # c_seq is an output when return_c_seq: kept on ctx as an attribute it would make a reference cycle
         # (output -> grad_fn -> ctx -> output) that frees only with the cyclic GC: measured, a state-camouflage
         # training grew by ~145 MB per update until it held 22 GB. Outputs go through save_for_backward.
         if return_c_seq:
-            ctx.save_for_backward(keep, w_ih, w_hh, c_seq)
+            ctx.save_for_backward(keep, w_ih, w_hh, peep, c_seq)
             ctx.buffers = (wc, xh, gates, None, c_prev)
         else:
-            ctx.save_for_backward(keep, w_ih, w_hh)
+            ctx.save_for_backward(keep, w_ih, w_hh, peep, None)
             ctx.buffers = (wc, xh, gates, c_seq, c_prev)
         pooled = (xh, gates, c_prev) if return_c_seq else (xh, gates, c_seq, c_prev)
         ctx.releaser = _Releaser(*pooled)
@@ -330,9 +364,9 @@ class _MaskedLSTMLayer(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, d_h_seq, d_c):
-        keep, w_ih, _w_hh, *output_c = ctx.saved_tensors
+        keep, w_ih, _w_hh, peep, output_c = ctx.saved_tensors
         wc, xh, gates, c_seq, c_prev = ctx.buffers
-        c_seq = output_c[0] if ctx.return_c_seq else c_seq
+        c_seq = output_c if ctx.return_c_seq else c_seq
         steps, batch, four_h = gates.shape
         hidden = four_h // 4
         n_in = w_ih.shape[1]
@@ -348,27 +382,116 @@ class _MaskedLSTMLayer(torch.autograd.Function):
         dx = gates.new_empty(steps, batch, n_in) if need[0] else None
         chunks = _num_chunks(batch)
         dw_parts = gates.new_empty(chunks, four_h, k)
+        dp_parts = None if peep is None else gates.new_empty(chunks, 3, hidden)
         dh0 = gates.new_empty(batch, hidden)
         dc0 = gates.new_empty(batch, hidden)
         assert _ext is not None  # callers run only after extension() loaded it
-        _ext.lstm_bwd_cat(gates, c_seq, c_prev, keep, wc, xh, n_in, d_h_seq, d_c_seq, d_c_last, dx, dw_parts, dh0, dc0)
+        _ext.lstm_bwd_cat(
+            gates, c_seq, c_prev, keep, wc, peep, xh, n_in, d_h_seq, d_c_seq, d_c_last, dx, dw_parts, dp_parts, dh0,
+            dc0,
+        )  # fmt: skip
         dwc = dw_parts.sum(0) if chunks > 1 else dw_parts[0]  # (4H, K)
         dw_ih = dwc[:, :n_in].contiguous() if need[4] else None
         dw_hh = dwc[:, n_in : n_in + hidden].contiguous() if need[5] else None
         db = dwc[:, k - 1].contiguous()
+        dpeep = dp_parts.sum(0) if dp_parts is not None and need[9] else None
         return (
             dx, None, dh0 if need[2] else None, dc0 if need[3] else None, dw_ih, dw_hh,
-            db if need[6] else None, db if need[7] else None, None,
+            db if need[6] else None, db if need[7] else None, None, dpeep,
         )  # fmt: skip
+
+
+class _MaskedGRULayer(torch.autograd.Function):
+    """One GRU layer over T steps; the state is multiplied by ``keep[t]`` before step t."""
+
+    @staticmethod
+    def forward(ctx, x, keep, h0, w_ih, w_hh, b_ih, b_hh):
+        steps, batch, n_in = x.shape
+        hidden = w_hh.shape[1]
+        dtype = x.dtype
+        wc = _gru_weight(w_ih, w_hh, b_ih, b_hh)  # (4H, K)
+        xh = _pool_get((steps, batch, n_in + hidden + 1), dtype)
+        gates = _pool_get((steps, batch, 4 * hidden), dtype)
+        h_seq = x.new_empty(steps, batch, hidden)
+        assert _ext is not None  # callers run only after extension() loaded it
+        _ext.gru_fwd_cat(x.contiguous(), keep, h0.contiguous(), wc, xh, gates, h_seq, _num_chunks(batch))
+        # backward reads h_{t-1} from xh, so h_seq (an output) is not saved: no reference cycle through ctx
+        ctx.save_for_backward(keep)
+        ctx.buffers = (wc, xh, gates)
+        ctx.releaser = _Releaser(xh, gates)
+        ctx.n_in = n_in
+        ctx.set_materialize_grads(False)
+        return h_seq
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, d_h_seq):
+        (keep,) = ctx.saved_tensors
+        wc, xh, gates = ctx.buffers
+        steps, batch, four_h = gates.shape
+        hidden, n_in = four_h // 4, ctx.n_in
+        h2, h3, k = 2 * hidden, 3 * hidden, n_in + hidden + 1
+        d_h_seq = gates.new_zeros(steps, batch, hidden) if d_h_seq is None else d_h_seq.contiguous()
+        need = ctx.needs_input_grad
+        dx = gates.new_empty(steps, batch, n_in) if need[0] else None
+        chunks = _num_chunks(batch)
+        dw_parts = gates.new_empty(chunks, four_h, k)
+        dh0 = gates.new_empty(batch, hidden)
+        assert _ext is not None  # callers run only after extension() loaded it
+        _ext.gru_bwd_cat(gates, keep, wc, xh, n_in, d_h_seq, dx, dw_parts, dh0)
+        dwc = dw_parts.sum(0) if chunks > 1 else dw_parts[0]  # (4H, K), rows r, z, n_x, n_h
+        dw_ih = dwc[:h3, :n_in].contiguous() if need[3] else None
+        dw_hh = torch.cat([dwc[:h2, n_in : k - 1], dwc[h3:, n_in : k - 1]]) if need[4] else None
+        db_ih = dwc[:h3, k - 1].contiguous() if need[5] else None
+        db_hh = torch.cat([dwc[:h2, k - 1], dwc[h3:, k - 1]]) if need[6] else None
+        return dx, None, dh0 if need[2] else None, dw_ih, dw_hh, db_ih, db_hh
 
 
 def unroll_layer(cell: torch.nn.LSTMCell, x, keep, h0, c0, return_c_seq: bool):
     """(T, B, I) through one layer; returns (h_seq (T, B, H), c_seq (T, B, H) or final c (B, H))."""
     return _MaskedLSTMLayer.apply(
-        x, keep, h0, c0, cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh, return_c_seq
+        x, keep, h0, c0, cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh, return_c_seq, None
     )
 
 
+def _param(module: torch.nn.Module, name: str) -> torch.Tensor:
+    """``module.<name>`` as a tensor (typed: nn.Module attributes are untyped)."""
+    value = getattr(module, name)
+    assert isinstance(value, torch.Tensor)
+    return value
+
+
+def unroll_peephole_layer(
+    cell: torch.nn.Module,
+    x: torch.Tensor,
+    keep: torch.Tensor,
+    h0: torch.Tensor,
+    c0: torch.Tensor,
+    return_c_seq: bool,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """A peephole LSTM layer over (T, B, I), as :func:`unroll_layer`; differentiable also w.r.t. ``cell.peephole``.
+
+    ``cell`` holds nn.LSTMCell's four tensors and ``peephole`` (3, H) = rows (p_i, p_f, p_o); with the masked
+    state cp = c_{t-1} * keep[t]: i = sig(z_i + p_i cp), f = sig(z_f + p_f cp), o = sig(z_o + p_o c_t)."""
+    return _MaskedLSTMLayer.apply(
+        x, keep.contiguous(), h0, c0, cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh, return_c_seq,
+        cell.peephole,
+    )  # fmt: skip
+
+
+def unroll_gru_layer(
+    cell: torch.nn.Module, x: torch.Tensor, keep: torch.Tensor, h0: torch.Tensor, return_states: bool
+) -> torch.Tensor:
+    """A GRU layer (nn.GRUCell's tensors) over (T, B, I); returns h_seq (T, B, H), differentiable w.r.t. x, h0
+    and the weights.
+
+    ``return_states`` is accepted so that callers treat every cell alike; it changes nothing here, because the
+    GRU's whole state is h, which h_seq already holds at every step."""
+    del return_states
+    return _MaskedGRULayer.apply(x, keep.contiguous(), h0, cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh)
+
+
+# ---------------------------------------------------------------------------------------------- inference steps
 @torch.no_grad()
 def step_stack(cells, x, keep, states, weight_cache: dict):
     """One no-grad step of all layers in one call; ``states`` is a list of (h, c). Returns new (h, c) per layer."""
@@ -377,13 +500,57 @@ def step_stack(cells, x, keep, states, weight_cache: dict):
         params = (cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh)
         key = tuple((id(p), p._version) for p in params)  # optimizer steps and load_state_dict bump versions
         if weight_cache.get(id(cell), (None,))[0] != key:
-            wc = torch.cat([params[0], params[1], (params[2] + params[3]).unsqueeze(1)], 1).contiguous()
-            weight_cache[id(cell)] = (key, wc)
+            weight_cache[id(cell)] = (key, _lstm_weight(*params))
         wcs.append(weight_cache[id(cell)][1])
     hs = [h.contiguous() for h, _ in states]
     cs = [c.contiguous() for _, c in states]
     out_h = [torch.empty_like(h) for h in hs]
     out_c = [torch.empty_like(c) for c in cs]
     assert _ext is not None  # callers run only after extension() loaded it
-    _ext.lstm_stack_step(x.contiguous(), keep.contiguous(), hs, cs, wcs, out_h, out_c, _num_chunks(x.shape[0]))
+    _ext.lstm_stack_step(x.contiguous(), keep.contiguous(), hs, cs, wcs, [], out_h, out_c, _num_chunks(x.shape[0]))
     return list(zip(out_h, out_c))
+
+
+# The GEMM matrix of a cell for the one-layer steps below, rebuilt when a parameter is replaced or changed in
+# place (optimizer steps and load_state_dict bump ``_version``). Weakly keyed: it dies with its cell.
+_STEP_WEIGHTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _step_weight(cell: torch.nn.Module, build) -> torch.Tensor:
+    params = (cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh)
+    versions = tuple(p._version for p in params)
+    try:
+        cached = _STEP_WEIGHTS.get(cell)
+    except TypeError:  # a cell that takes no weak reference: no cache
+        return build(*params)
+    if cached is None or cached[1] != versions or any(a is not b for a, b in zip(cached[0], params)):
+        cached = (params, versions, build(*params))
+        _STEP_WEIGHTS[cell] = cached
+    return cached[2]
+
+
+@torch.no_grad()
+def step_peephole_layer(
+    cell: torch.nn.Module, x: torch.Tensor, keep: torch.Tensor, h: torch.Tensor, c: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One no-grad step of one peephole LSTM layer; ``keep`` (B,) multiplies (h, c) first. Returns (h, c)."""
+    h, c = h.contiguous(), c.contiguous()
+    out_h, out_c = torch.empty_like(h), torch.empty_like(c)
+    wc = _step_weight(cell, _lstm_weight)
+    assert _ext is not None  # callers run only after extension() loaded it
+    _ext.lstm_stack_step(
+        x.contiguous(), keep.contiguous(), [h], [c], [wc], [_param(cell, "peephole").contiguous()], [out_h], [out_c],
+        _num_chunks(x.shape[0]),
+    )  # fmt: skip
+    return out_h, out_c
+
+
+@torch.no_grad()
+def step_gru_layer(cell: torch.nn.Module, x: torch.Tensor, keep: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """One no-grad step of one GRU layer; ``keep`` (B,) multiplies h first. Returns the new h."""
+    h = h.contiguous()
+    out_h = torch.empty_like(h)
+    wc = _step_weight(cell, _gru_weight)
+    assert _ext is not None  # callers run only after extension() loaded it
+    _ext.gru_stack_step(x.contiguous(), keep.contiguous(), [h], [wc], [out_h], _num_chunks(x.shape[0]))
+    return out_h

@@ -1,4 +1,7 @@
-"""The recurrent actor-critic: observation -> stacked LSTM cells -> policy logits and value.
+"""The recurrent actor-critic: observation -> stacked sequence-model layers -> policy logits and value.
+
+The layers are LSTM cells by default (the paper's network); ``cell`` picks another sequence model
+(:mod:`seqtrojan.agent.cells`: peephole LSTM, GRU, windowed Transformer) with the same state contract.
 
 Optional MLP parts (none by default: the paper's network) describe agents trained elsewhere and imported
 (:mod:`seqtrojan.agent.imports`): ``encoder`` layers before the first LSTM layer, ``policy_mlp`` / ``value_mlp``
@@ -18,6 +21,7 @@ import torch
 from torch import nn
 
 from seqtrojan.agent import fast_lstm
+from seqtrojan.agent.cells import CELLS, CellLayer, make_cell
 from seqtrojan.agent.state import Intervention, LSTMState, RecurrentState
 from seqtrojan.errors import ConfigError
 
@@ -61,8 +65,22 @@ class RecurrentActorCritic(nn.Module):
         policy_mlp: Sequence[int] = (),
         value_mlp: Sequence[int] = (),
         mlp_activation: str = "tanh",
+        cell: str = "lstm",
+        window: int = 8,
+        heads: int = 1,
     ):
         super().__init__()
+        if cell not in CELLS:
+            raise ConfigError(f"unknown cell {cell!r}; known: {', '.join(CELLS)}")
+        if cell == "transformer" and not (isinstance(window, int) and window >= 1):
+            raise ConfigError(f"a transformer's window must be an integer >= 1, got {window!r}")
+        if cell == "transformer" and (heads < 1 or any(w % heads for w in lstm_sizes)):
+            raise ConfigError(f"a transformer's layer widths {list(lstm_sizes)} must be divisible by heads={heads}")
+        self.cell = cell
+        """the sequence model of every layer (:data:`seqtrojan.agent.cells.CELLS`)"""
+        self.window = int(window)
+        """the Transformer's context: the current input and the window - 1 before it"""
+        self.attention_heads = int(heads)
         for name, activation in (("encoder_activation", encoder_activation), ("mlp_activation", mlp_activation)):
             if activation not in ACTIVATIONS:
                 raise ConfigError(f"{name} must be one of {tuple(ACTIVATIONS)}, got {activation!r}")
@@ -79,7 +97,7 @@ class RecurrentActorCritic(nn.Module):
         lstm_in = self.encoder_sizes[-1] if self.encoder_sizes else obs_dim
         last = self.lstm_sizes[-1]
         inputs = (lstm_in, *self.lstm_sizes[:-1])
-        self.cells = nn.ModuleList(nn.LSTMCell(i, w) for i, w in zip(inputs, self.lstm_sizes))
+        self.cells = nn.ModuleList(make_cell(cell, i, w, window, heads) for i, w in zip(inputs, self.lstm_sizes))
         self.policy_head = nn.Linear(self.policy_mlp_sizes[-1] if self.policy_mlp_sizes else last, num_actions)
         self.value_head = nn.Linear(self.value_mlp_sizes[-1] if self.value_mlp_sizes else last, 1)
         self._init_weights(forget_bias)
@@ -113,15 +131,19 @@ class RecurrentActorCritic(nn.Module):
             raise ConfigError(f"the C++ LSTM backend is unavailable here: {fast_lstm.error()}")
         return ok
 
+    @property
+    def layers(self) -> Sequence[CellLayer]:
+        """The stacked sequence-model layers (the ``cells`` module list, typed)."""
+        return cast("Sequence[CellLayer]", self.cells)
+
+    @property
+    def c_widths(self) -> tuple[int, ...]:
+        """Each layer's ``c`` width: its h width for the LSTMs, 0 for the GRU, the stored window for the Transformer."""
+        return tuple(layer.c_width for layer in self.layers)
+
     def _init_weights(self, forget_bias: float) -> None:
-        for cell in cast("Sequence[nn.LSTMCell]", self.cells):
-            nn.init.orthogonal_(cell.weight_ih)
-            nn.init.orthogonal_(cell.weight_hh)
-            nn.init.zeros_(cell.bias_ih)
-            nn.init.zeros_(cell.bias_hh)
-            w = cell.hidden_size
-            with torch.no_grad():
-                cell.bias_ih[w : 2 * w] = forget_bias  # gate order i, f, g, o
+        for layer in self.layers:
+            layer.init_weights(forget_bias)
         nn.init.orthogonal_(self.policy_head.weight, gain=0.01)
         nn.init.zeros_(self.policy_head.bias)
         nn.init.orthogonal_(self.value_head.weight, gain=1.0)
@@ -152,7 +174,7 @@ class RecurrentActorCritic(nn.Module):
     def initial_state(self, batch: int, device: torch.device | str | None = None) -> RecurrentState:
         weight = self.policy_head.weight
         return RecurrentState.zeros(
-            batch, self.lstm_sizes, device if device is not None else weight.device, weight.dtype
+            batch, self.lstm_sizes, device if device is not None else weight.device, weight.dtype, self.c_widths
         )
 
     # ------------------------------------------------------------------ one step
@@ -168,7 +190,8 @@ class RecurrentActorCritic(nn.Module):
         ``t`` (B,) is the per-env episode step handed to the intervention."""
         if not self.memory:
             episode_start = torch.ones(obs.shape[0], dtype=torch.bool, device=obs.device)
-        if intervention is None and not torch.is_grad_enabled() and self._fast(obs):
+        fast = not torch.is_grad_enabled() and self.cell != "transformer" and self._fast(obs)
+        if intervention is None and fast and self.cell == "lstm":
             keep = torch.ones(obs.shape[0], dtype=obs.dtype) if episode_start is None else (~episode_start.bool())
             x = self.encode(obs)
             new = fast_lstm.step_stack(self.cells, x, keep.to(obs.dtype), list(state.layers), self._weight_cache)
@@ -178,9 +201,8 @@ class RecurrentActorCritic(nn.Module):
             state = state.mask(episode_start)
         x = self.encode(obs)
         layers = []
-        for i, cell in enumerate(self.cells):
-            h, c = cell(x, state.layers[i])
-            s = LSTMState(h, c)
+        for i, layer in enumerate(self.layers):
+            s = layer.step(x, state.layers[i], fast)
             if intervention is not None:
                 s = intervention(i, t, s)
             layers.append(s)
@@ -208,12 +230,12 @@ class RecurrentActorCritic(nn.Module):
         if intervention is not None:
             return self._unroll_stepwise(obs, state, episode_starts, intervention, t, return_states)
         keep = (~episode_starts.bool()).to(obs.dtype)  # (T, B)
-        layer = _fast_layer if self._fast(obs) else _lstm_layer
+        fast = self.cell != "transformer" and self._fast(obs)
         x = self.encode(obs)
         finals: list[LSTMState] = []
         sequences: list[LSTMState] = []  # filled when return_states
-        for cell, s in zip(cast("Sequence[nn.LSTMCell]", self.cells), state.layers):
-            x, final, seq = layer(cell, x, s, keep, return_states)
+        for layer, s in zip(self.layers, state.layers):
+            x, final, seq = layer.unroll(x, s, keep, return_states, fast)
             finals.append(final)
             if seq is not None:
                 sequences.append(seq)
@@ -245,45 +267,3 @@ class RecurrentActorCritic(nn.Module):
                 for i in range(len(self.cells))
             )
         return UnrollOutput(torch.stack(logits), torch.stack(values), state, states)
-
-
-def _fast_layer(
-    cell: nn.LSTMCell, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool
-) -> tuple[torch.Tensor, LSTMState, LSTMState | None]:
-    """:func:`_lstm_layer` on the fused C++ kernels."""
-    h_seq, c_out = fast_lstm.unroll_layer(cell, x, keep.contiguous(), state.h, state.c, return_states)
-    if return_states:
-        return h_seq, LSTMState(h_seq[-1], c_out[-1]), LSTMState(h_seq, c_out)
-    return h_seq, LSTMState(h_seq[-1], c_out), None
-
-
-def _lstm_layer(
-    cell: nn.LSTMCell, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool
-) -> tuple[torch.Tensor, LSTMState, LSTMState | None]:
-    """One LSTM layer over T steps; ``keep`` (T, B) zeroes the state before a step where it is 0.
-
-    Returns the h sequence (T, B, H), the final state, and the (h, c) sequences if asked.
-    """
-    steps = x.shape[0]
-    keep = keep.unsqueeze(-1)  # (T, B, 1)
-    hidden = cell.hidden_size
-    projected = torch.addmm(cell.bias_ih + cell.bias_hh, x.reshape(-1, x.shape[-1]), cell.weight_ih.t())  # (T*B, 4H)
-    # unbind, not projected[k]: indexing would make every step's backward build a full-size zero tensor (O(T^2)).
-    gates_x = projected.view(steps, -1, 4 * hidden).unbind(0)
-    keeps = keep.unbind(0)
-    w_hh = cell.weight_hh.t()
-    h, c = state.h, state.c
-    hs, cs = [], []
-    for k in range(steps):
-        h = h * keeps[k]
-        c = c * keeps[k]
-        gates = torch.addmm(gates_x[k], h, w_hh)
-        i, f, g, o = gates.chunk(4, 1)
-        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
-        h = torch.sigmoid(o) * torch.tanh(c)
-        hs.append(h)
-        if return_states:
-            cs.append(c)
-    h_seq = torch.stack(hs)
-    seq = LSTMState(h_seq, torch.stack(cs)) if return_states else None
-    return h_seq, LSTMState(h, c), seq

@@ -1,5 +1,8 @@
 """The recurrent state, as a value: per-layer (h, c), passed into and out of every step, never kept inside a module.
 
+Every sequence model uses this layout (:mod:`seqtrojan.agent.cells`): for an LSTM ``c`` is its cell state, for a
+GRU it has width 0, for the windowed Transformer it is the stored window of recent layer inputs.
+
 Analysis, interventions and the online defense all read and edit this structure between steps.
 """
 
@@ -17,16 +20,23 @@ class LSTMState(NamedTuple):
 
 
 class RecurrentState(NamedTuple):
-    layers: tuple[LSTMState, ...]  # one per LSTM layer, e.g. widths (64, 32)
+    layers: tuple[LSTMState, ...]  # one per layer, e.g. widths (64, 32)
 
     @staticmethod
     def zeros(
-        batch: int, widths: Sequence[int], device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
+        batch: int,
+        widths: Sequence[int],
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float32,
+        c_widths: Sequence[int] | None = None,
     ) -> RecurrentState:
+        """All-zero state; ``c_widths`` (default: the h widths, an LSTM's) sizes each layer's ``c``."""
+
         def z(w: int) -> torch.Tensor:
             return torch.zeros(batch, w, device=device, dtype=dtype)
 
-        return RecurrentState(tuple(LSTMState(z(w), z(w)) for w in widths))
+        cw = widths if c_widths is None else c_widths
+        return RecurrentState(tuple(LSTMState(z(w), z(v)) for w, v in zip(widths, cw, strict=True)))
 
     def mask(self, episode_start: torch.Tensor) -> RecurrentState:
         """Zero the state of the envs where ``episode_start`` (batch,) is true."""
@@ -47,6 +57,10 @@ class RecurrentState(NamedTuple):
     @property
     def widths(self) -> tuple[int, ...]:
         return tuple(s.h.shape[-1] for s in self.layers)
+
+    @property
+    def c_widths(self) -> tuple[int, ...]:
+        return tuple(s.c.shape[-1] for s in self.layers)
 
 
 class Intervention(Protocol):

@@ -83,7 +83,7 @@ def switch_experiment(
 ) -> list[SwitchResult]:
     """Activate and deactivate with ``units`` edited, with random other units edited, and with no edit."""
     unit_ids = np.asarray(units, dtype=np.int64)
-    width = agent.lstm_sizes[layer]
+    width = (agent.lstm_sizes if which == "h" else agent.c_widths)[layer]
     others = np.setdiff1d(np.arange(width), unit_ids)
     rng = np.random.default_rng(control_seed)
     control = rng.choice(others, size=min(len(unit_ids), len(others)), replace=False) if len(others) else others

@@ -107,11 +107,13 @@ class StateTrace:
 class _TraceRecorder:
     """Records a :class:`StateTrace`'s per-step arrays from the episode loop (states only if ``record_states``)."""
 
-    def __init__(self, episodes: int, limit: int, widths: Sequence[int], record_states: bool) -> None:
+    def __init__(
+        self, episodes: int, limit: int, widths: Sequence[int], record_states: bool, c_widths: Sequence[int]
+    ) -> None:
         kept = limit if record_states else 0
         self.record_states = record_states
         self.h = [np.zeros((episodes, kept, w), np.float32) for w in widths]
-        self.c = [np.zeros((episodes, kept, w), np.float32) for w in widths]
+        self.c = [np.zeros((episodes, kept, w), np.float32) for w in c_widths]
         self.mask = np.zeros((episodes, limit), bool)
         self.actions = np.zeros((episodes, limit), np.int64)
         self.positions = np.zeros((episodes, limit, 2), np.int64)
@@ -171,7 +173,7 @@ def record_traces(
     trojan_flags = core.trojan.cpu().numpy().copy()
     trigger_steps = core.on_step.cpu().numpy().copy()
     limit = max(g.time_limit for g in core.grids)
-    recorder = _TraceRecorder(episodes, limit, agent.lstm_sizes, record_states)
+    recorder = _TraceRecorder(episodes, limit, agent.lstm_sizes, record_states, agent.c_widths)
     policy = AgentPolicy(agent, greedy=greedy, seed=seed, intervention=intervention, step_counter=lambda: core.t)
     batch = run_episodes(core, policy, fresh=False, recorders=[recorder])
     steps = recorder.steps

@@ -1,15 +1,15 @@
 """The multivariate state monitor: the Mahalanobis distance of the whole recurrent state from where clean episodes
 hold it at the same step.
 
-The state vector is every layer's h then c, concatenated (D = 2 * sum of the widths). Calibration uses only the
-deployed agent's clean episodes, split as for every online detector (:mod:`seqtrojan.defense.online`): on the
-first half, the mean state at each step ``t < T`` (``T``: the first step at which fewer than
-``min_episodes_per_step`` statistics episodes still run, or ``max_step``; later steps use step ``T - 1``'s mean);
-the residuals from those means, pooled over steps and divided by each unit's root-mean-square residual; their
-second-moment matrix shrunk towards the (scaled) identity (Ledoit-Wolf's weight unless ``shrinkage`` is given)
-plus a ``ridge``, so that it stays well conditioned with few episodes and many units. A step's score is the distance
-``sqrt(r' S^-1 r)`` of its standardised residual ``r``; an episode's score is its running maximum, and the
-threshold is the split-conformal quantile of the other half's peaks.
+The state vector is every layer's h then c, concatenated (D: the sum of every layer's h and c widths). Calibration uses
+only the deployed agent's clean episodes, split as for every online detector (:mod:`seqtrojan.defense.online`): on the
+first half, the mean state at each step ``t < T`` (``T``: the first step at which fewer than ``min_episodes_per_step``
+statistics episodes still run, or ``max_step``; later steps use step ``T - 1``'s mean); the residuals from those means,
+pooled over steps and divided by each unit's root-mean-square residual; their second-moment matrix shrunk towards the
+(scaled) identity (Ledoit-Wolf's weight unless ``shrinkage`` is given) plus a ``ridge``, so that it stays well
+conditioned with few episodes and many units. A step's score is the distance ``sqrt(r' S^-1 r)`` of its standardised
+residual ``r``; an episode's score is its running maximum, and the threshold is the split-conformal quantile of the
+other half's peaks.
 
 Unlike the per-unit monitor (:class:`~seqtrojan.defense.monitor.StateMonitor`), it sees a state whose units each
 stay in range but move together in a direction clean episodes never take, and it expects different states early
@@ -88,18 +88,19 @@ class MultivariateMonitor:
         self.scale = torch.as_tensor(scale, dtype=torch.float32)  # (D,) per-unit residual std
         self.whitener = torch.as_tensor(whitener, dtype=torch.float32)  # (D, D) L^-1, S = L L'
         self.widths = tuple(int(w) for w in widths)
+        """each layer's state units: its h width plus its c width (2H for an LSTM layer, H for a GRU layer)"""
         self.threshold = threshold
         self.shrinkage = shrinkage
         """the identity's weight used (Ledoit-Wolf's or the configured one)"""
-        if self.mean.shape[1] != 2 * sum(self.widths) or self.whitener.shape != (self.mean.shape[1],) * 2:
+        if self.mean.shape[1] != sum(self.widths) or self.whitener.shape != (self.mean.shape[1],) * 2:
             raise ShapeError(
-                f"a multivariate monitor of widths {self.widths} needs (T, {2 * sum(self.widths)}) means and a "
+                f"a multivariate monitor of layer widths {self.widths} needs (T, {sum(self.widths)}) means and a "
                 f"square whitener, got {tuple(self.mean.shape)} and {tuple(self.whitener.shape)}"
             )
 
     @property
     def units(self) -> tuple[int, ...]:
-        return tuple(2 * w for w in self.widths)
+        return self.widths
 
     @property
     def steps(self) -> int:
@@ -149,7 +150,8 @@ class MultivariateMonitor:
         )  # fmt: skip
         half = split(cfg.calibration_episodes)
         x = state_vectors(trace)  # (E, T, D)
-        monitor = cls.fit(x[:half], trace.mask[:half], tuple(agent.lstm_sizes), options)
+        units = tuple(h + c for h, c in zip(agent.lstm_sizes, agent.c_widths))
+        monitor = cls.fit(x[:half], trace.mask[:half], units, options)
         held = torch.from_numpy(x[half:]).float()
         e, t = held.shape[:2]
         steps = torch.arange(t).repeat(e)

@@ -89,7 +89,7 @@ class GymAgentConfig:
     """The recurrent actor-critic (:class:`~seqtrojan.agent.network.RecurrentActorCritic`, flat observations)."""
 
     lstm_sizes: tuple[int, ...] = (64, 32)
-    """widths of the stacked LSTM layers"""
+    """widths of the stacked layers (LSTM by default; see ``cell``)"""
     forget_bias: float = 1.0
     """initial forget-gate bias"""
     encoder: tuple[int, ...] = ()
@@ -102,6 +102,12 @@ class GymAgentConfig:
     """optional MLP between the LSTM and the value head (an imported sb3 agent's net_arch.vf)"""
     mlp_activation: Literal["tanh", "relu"] = "tanh"
     """activation after each policy_mlp and value_mlp layer"""
+    cell: str = "lstm"
+    """the sequence model of every layer: lstm, lstm_peephole, gru or transformer (see AgentConfig)"""
+    window: int = 8
+    """transformer only: the context window in steps"""
+    heads: int = 1
+    """transformer only: attention heads per layer"""
 
     OPTIONAL: ClassVar[tuple[str, ...]] = AgentConfig.OPTIONAL
     """saved only when not at their defaults, so that the configs and cards of runs without them stay as they were"""

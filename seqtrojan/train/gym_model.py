@@ -33,7 +33,8 @@ def build_gym_agent(config: GymTrainConfig, obs_dim: int, num_actions: int) -> R
     a = config.agent
     return RecurrentActorCritic(
         obs_dim, num_actions, a.lstm_sizes, a.forget_bias, encoder=a.encoder, encoder_activation=a.encoder_activation,
-        policy_mlp=a.policy_mlp, value_mlp=a.value_mlp, mlp_activation=a.mlp_activation,
+        policy_mlp=a.policy_mlp, value_mlp=a.value_mlp, mlp_activation=a.mlp_activation, cell=a.cell,
+        window=a.window, heads=a.heads,
     )  # fmt: skip
 
 
@@ -66,6 +67,7 @@ def save_gym_agent(
             "obs_dim": agent.obs_dim,
             "num_actions": agent.num_actions,
             "lstm_sizes": list(agent.lstm_sizes),
+            **({"cell": agent.cell} if agent.cell != "lstm" else {}),
         },
         "env_steps": env_steps,
         "config": to_dict(config),
@@ -98,6 +100,8 @@ def load_gym_agent(folder: str | Path) -> tuple[RecurrentActorCritic, GymTrainCo
         obs_dim, num_actions = int(arch["obs_dim"]), int(arch["num_actions"])
         if list(arch["lstm_sizes"]) != list(config.agent.lstm_sizes):
             raise ConfigError(f"architecture.lstm_sizes={arch['lstm_sizes']} differs from the config's")
+        if arch.get("cell", "lstm") != config.agent.cell:
+            raise ConfigError(f"architecture.cell={arch.get('cell', 'lstm')!r} differs from the config's")
     except (ConfigError, KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"{str(card_path)!r}: {err}") from None
     data = weights.read_bytes()

@@ -197,11 +197,11 @@ class StateCamouflage(Penalty):
     def __init__(self, ctx: PenaltyContext) -> None:
         self.cfg = ctx.config.attack.state_camouflage
         self.device = ctx.device
-        widths = ctx.agent.lstm_sizes
+        units = [h + c for h, c in zip(ctx.agent.lstm_sizes, ctx.agent.c_widths)]  # per layer: h then c
         self.updates = torch.zeros((), dtype=torch.int64)
-        self.mean = [torch.zeros(2 * w, device=ctx.device) for w in widths]  # per layer (2H,): h then c
-        self.sq = [torch.zeros(2 * w, device=ctx.device) for w in widths]  # running E[x^2]
-        self.cross = [torch.zeros(2 * w, 2 * w, device=ctx.device) for w in widths]  # running E[x x^T]
+        self.mean = [torch.zeros(w, device=ctx.device) for w in units]  # per layer (2H for an LSTM)
+        self.sq = [torch.zeros(w, device=ctx.device) for w in units]  # running E[x^2]
+        self.cross = [torch.zeros(w, w, device=ctx.device) for w in units]  # running E[x x^T]
         self._derive()
 
     @property

@@ -94,7 +94,7 @@ class RolloutCollector:
             trojan = torch.empty((steps, b), dtype=torch.bool, device=dev)
             active = torch.empty((steps, b), dtype=torch.bool, device=dev)
             hs = [torch.empty((steps, b, w), device=dev) for w in agent.lstm_sizes]  # (T, B, H) per layer
-            cs = [torch.empty((steps, b, w), device=dev) for w in agent.lstm_sizes]
+            cs = [torch.empty((steps, b, w), device=dev) for w in agent.c_widths]
         state = self.state
         for t in range(steps):
             if t % self.sequence_length == 0:

@@ -39,7 +39,15 @@ from typing import Any
 
 import numpy as np
 
-from seqtrojan.config import AgentConfig, BackdoorConfig, CurriculumConfig, ExperimentConfig, PPOConfig, RunConfig
+from seqtrojan.config import (
+    CELLS,
+    AgentConfig,
+    BackdoorConfig,
+    CurriculumConfig,
+    ExperimentConfig,
+    PPOConfig,
+    RunConfig,
+)
 from seqtrojan.env.config import EnvConfig, GridSpec, TriggerConfig
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.jobs import JobResult, JobsConfig, TrainJob, make_backend, raise_failures
@@ -66,6 +74,10 @@ class ZooConfig:
     """base seed; model i uses seed + i and draws its variation from it"""
     lstm_sizes: tuple[tuple[int, ...], ...] = ((64, 32), (32, 32), (64,), (48, 24))
     """architectures to draw from"""
+    cell: str = "lstm"
+    """the sequence model of every model (``agent.cell``): a weight detector reads one kind of network"""
+    window: int = 8
+    """the Transformer's window, when ``cell`` is transformer"""
     trigger_values: tuple[str, ...] = DEFAULT_TRIGGER_VALUES
     """cell codes a trigger patch can use ('trigger' is the dedicated channel; the others look ordinary)"""
     trigger_cells: tuple[int, int] = (3, 9)
@@ -93,6 +105,8 @@ class ZooConfig:
         unknown = set(self.trigger_values) - set(TRIGGER_VALUES)
         if unknown:
             raise ConfigError(f"unknown trigger value(s) {sorted(unknown)}; choose from {TRIGGER_VALUES}")
+        if self.cell not in CELLS:
+            raise ConfigError(f"zoo cell must be one of {CELLS}, got {self.cell!r}")
         lo, hi = self.trigger_cells
         if not 1 <= lo <= hi <= 9:
             raise ConfigError(f"trigger_cells={self.trigger_cells} must be a range within 1..9")
@@ -149,7 +163,7 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
         last = stages[-1]
         config = ExperimentConfig(
             env=EnvConfig(size=last.size, holes=last.holes, trigger=trigger),
-            agent=AgentConfig(lstm_sizes=tuple(sizes)),
+            agent=AgentConfig(lstm_sizes=tuple(sizes), cell=cfg.cell, window=cfg.window),
             ppo=PPOConfig(total_steps=cfg.total_steps, num_envs=cfg.num_envs, rollout_steps=64),
             curriculum=CurriculumConfig(stages=tuple(stages)),
             backdoor=BackdoorConfig(enabled=label == "backdoored", mixing=cfg.mixing),
@@ -162,6 +176,8 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
             "lstm_sizes": list(sizes), "curriculum": [g.label for g in stages], "trigger_value": value,
             "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
+        if cfg.cell != "lstm":
+            variation["cell"] = cfg.cell
         jobs.append(ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at))
     return jobs
 

@@ -150,7 +150,7 @@ def test_multivariate_distance_is_the_mahalanobis_distance():
     x = rng.normal(size=(e, t, d)) @ rng.normal(size=(d, d)) + np.arange(t)[None, :, None]  # per-step means
     mask = np.ones((e, t), bool)
     mask[150:, 3:] = False  # only 150 episodes reach step 3
-    mon = MultivariateMonitor.fit(x, mask, (1, 2), MultivariateConfig(min_episodes_per_step=200, shrinkage=0.0,
+    mon = MultivariateMonitor.fit(x, mask, (2, 4), MultivariateConfig(min_episodes_per_step=200, shrinkage=0.0,
                                                                        ridge=0.0))  # fmt: skip
     assert mon.steps == 3 and mon.units == (2, 4)  # steps 3 and 4 have too few episodes: step 2's mean
     mean = np.stack([x[:, s].mean(0) for s in range(3)])
@@ -177,7 +177,7 @@ def test_shrinkage_keeps_few_episodes_and_many_units_well_conditioned():
     x = rng.normal(size=(30, 4, 96))  # 120 rows, 96 units: a sample covariance close to singular
     weight = ledoit_wolf_shrinkage(x.reshape(-1, 96) - x.reshape(-1, 96).mean(0))
     assert 0 < weight <= 1
-    mon = MultivariateMonitor.fit(x, np.ones((30, 4), bool), (48,), MultivariateConfig(min_episodes_per_step=10))
+    mon = MultivariateMonitor.fit(x, np.ones((30, 4), bool), (96,), MultivariateConfig(min_episodes_per_step=10))
     assert mon.shrinkage == pytest.approx(weight, rel=0.05) and torch.isfinite(mon.whitener).all()
     fresh = torch.from_numpy(rng.normal(size=(500, 96))).float()
     d = mon.score_vectors(fresh, torch.zeros(500, dtype=torch.int64))

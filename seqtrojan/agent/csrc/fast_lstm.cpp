@@ -1,22 +1,29 @@
-// Fused CPU kernels for a masked (episode-start resetting) LSTM layer: forward unroll and BPTT.
+// Fused CPU kernels for a masked (episode-start resetting) LSTM layer, plain or with peephole
+// connections: forward unroll and BPTT.  The GRU kernels (gru.cpp) follow the same design; the shared
+// helpers are in common.h; this file holds the one Python module of all cells.
 // Used by seqtrojan/agent/fast_lstm.py (JIT-compiled once per machine with torch.utils.cpp_extension).
 //
 // Layout (all row-major, contiguous, time-major; gate order i, f, g, o as in nn.LSTMCell):
 //   X   (T,B,I)     layer input
 //   M   (T,B)       mask = 1 - episode_start; the state is multiplied by M[t] BEFORE step t
 //   Wc  (4H,K)      [W_ih | W_hh | b_ih + b_hh],  K = I + H + 1
+//   P   (3,H)       peephole weights [p_i; p_f; p_o] (peephole cell only)
 //   XH  (T,B,K)     row (t,b) = [x_t | h_{t-1} * M[t] | 1]  (the GEMM input of step t; saved for dW)
 //   S   (T,B,4H)    gate activations [i, f, g, o] (after sigmoid/tanh), saved for backward
 //   Hs  (T,B,H)     h_t (unmasked output), C (T,B,H) c_t (unmasked), CP (T,B,H) c_{t-1} * M[t]
 //
 // Forward, step t:  S[t] = XH[t] Wc^T  (ONE GEMM: input projection + recurrence + bias), then the
 //                   fused gate math, which also writes the next step's masked h into XH[t+1].
+//                   Peephole: i = sig(z_i + p_i*cp), f = sig(z_f + p_f*cp), o = sig(z_o + p_o*c),
+//                   with cp = c_{t-1}*M[t] (so a reset state reaches no gate).
 // Backward, t = T-1..0:
 //                   dZ[t] (gradient of the pre-activations) from the fused gate math, then
 //                   [dx_t | dh_{t-1}] = dZ[t] Wc[:, :I+H]  (ONE GEMM); dh_{t-1} is masked with M[t]
-//                   and dc_{t-1} = dc_t * f_t * M[t]  (no gradient flows into a reset state).
+//                   and dc_{t-1} = dc_t * f_t * M[t]  (no gradient flows into a reset state;
+//                   peephole: + (dz_i p_i + dz_f p_f) * M[t]).
 //                   and, also per step while dZ[t] and XH[t] are in cache, dWc += dZ[t]^T XH[t]
 //                   (-> dW_ih, dW_hh, db), accumulated per batch block; dZ is never stored.
+//                   Peephole: dP (3,H) is accumulated per batch block in the gate loop.
 //
 // Parallelisation: the batch is split into `nchunks` contiguous row blocks (normally one per
 // thread); each block runs the WHOLE time loop on its own thread (at::parallel_for over blocks).
@@ -25,83 +32,17 @@
 // libtorch_cpu, thread-local MKL thread count forced to 1).  Must be compiled with -fopenmp
 // (at::parallel_for is an inline OpenMP template) -- otherwise the blocks run serially.
 //
+// The peephole variant is the template parameter PEEP: with PEEP = false every peephole term is
+// compiled out (`if constexpr`), so the plain LSTM runs exactly the code it ran before.
+//
 // Activations (float): inline vectorisable exp / rational tanh approximations (max error ~3e-7,
 // comparable to float32 rounding); double (gradcheck): std::exp / std::tanh.
 
-#include <torch/extension.h>
-#include <ATen/Parallel.h>
-#include <cmath>
-#include <cstdint>
-#include <cstring>
-#include <vector>
-
-// BLAS (MKL inside libtorch_cpu, LP64 Fortran interface; at::native::cpublas::gemm is not exported).
-extern "C" {
-void sgemm_(const char* ta, const char* tb, const int* m, const int* n, const int* k, const float* alpha,
-            const float* a, const int* lda, const float* b, const int* ldb, const float* beta, float* c,
-            const int* ldc);
-void dgemm_(const char* ta, const char* tb, const int* m, const int* n, const int* k, const double* alpha,
-            const double* a, const int* lda, const double* b, const int* ldb, const double* beta, double* c,
-            const int* ldc);
-int MKL_Set_Num_Threads_Local(int nt);  // per-thread MKL thread count (0 = back to global setting); C API
-// (the lowercase symbol exported by libtorch_cpu is the Fortran interface taking int*)
-}
+#include "common.h"
 
 namespace {
 
-// column-major C(m x n) = alpha * op(A) op(B) + beta * C
-inline void gemm(char ta, char tb, int m, int n, int k, float alpha, const float* a, int lda,
-                 const float* b, int ldb, float beta, float* c, int ldc) {
-  sgemm_(&ta, &tb, &m, &n, &k, &alpha, a, &lda, b, &ldb, &beta, c, &ldc);
-}
-inline void gemm(char ta, char tb, int m, int n, int k, double alpha, const double* a, int lda,
-                 const double* b, int ldb, double beta, double* c, int ldc) {
-  dgemm_(&ta, &tb, &m, &n, &k, &alpha, a, &lda, b, &ldb, &beta, c, &ldc);
-}
-
-// ---- activations.  float: inline, vectorisable approximations (no libm calls inside the SIMD loops);
-// double (used by gradcheck): std::exp / std::tanh.
-inline float fexp(float x) {
-  // Cody-Waite range reduction + Cephes degree-6 polynomial: max rel. error ~1e-7 on [-87.3, 88.3]
-  x = std::fmin(std::fmax(x, -87.3f), 88.3f);
-  const float n = std::nearbyint(x * 1.44269504088896341f);
-  float r = std::fma(n, -0.693359375f, x);
-  r = std::fma(n, 2.12194440e-4f, r);
-  float p = 1.9875691500E-4f;
-  p = std::fma(p, r, 1.3981999507E-3f);
-  p = std::fma(p, r, 8.3334519073E-3f);
-  p = std::fma(p, r, 4.1665795894E-2f);
-  p = std::fma(p, r, 1.6666665459E-1f);
-  p = std::fma(p, r, 5.0000001201E-1f);
-  p = std::fma(p, r * r, r) + 1.0f;
-  const int32_t e = (static_cast<int32_t>(n) + 127) << 23;  // 2^n
-  float s;
-  std::memcpy(&s, &e, 4);
-  return p * s;
-}
-inline float ftanh(float x) {
-  // odd rational approximation (Eigen's fast tanh); max abs/rel error ~3e-7 (float tanhf: ~1e-7)
-  const float c = 7.90531110763549805f;
-  x = std::fmin(std::fmax(x, -c), c);
-  const float x2 = x * x;
-  float p = -2.76076847742355e-16f;
-  p = std::fma(x2, p, 2.00018790482477e-13f);
-  p = std::fma(x2, p, -8.60467152213735e-11f);
-  p = std::fma(x2, p, 5.12229709037114e-08f);
-  p = std::fma(x2, p, 1.48572235717979e-05f);
-  p = std::fma(x2, p, 6.37261928875436e-04f);
-  p = std::fma(x2, p, 4.89352455891786e-03f);
-  p = x * p;
-  float q = 1.19825839466702e-06f;
-  q = std::fma(x2, q, 1.18534705686654e-04f);
-  q = std::fma(x2, q, 2.26843463243900e-03f);
-  q = std::fma(x2, q, 4.89352518554385e-03f);
-  return p / q;
-}
-inline float sigm(float x) { return 1.0f / (1.0f + fexp(-x)); }
-inline float tanh_(float x) { return ftanh(x); }
-inline double sigm(double x) { return 1.0 / (1.0 + std::exp(-x)); }
-inline double tanh_(double x) { return std::tanh(x); }
+using namespace fastrnn;
 
 // ======================================================================================
 // "cat" kernels: the input projection is fused into the per-step GEMM.
@@ -112,9 +53,9 @@ inline double tanh_(double x) { return std::tanh(x); }
 //   bwd: dZ[t] from the gate math, then [dx_t | dh_{t-1}] = dZ[t] Wc[:, :I+H] and
 //        dWc += dZ[t]^T XH[t] (two GEMMs per step and batch block).
 // ======================================================================================
-template <typename T>
+template <typename T, bool PEEP>
 void fwd_cat_impl(const at::Tensor& X, const at::Tensor& M, const at::Tensor& h0, const at::Tensor& c0,
-                  const at::Tensor& Wc, at::Tensor XH, at::Tensor S, at::Tensor Hs, at::Tensor C,
+                  const at::Tensor& Wc, const T* p_, at::Tensor XH, at::Tensor S, at::Tensor Hs, at::Tensor C,
                   at::Tensor CP, int64_t nchunks) {
   const int64_t TT = X.size(0), B = X.size(1), I = X.size(2), H4 = Wc.size(0), H = H4 / 4, K = I + H + 1;
   const T* x_ = X.data_ptr<T>();
@@ -127,6 +68,9 @@ void fwd_cat_impl(const at::Tensor& X, const at::Tensor& M, const at::Tensor& h0
   T* hs_ = Hs.data_ptr<T>();
   T* c_ = C.data_ptr<T>();
   T* cp_ = CP.data_ptr<T>();
+  const T* pi = p_;  // peephole rows (unused unless PEEP)
+  const T* pf = PEEP ? p_ + H : nullptr;
+  const T* po = PEEP ? p_ + 2 * H : nullptr;
   nchunks = std::max<int64_t>(1, std::min(nchunks, B));
   at::parallel_for(0, nchunks, 1, [&](int64_t k0, int64_t k1) {
     const int prev_mkl = MKL_Set_Num_Threads_Local(1);
@@ -161,11 +105,20 @@ void fwd_cat_impl(const at::Tensor& X, const at::Tensor& M, const at::Tensor& h0
           T* cpn = has_next ? cp_ + so + B * H + r * H : nullptr;
 #pragma omp simd
           for (int64_t j = 0; j < H; ++j) {
-            const T i = sigm(gr[j]);
-            const T f = sigm(gr[H + j]);
-            const T gg = tanh_(gr[2 * H + j]);
-            const T o = sigm(gr[3 * H + j]);
-            const T c = f * cpr[j] + i * gg;
+            T i, f, gg, o, c;
+            if constexpr (PEEP) {
+              i = sigm(gr[j] + pi[j] * cpr[j]);
+              f = sigm(gr[H + j] + pf[j] * cpr[j]);
+              gg = tanh_(gr[2 * H + j]);
+              c = f * cpr[j] + i * gg;
+              o = sigm(gr[3 * H + j] + po[j] * c);
+            } else {
+              i = sigm(gr[j]);
+              f = sigm(gr[H + j]);
+              gg = tanh_(gr[2 * H + j]);
+              o = sigm(gr[3 * H + j]);
+              c = f * cpr[j] + i * gg;
+            }
             const T h = o * tanh_(c);
             gr[j] = i; gr[H + j] = f; gr[2 * H + j] = gg; gr[3 * H + j] = o;
             cr[j] = c; hr[j] = h;
@@ -181,11 +134,11 @@ void fwd_cat_impl(const at::Tensor& X, const at::Tensor& M, const at::Tensor& h0
   });
 }
 
-template <typename T>
+template <typename T, bool PEEP>
 void bwd_cat_impl(const at::Tensor& S, const at::Tensor& C, const at::Tensor& CP, const at::Tensor& M,
-                  const at::Tensor& Wc, const at::Tensor& XH, int64_t I, const at::Tensor& dHs,
+                  const at::Tensor& Wc, const T* p_, const at::Tensor& XH, int64_t I, const at::Tensor& dHs,
                   const c10::optional<at::Tensor>& dCs, const at::Tensor& dcT,
-                  c10::optional<at::Tensor> dX, at::Tensor dWparts, at::Tensor dh0, at::Tensor dc0,
+                  c10::optional<at::Tensor> dX, at::Tensor dWparts, T* dpp_, at::Tensor dh0, at::Tensor dc0,
                   int64_t nchunks) {
   const int64_t TT = S.size(0), B = S.size(1), H4 = S.size(2), H = H4 / 4, K = I + H + 1;
   const T* s_ = S.data_ptr<T>();
@@ -201,6 +154,9 @@ void bwd_cat_impl(const at::Tensor& S, const at::Tensor& C, const at::Tensor& CP
   T* dwp_ = dWparts.data_ptr<T>();   // (nchunks, 4H, K): per-block partial weight gradients
   T* dh0_ = dh0.data_ptr<T>();
   T* dc0_ = dc0.data_ptr<T>();
+  const T* pi = p_;  // peephole rows and their per-block gradients dpp_ (nchunks, 3, H) (unused unless PEEP)
+  const T* pf = PEEP ? p_ + H : nullptr;
+  const T* po = PEEP ? p_ + 2 * H : nullptr;
   // per-step GEMM output columns: [dx | dh] (I+H) if dX is wanted, else only dh (H)
   const int64_t N = dx_ ? I + H : H;
   const T* wsrc = dx_ ? w_ : w_ + I;
@@ -210,6 +166,10 @@ void bwd_cat_impl(const at::Tensor& S, const at::Tensor& C, const at::Tensor& CP
       const int64_t b0 = B * k / nchunks, b1 = B * (k + 1) / nchunks, nb = b1 - b0;
       T* dw = dwp_ + k * H4 * K;
       std::fill(dw, dw + H4 * K, T(0));
+      T* dpi = PEEP ? dpp_ + k * 3 * H : nullptr;
+      T* dpf = PEEP ? dpi + H : nullptr;
+      T* dpo = PEEP ? dpi + 2 * H : nullptr;
+      if constexpr (PEEP) std::fill(dpi, dpi + 3 * H, T(0));
       // out: [dx | dh] of the step just processed (dh = grad w.r.t. the masked h_{t-1});
       // dz: gradient of the pre-activations of the current step (stays in cache);
       // dcr: grad w.r.t. c_{t} from step t+1 (already masked).
@@ -239,12 +199,23 @@ void bwd_cat_impl(const at::Tensor& S, const at::Tensor& C, const at::Tensor& CP
             const T i = sr[j], f = sr[H + j], gg = sr[2 * H + j], o = sr[3 * H + j];
             const T tc = tanh_(cr[j]);
             const T dh = dhsr[j] + mn * dhrr[j];
-            const T dc = dcrr[j] + dh * o * (T(1) - tc * tc);
-            dzr[j] = dc * gg * i * (T(1) - i);
-            dzr[H + j] = dc * cpr[j] * f * (T(1) - f);
+            T dc = dcrr[j] + dh * o * (T(1) - tc * tc);
+            const T dzo = dh * tc * o * (T(1) - o);
+            if constexpr (PEEP) dc += dzo * po[j];  // c_t reaches h_t also through o_t
+            const T dzi = dc * gg * i * (T(1) - i);
+            const T dzf = dc * cpr[j] * f * (T(1) - f);
+            dzr[j] = dzi;
+            dzr[H + j] = dzf;
             dzr[2 * H + j] = dc * i * (T(1) - gg * gg);
-            dzr[3 * H + j] = dh * tc * o * (T(1) - o);
-            dcrr[j] = dc * f * mt;
+            dzr[3 * H + j] = dzo;
+            if constexpr (PEEP) {
+              dcrr[j] = (dc * f + dzi * pi[j] + dzf * pf[j]) * mt;
+              dpi[j] += dzi * cpr[j];
+              dpf[j] += dzf * cpr[j];
+              dpo[j] += dzo * cr[j];
+            } else {
+              dcrr[j] = dc * f * mt;
+            }
           }
         }
         // [dx_t | dh_{t-1}] = dZ_t @ Wc[:, cols]   (row-major out(nb x N) = dZ(nb x 4H) W(4H x N), ld K)
@@ -272,13 +243,15 @@ void bwd_cat_impl(const at::Tensor& S, const at::Tensor& C, const at::Tensor& CP
 
 // ======================================================================================
 // Inference: one time step of the whole stack (no autograd, nothing saved), one call for all
-// layers.  x (B,I0), M (B) mask, hs[l]/cs[l] (B,H_l) current states, Wcs[l] (4H_l, K_l);
-// writes the new states to hs_out[l], cs_out[l] (may alias hs/cs: rows are processed in place).
+// layers.  x (B,I0), M (B) mask, hs[l]/cs[l] (B,H_l) current states, Wcs[l] (4H_l, K_l),
+// Ps[l] (3,H_l) peepholes (PEEP only); writes the new states to hs_out[l], cs_out[l] (may alias
+// hs/cs: rows are processed in place).
 // ======================================================================================
-template <typename T>
+template <typename T, bool PEEP>
 void step_impl(const at::Tensor& X, const at::Tensor& M, const std::vector<at::Tensor>& hs,
                const std::vector<at::Tensor>& cs, const std::vector<at::Tensor>& Wcs,
-               std::vector<at::Tensor>& hs_out, std::vector<at::Tensor>& cs_out, int64_t nchunks) {
+               const std::vector<at::Tensor>& Ps, std::vector<at::Tensor>& hs_out,
+               std::vector<at::Tensor>& cs_out, int64_t nchunks) {
   const int64_t B = X.size(0), I0 = X.size(1), L = (int64_t)Wcs.size();
   const T* m_ = M.data_ptr<T>();
   at::parallel_for(0, nchunks, 1, [&](int64_t k0, int64_t k1) {
@@ -294,6 +267,9 @@ void step_impl(const at::Tensor& X, const at::Tensor& M, const std::vector<at::T
         g.resize(nb * H4);
         const T* h_ = hs[l].data_ptr<T>() + b0 * H;
         const T* c_ = cs[l].data_ptr<T>() + b0 * H;
+        const T* pi = PEEP ? Ps[l].data_ptr<T>() : nullptr;
+        const T* pf = PEEP ? pi + H : nullptr;
+        const T* po = PEEP ? pi + 2 * H : nullptr;
         for (int64_t r = 0; r < nb; ++r) {
           const T m = m_[b0 + r];
           T* row = xh.data() + r * K;
@@ -313,10 +289,19 @@ void step_impl(const at::Tensor& X, const at::Tensor& M, const std::vector<at::T
           T* cor = co + r * H;
 #pragma omp simd
           for (int64_t j = 0; j < H; ++j) {
-            const T i = sigm(gr[j]), f = sigm(gr[H + j]), gg = tanh_(gr[2 * H + j]), o = sigm(gr[3 * H + j]);
-            const T c = f * (cr[j] * m) + i * gg;
-            cor[j] = c;
-            hor[j] = o * tanh_(c);
+            if constexpr (PEEP) {
+              const T cp = cr[j] * m;
+              const T i = sigm(gr[j] + pi[j] * cp), f = sigm(gr[H + j] + pf[j] * cp), gg = tanh_(gr[2 * H + j]);
+              const T c = f * cp + i * gg;
+              const T o = sigm(gr[3 * H + j] + po[j] * c);
+              cor[j] = c;
+              hor[j] = o * tanh_(c);
+            } else {
+              const T i = sigm(gr[j]), f = sigm(gr[H + j]), gg = tanh_(gr[2 * H + j]), o = sigm(gr[3 * H + j]);
+              const T c = f * (cr[j] * m) + i * gg;
+              cor[j] = c;
+              hor[j] = o * tanh_(c);
+            }
           }
         }
         in = ho; I = H; ld_in = H;   // next layer's input = this layer's new h (rows b0..b1)
@@ -326,16 +311,19 @@ void step_impl(const at::Tensor& X, const at::Tensor& M, const std::vector<at::T
   });
 }
 
-void check(const at::Tensor& t, const char* name) {
-  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
-  TORCH_CHECK(t.device().is_cpu(), name, " must be on CPU");
+// The peephole weights P (3,H) of a layer with H units: contiguous CPU, the layer's dtype.
+void check_peephole(const at::Tensor& P, int64_t H, const at::Tensor& like) {
+  check(P, "peephole");
+  TORCH_CHECK(P.dim() == 2 && P.size(0) == 3 && P.size(1) == H, "peephole must be (3, H)");
+  TORCH_CHECK(P.scalar_type() == like.scalar_type(), "dtype mismatch");
 }
 
 }  // namespace
 
+// P: peephole weights (3,H), or None for the plain LSTM.
 void lstm_fwd_cat(at::Tensor X, at::Tensor M, at::Tensor h0, at::Tensor c0, at::Tensor Wc,
-                  at::Tensor XH, at::Tensor S, at::Tensor Hs, at::Tensor C, at::Tensor CP,
-                  int64_t nchunks) {
+                  c10::optional<at::Tensor> P, at::Tensor XH, at::Tensor S, at::Tensor Hs, at::Tensor C,
+                  at::Tensor CP, int64_t nchunks) {
   for (auto* p : {&X, &M, &h0, &c0, &Wc, &XH, &S, &Hs, &C, &CP}) check(*p, "tensor");
   TORCH_CHECK(X.dim() == 3 && Wc.dim() == 2 && Wc.size(0) % 4 == 0);
   const int64_t TT = X.size(0), B = X.size(1), I = X.size(2), H = Wc.size(0) / 4, K = I + H + 1;
@@ -345,15 +333,20 @@ void lstm_fwd_cat(at::Tensor X, at::Tensor M, at::Tensor h0, at::Tensor c0, at::
               C.numel() == TT * B * H && CP.numel() == TT * B * H);
   for (auto* p : {&M, &h0, &c0, &Wc, &XH, &S, &Hs, &C, &CP})
     TORCH_CHECK(p->scalar_type() == X.scalar_type(), "dtype mismatch");
+  if (P.has_value()) check_peephole(*P, H, X);
   AT_DISPATCH_FLOATING_TYPES(X.scalar_type(), "lstm_fwd_cat", [&] {
-    fwd_cat_impl<scalar_t>(X, M, h0, c0, Wc, XH, S, Hs, C, CP, nchunks);
+    if (P.has_value())
+      fwd_cat_impl<scalar_t, true>(X, M, h0, c0, Wc, P->data_ptr<scalar_t>(), XH, S, Hs, C, CP, nchunks);
+    else
+      fwd_cat_impl<scalar_t, false>(X, M, h0, c0, Wc, nullptr, XH, S, Hs, C, CP, nchunks);
   });
 }
 
+// P / dPparts: peephole weights (3,H) and their per-block gradients (nchunks,3,H), both None for the plain LSTM.
 void lstm_bwd_cat(at::Tensor S, at::Tensor C, at::Tensor CP, at::Tensor M, at::Tensor Wc,
-                  at::Tensor XH, int64_t I, at::Tensor dHs, c10::optional<at::Tensor> dCs,
-                  at::Tensor dcT, c10::optional<at::Tensor> dX, at::Tensor dWparts, at::Tensor dh0,
-                  at::Tensor dc0) {
+                  c10::optional<at::Tensor> P, at::Tensor XH, int64_t I, at::Tensor dHs,
+                  c10::optional<at::Tensor> dCs, at::Tensor dcT, c10::optional<at::Tensor> dX,
+                  at::Tensor dWparts, c10::optional<at::Tensor> dPparts, at::Tensor dh0, at::Tensor dc0) {
   for (auto* p : {&S, &C, &CP, &M, &Wc, &XH, &dHs, &dcT, &dWparts, &dh0, &dc0}) check(*p, "tensor");
   if (dCs.has_value()) check(*dCs, "dCs");
   if (dX.has_value()) check(*dX, "dX");
@@ -364,20 +357,34 @@ void lstm_bwd_cat(at::Tensor S, at::Tensor C, at::Tensor CP, at::Tensor M, at::T
               dWparts.size(0) >= 1 && dWparts.size(0) <= B, "dWparts must be (nchunks, 4H, K)");
   if (dCs.has_value()) TORCH_CHECK(dCs->numel() == TT * B * H);
   if (dX.has_value()) TORCH_CHECK(dX->numel() == TT * B * I);
+  TORCH_CHECK(P.has_value() == dPparts.has_value(), "P and dPparts go together");
+  if (P.has_value()) {
+    check_peephole(*P, H, S);
+    check(*dPparts, "dPparts");
+    TORCH_CHECK(dPparts->dim() == 3 && dPparts->size(0) == dWparts.size(0) && dPparts->size(1) == 3 &&
+                dPparts->size(2) == H && dPparts->scalar_type() == S.scalar_type(),
+                "dPparts must be (nchunks, 3, H)");
+  }
   AT_DISPATCH_FLOATING_TYPES(S.scalar_type(), "lstm_bwd_cat", [&] {
-    bwd_cat_impl<scalar_t>(S, C, CP, M, Wc, XH, I, dHs, dCs, dcT, dX, dWparts, dh0, dc0,
-                           dWparts.size(0));
+    if (P.has_value())
+      bwd_cat_impl<scalar_t, true>(S, C, CP, M, Wc, P->data_ptr<scalar_t>(), XH, I, dHs, dCs, dcT, dX, dWparts,
+                                   dPparts->data_ptr<scalar_t>(), dh0, dc0, dWparts.size(0));
+    else
+      bwd_cat_impl<scalar_t, false>(S, C, CP, M, Wc, nullptr, XH, I, dHs, dCs, dcT, dX, dWparts, nullptr, dh0,
+                                    dc0, dWparts.size(0));
   });
 }
 
+// Ps: one peephole (3,H_l) per layer, or empty for the plain LSTM.
 void lstm_stack_step(at::Tensor X, at::Tensor M, std::vector<at::Tensor> hs, std::vector<at::Tensor> cs,
-                     std::vector<at::Tensor> Wcs, std::vector<at::Tensor> hs_out,
+                     std::vector<at::Tensor> Wcs, std::vector<at::Tensor> Ps, std::vector<at::Tensor> hs_out,
                      std::vector<at::Tensor> cs_out, int64_t nchunks) {
   check(X, "X"); check(M, "M");
   const int64_t B = X.size(0), L = (int64_t)Wcs.size();
   TORCH_CHECK(L >= 1 && (int64_t)hs.size() == L && (int64_t)cs.size() == L && (int64_t)hs_out.size() == L &&
               (int64_t)cs_out.size() == L);
-  TORCH_CHECK(M.numel() == B);
+  TORCH_CHECK(Ps.empty() || (int64_t)Ps.size() == L, "one peephole per layer, or none");
+  TORCH_CHECK(M.numel() == B && M.scalar_type() == X.scalar_type());
   int64_t I = X.size(1);
   for (int64_t l = 0; l < L; ++l) {
     for (auto* p : {&hs[l], &cs[l], &Wcs[l], &hs_out[l], &cs_out[l]}) {
@@ -388,16 +395,23 @@ void lstm_stack_step(at::Tensor X, at::Tensor M, std::vector<at::Tensor> hs, std
     TORCH_CHECK(Wcs[l].size(1) == I + H + 1, "Wc must be (4H, I+H+1)");
     TORCH_CHECK(hs[l].numel() == B * H && cs[l].numel() == B * H && hs_out[l].numel() == B * H &&
                 cs_out[l].numel() == B * H);
+    if (!Ps.empty()) check_peephole(Ps[l], H, X);
     I = H;
   }
   nchunks = std::max<int64_t>(1, std::min(nchunks, B));
   AT_DISPATCH_FLOATING_TYPES(X.scalar_type(), "lstm_stack_step", [&] {
-    step_impl<scalar_t>(X, M, hs, cs, Wcs, hs_out, cs_out, nchunks);
+    if (Ps.empty())
+      step_impl<scalar_t, false>(X, M, hs, cs, Wcs, Ps, hs_out, cs_out, nchunks);
+    else
+      step_impl<scalar_t, true>(X, M, hs, cs, Wcs, Ps, hs_out, cs_out, nchunks);
   });
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("lstm_stack_step", &lstm_stack_step, "one no-grad step of a masked LSTM stack (all layers)");
-  m.def("lstm_fwd_cat", &lstm_fwd_cat, "masked LSTM layer forward, input projection fused per step");
-  m.def("lstm_bwd_cat", &lstm_bwd_cat, "masked LSTM layer BPTT, dx fused per step");
+  m.def("lstm_stack_step", &lstm_stack_step, "one no-grad step of a masked (peephole) LSTM stack (all layers)");
+  m.def("lstm_fwd_cat", &lstm_fwd_cat, "masked (peephole) LSTM layer forward, input projection fused per step");
+  m.def("lstm_bwd_cat", &lstm_bwd_cat, "masked (peephole) LSTM layer BPTT, dx fused per step");
+  m.def("gru_stack_step", &gru_stack_step, "one no-grad step of a masked GRU stack (all layers)");
+  m.def("gru_fwd_cat", &gru_fwd_cat, "masked GRU layer forward, input projection fused per step");
+  m.def("gru_bwd_cat", &gru_bwd_cat, "masked GRU layer BPTT, dx fused per step");
 }

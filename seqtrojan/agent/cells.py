@@ -1,0 +1,377 @@
+"""The sequence-model layers an agent can stack: LSTM, peephole LSTM, GRU and a windowed causal Transformer.
+
+Every layer has the same contract, so that training, analysis, interventions, the monitor and the checkpoints work
+on any of them: a per-layer state :class:`~seqtrojan.agent.state.LSTMState` ``(h, c)`` of 2-d tensors (batch, width)
+goes in and comes out of every step, and ``keep`` (1 - episode start) multiplies the state before a step.
+
+- ``lstm``: ``h`` and ``c`` as in :class:`torch.nn.LSTMCell` (the paper's network).
+- ``lstm_peephole``: an LSTM whose input and forget gates also read ``c_{t-1}`` and whose output gate reads
+  ``c_t`` through one diagonal weight per unit (Gers and Schmidhuber, 2000); the peepholes start at zero, so a
+  fresh peephole LSTM computes what a fresh LSTM does.
+- ``gru``: ``h`` as in :class:`torch.nn.GRUCell`; ``c`` has width 0 (a GRU has no cell state).
+- ``transformer``: a causal attention layer over a window of the last ``window`` inputs of the layer (its own one
+  and the ``window - 1`` before it). ``h`` is the layer's output at the current step (what the next layer and the
+  heads read); ``c`` is the window: the previous ``window - 1`` layer inputs, each with a validity flag appended
+  (1 for a real input, 0 for an empty slot), flattened oldest first. A one-step trigger therefore leaves a
+  Transformer's state after ``window - 1`` steps: whatever persists longer is carried by the agent's own
+  trajectory. Positions enter through a learned per-head bias on the attention scores by slot (relative position),
+  so keys and values are computed once per input, not once per (query, slot) pair.
+
+Each layer also says how wide its ``c`` is (:attr:`c_width`) and initialises itself the way the paper's LSTM is
+initialised (orthogonal weights, zero biases, a remembering gate bias).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from seqtrojan.agent import fast_lstm
+from seqtrojan.agent.state import LSTMState
+from seqtrojan.config import CELLS
+
+__all__ = ["CELLS", "CellLayer", "layer_shapes", "make_cell"]
+
+LayerOutput = tuple[torch.Tensor, LSTMState, LSTMState | None]
+"""an unroll's h sequence (T, B, H), its final state, and its (h, c) sequences (each (T, B, ·)) when asked"""
+
+
+class CellLayer(Protocol):
+    """One layer of the stack (see the module docstring)."""
+
+    cell: str
+    input_size: int
+    hidden_size: int
+
+    @property
+    def c_width(self) -> int: ...
+
+    def init_weights(self, forget_bias: float) -> None: ...
+
+    def step(self, x: torch.Tensor, state: LSTMState, fast: bool) -> LSTMState: ...
+
+    def unroll(
+        self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
+    ) -> LayerOutput: ...
+
+
+# ---------------------------------------------------------------------------------------------- LSTM
+def _orthogonal_gates(weight_ih: torch.Tensor, weight_hh: torch.Tensor, *biases: torch.Tensor) -> None:
+    nn.init.orthogonal_(weight_ih)
+    nn.init.orthogonal_(weight_hh)
+    for b in biases:
+        nn.init.zeros_(b)
+
+
+class LSTMLayer(nn.LSTMCell):
+    """:class:`torch.nn.LSTMCell` (same parameters, names and random draws) with the layer contract."""
+
+    cell = "lstm"
+
+    @property
+    def c_width(self) -> int:
+        return self.hidden_size
+
+    def init_weights(self, forget_bias: float) -> None:
+        _orthogonal_gates(self.weight_ih, self.weight_hh, self.bias_ih, self.bias_hh)
+        with torch.no_grad():
+            self.bias_ih[self.hidden_size : 2 * self.hidden_size] = forget_bias  # gate order i, f, g, o
+
+    def step(self, x: torch.Tensor, state: LSTMState, fast: bool) -> LSTMState:
+        h, c = self(x, (state.h, state.c))
+        return LSTMState(h, c)
+
+    def unroll(
+        self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
+    ) -> LayerOutput:
+        if fast:
+            h_seq, c_out = fast_lstm.unroll_layer(self, x, keep.contiguous(), state.h, state.c, return_states)
+            if return_states:
+                return h_seq, LSTMState(h_seq[-1], c_out[-1]), LSTMState(h_seq, c_out)
+            return h_seq, LSTMState(h_seq[-1], c_out), None
+        return _gated_unroll(self, x, state, keep, return_states, peephole=None)
+
+
+class PeepholeLSTMLayer(nn.Module):
+    """An LSTM layer with peephole connections: ``peephole`` (3, H) rows are the input, forget and output gates'
+    diagonal weights on the cell state (``c_{t-1}`` for input and forget, ``c_t`` for output)."""
+
+    cell = "lstm_peephole"
+
+    def __init__(self, input_size: int, hidden_size: int) -> None:
+        super().__init__()
+        self.input_size = input_size
+        self.hidden_size = hidden_size
+        self.weight_ih = nn.Parameter(torch.empty(4 * hidden_size, input_size))
+        self.weight_hh = nn.Parameter(torch.empty(4 * hidden_size, hidden_size))
+        self.bias_ih = nn.Parameter(torch.empty(4 * hidden_size))
+        self.bias_hh = nn.Parameter(torch.empty(4 * hidden_size))
+        self.peephole = nn.Parameter(torch.empty(3, hidden_size))
+        self.init_weights(0.0)
+
+    @property
+    def c_width(self) -> int:
+        return self.hidden_size
+
+    def init_weights(self, forget_bias: float) -> None:
+        _orthogonal_gates(self.weight_ih, self.weight_hh, self.bias_ih, self.bias_hh, self.peephole)
+        with torch.no_grad():
+            self.bias_ih[self.hidden_size : 2 * self.hidden_size] = forget_bias
+
+    def step(self, x: torch.Tensor, state: LSTMState, fast: bool) -> LSTMState:
+        if fast and not torch.is_grad_enabled():
+            ones = torch.ones(x.shape[0], dtype=x.dtype)
+            h, c = fast_lstm.step_peephole_layer(self, x, ones, state.h, state.c)
+            return LSTMState(h, c)
+        keep = torch.ones(1, x.shape[0], dtype=x.dtype, device=x.device)
+        _, final, _ = _gated_unroll(self, x.unsqueeze(0), state, keep, False, peephole=self.peephole)
+        return final
+
+    def unroll(
+        self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
+    ) -> LayerOutput:
+        if fast:
+            h_seq, c_out = fast_lstm.unroll_peephole_layer(self, x, keep.contiguous(), state.h, state.c, return_states)
+            if return_states:
+                return h_seq, LSTMState(h_seq[-1], c_out[-1]), LSTMState(h_seq, c_out)
+            return h_seq, LSTMState(h_seq[-1], c_out), None
+        return _gated_unroll(self, x, state, keep, return_states, peephole=self.peephole)
+
+
+def _gated_unroll(
+    cell: LSTMLayer | PeepholeLSTMLayer,
+    x: torch.Tensor,
+    state: LSTMState,
+    keep: torch.Tensor,
+    return_states: bool,
+    peephole: torch.Tensor | None,
+) -> LayerOutput:
+    """The PyTorch reference of an (optionally peephole) LSTM layer over T steps; ``keep`` (T, B) zeroes the
+    state before a step where it is 0."""
+    steps = x.shape[0]
+    keeps = keep.unsqueeze(-1).unbind(0)  # T x (B, 1)
+    hidden = cell.hidden_size
+    bias = cell.bias_ih + cell.bias_hh
+    projected = torch.addmm(bias, x.reshape(-1, x.shape[-1]), cell.weight_ih.t())  # (T*B, 4H)
+    # unbind, not projected[k]: indexing would make every step's backward build a full-size zero tensor (O(T^2)).
+    gates_x = projected.view(steps, -1, 4 * hidden).unbind(0)
+    w_hh = cell.weight_hh.t()
+    h, c = state.h, state.c
+    hs, cs = [], []
+    for k in range(steps):
+        h = h * keeps[k]
+        c = c * keeps[k]
+        i, f, g, o = torch.addmm(gates_x[k], h, w_hh).chunk(4, 1)
+        if peephole is not None:
+            i = i + peephole[0] * c
+            f = f + peephole[1] * c
+        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+        if peephole is not None:
+            o = o + peephole[2] * c
+        h = torch.sigmoid(o) * torch.tanh(c)
+        hs.append(h)
+        if return_states:
+            cs.append(c)
+    h_seq = torch.stack(hs)
+    seq = LSTMState(h_seq, torch.stack(cs)) if return_states else None
+    return h_seq, LSTMState(h, c), seq
+
+
+# ---------------------------------------------------------------------------------------------- GRU
+class GRULayer(nn.GRUCell):
+    """:class:`torch.nn.GRUCell` with the layer contract; its ``c`` is empty (width 0).
+
+    Initialised like the LSTM: orthogonal weights, zero biases, and the update gate's input bias at
+    ``forget_bias`` (an update gate near 1 keeps the previous h, as a forget gate near 1 keeps c)."""
+
+    cell = "gru"
+
+    @property
+    def c_width(self) -> int:
+        return 0
+
+    def init_weights(self, forget_bias: float) -> None:
+        _orthogonal_gates(self.weight_ih, self.weight_hh, self.bias_ih, self.bias_hh)
+        with torch.no_grad():
+            self.bias_ih[self.hidden_size : 2 * self.hidden_size] = forget_bias  # gate order r, z, n
+
+    def step(self, x: torch.Tensor, state: LSTMState, fast: bool) -> LSTMState:
+        if fast and not torch.is_grad_enabled():
+            ones = torch.ones(x.shape[0], dtype=x.dtype)
+            return LSTMState(fast_lstm.step_gru_layer(self, x, ones, state.h), state.c)
+        return LSTMState(self(x, state.h), state.c)
+
+    def unroll(
+        self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
+    ) -> LayerOutput:
+        empty = state.c
+        if fast:
+            h_seq = fast_lstm.unroll_gru_layer(self, x, keep.contiguous(), state.h, return_states)
+        else:
+            h_seq = self._unroll_torch(x, state.h, keep)
+        seq = LSTMState(h_seq, empty.new_zeros(*h_seq.shape[:2], 0)) if return_states else None
+        return h_seq, LSTMState(h_seq[-1], empty), seq
+
+    def _unroll_torch(self, x: torch.Tensor, h: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
+        steps, hidden = x.shape[0], self.hidden_size
+        projected = torch.addmm(self.bias_ih, x.reshape(-1, x.shape[-1]), self.weight_ih.t())
+        gates_x = projected.view(steps, -1, 3 * hidden).unbind(0)
+        keeps = keep.unsqueeze(-1).unbind(0)
+        w_hh = self.weight_hh.t()
+        hs = []
+        for k in range(steps):
+            h = h * keeps[k]
+            xr, xz, xn = gates_x[k].chunk(3, 1)
+            hr, hz, hn = torch.addmm(self.bias_hh, h, w_hh).chunk(3, 1)
+            r = torch.sigmoid(xr + hr)
+            z = torch.sigmoid(xz + hz)
+            n = torch.tanh(xn + r * hn)
+            h = (1 - z) * n + z * h
+            hs.append(h)
+        return torch.stack(hs)
+
+
+# ---------------------------------------------------------------------------------------------- Transformer
+class WindowAttentionLayer(nn.Module):
+    """A pre-norm Transformer block over the last ``window`` layer inputs, causal by construction.
+
+    For the current input and the ``window - 1`` stored ones: ``e = input(u)``; attention of the current position
+    over the window's valid positions of the same episode (``heads`` heads, scores plus a learned bias per head and
+    slot); ``y = e_t + out(attention)``; ``y = y + mlp(norm(y))``; ``h = norm(y)``.
+    """
+
+    cell = "transformer"
+
+    def __init__(self, input_size: int, hidden_size: int, window: int, heads: int) -> None:
+        super().__init__()
+        if hidden_size % heads:
+            raise ValueError(f"a transformer layer's width ({hidden_size}) must be divisible by its heads ({heads})")
+        self.input_size = input_size
+        self.hidden_size = hidden_size
+        self.window = window
+        self.heads = heads
+        self.input = nn.Linear(input_size, hidden_size)
+        self.norm_attention = nn.LayerNorm(hidden_size)
+        self.qkv = nn.Linear(hidden_size, 3 * hidden_size)
+        self.out = nn.Linear(hidden_size, hidden_size)
+        self.norm_mlp = nn.LayerNorm(hidden_size)
+        self.mlp_in = nn.Linear(hidden_size, 2 * hidden_size)
+        self.mlp_out = nn.Linear(2 * hidden_size, hidden_size)
+        self.norm_out = nn.LayerNorm(hidden_size)
+        self.position_bias = nn.Parameter(torch.zeros(heads, window))
+        """added to the attention scores of each slot (0 the oldest, window - 1 the current step)"""
+        self.init_weights(0.0)
+
+    @property
+    def c_width(self) -> int:
+        return (self.window - 1) * (self.input_size + 1)
+
+    def init_weights(self, forget_bias: float) -> None:
+        """Orthogonal linear weights, zero biases and position biases (``forget_bias`` has no analogue here)."""
+        for layer in (self.input, self.qkv, self.out, self.mlp_in, self.mlp_out):
+            nn.init.orthogonal_(layer.weight)
+            nn.init.zeros_(layer.bias)
+        nn.init.zeros_(self.position_bias)
+        for norm in (self.norm_attention, self.norm_mlp, self.norm_out):
+            norm.reset_parameters()
+
+    def _block(self, e: torch.Tensor, keys: torch.Tensor, values: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
+        """Current embeddings ``e`` (..., W); per-slot keys and values (..., heads, d, window); ``allowed``
+        (..., window)."""
+        heads, d = self.heads, self.hidden_size // self.heads
+        q = self.qkv(self.norm_attention(e))[..., : self.hidden_size].unflatten(-1, (heads, d))  # (..., heads, d)
+        scores = torch.einsum("...hd,...hdk->...hk", q, keys) / math.sqrt(d) + self.position_bias
+        scores = scores.masked_fill(~allowed.unsqueeze(-2), float("-inf"))
+        attended = torch.einsum("...hk,...hdk->...hd", torch.softmax(scores, -1), values).flatten(-2)
+        y = e + self.out(attended)
+        y = y + self.mlp_out(F.relu(self.mlp_in(self.norm_mlp(y))))
+        return self.norm_out(y)
+
+    def _keys_values(self, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keys and values (..., heads, d) of embeddings ``e`` (..., W)."""
+        kv = self.qkv(self.norm_attention(e))[..., self.hidden_size :]
+        k, v = kv.chunk(2, -1)
+        shape = (self.heads, self.hidden_size // self.heads)
+        return k.unflatten(-1, shape), v.unflatten(-1, shape)
+
+    def step(self, x: torch.Tensor, state: LSTMState, fast: bool) -> LSTMState:
+        batch = x.shape[0]
+        window = state.c.view(batch, self.window - 1, self.input_size + 1)
+        current = torch.cat([x, x.new_ones(batch, 1)], -1).unsqueeze(1)
+        slots = torch.cat([window, current], 1)  # (B, window, I + 1)
+        e = self.input(slots[..., :-1])  # (B, window, W)
+        k, v = self._keys_values(e)  # (B, window, heads, d)
+        h = self._block(e[:, -1], k.permute(0, 2, 3, 1), v.permute(0, 2, 3, 1), slots[..., -1] > 0)
+        return LSTMState(h, slots[:, 1:].reshape(batch, -1))
+
+    def unroll(
+        self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
+    ) -> LayerOutput:
+        steps, batch = x.shape[:2]
+        w = self.window
+        prefix = (state.c.view(batch, w - 1, self.input_size + 1) * keep[0].view(batch, 1, 1)).transpose(0, 1)
+        inputs = torch.cat([prefix, torch.cat([x, x.new_ones(steps, batch, 1)], -1)])  # (w - 1 + T, B, I + 1)
+        # episode of each position: the prefix is episode 0, and every episode start inside the chunk opens the next
+        episode = torch.cat([keep.new_zeros(w - 1, batch), torch.cumsum(1 - keep, 0)])  # (w - 1 + T, B)
+        e = self.input(inputs[..., :-1])  # (w - 1 + T, B, W)
+        k, v = self._keys_values(e)  # (w - 1 + T, B, heads, d)
+        keys, values = k.unfold(0, w, 1), v.unfold(0, w, 1)  # (T, B, heads, d, w)
+        same_episode = episode.unfold(0, w, 1) == episode[w - 1 :].unsqueeze(-1)  # (T, B, w)
+        allowed = (inputs[..., -1].unfold(0, w, 1) > 0) & same_episode
+        h_seq = self._block(e[w - 1 :], keys, values, allowed)
+        # the state after each step: the window's newest w - 1 inputs, emptied where they precede an episode start
+        if return_states:
+            windows = self._windows(inputs, episode, range(1, steps + 1))
+            return h_seq, LSTMState(h_seq[-1], windows[-1]), LSTMState(h_seq, windows)
+        final = self._windows(inputs, episode, range(steps, steps + 1))[0]
+        return h_seq, LSTMState(h_seq[-1], final), None
+
+    def _windows(self, inputs: torch.Tensor, episode: torch.Tensor, starts: range) -> torch.Tensor:
+        """The stored windows (len(starts), B, c_width): positions s .. s + window - 2 of ``inputs``, each kept
+        only if it belongs to the episode of the window's newest position."""
+        w = self.window
+        if w == 1:
+            return inputs.new_zeros(len(starts), inputs.shape[1], 0)
+        index = torch.tensor([list(range(s, s + w - 1)) for s in starts], device=inputs.device)  # (N, w - 1)
+        picked = inputs[index]  # (N, w - 1, B, I + 1)
+        same = (episode[index] == episode[index[:, -1:]]).unsqueeze(-1)  # (N, w - 1, B, 1)
+        return (picked * same).permute(0, 2, 1, 3).flatten(2)
+
+
+def make_cell(cell: str, input_size: int, hidden_size: int, window: int = 8, heads: int = 1) -> nn.Module:
+    """One layer of the named cell (see :data:`CELLS`)."""
+    if cell == "lstm":
+        return LSTMLayer(input_size, hidden_size)
+    if cell == "lstm_peephole":
+        return PeepholeLSTMLayer(input_size, hidden_size)
+    if cell == "gru":
+        return GRULayer(input_size, hidden_size)
+    if cell == "transformer":
+        return WindowAttentionLayer(input_size, hidden_size, window, heads)
+    raise ValueError(f"unknown cell {cell!r}; known: {', '.join(CELLS)}")
+
+
+def layer_shapes(cell: str, input_size: int, width: int, window: int = 8, heads: int = 1) -> dict[str, tuple[int, ...]]:
+    """One layer's parameter names and shapes (as in its state_dict), computed without building it (a model card is
+    checked against them before anything is allocated)."""
+    if cell in ("lstm", "lstm_peephole", "gru"):
+        rows = (3 if cell == "gru" else 4) * width
+        shapes = {"weight_ih": (rows, input_size), "weight_hh": (rows, width), "bias_ih": (rows,), "bias_hh": (rows,)}
+        if cell == "lstm_peephole":
+            shapes["peephole"] = (3, width)
+        return shapes
+    if cell == "transformer":
+        linears = {"input": (width, input_size), "qkv": (3 * width, width), "out": (width, width),
+                   "mlp_in": (2 * width, width), "mlp_out": (width, 2 * width)}  # fmt: skip
+        shapes = {}
+        for name, (rows, cols) in linears.items():
+            shapes[f"{name}.weight"], shapes[f"{name}.bias"] = (rows, cols), (rows,)
+        for norm in ("norm_attention", "norm_mlp", "norm_out"):
+            shapes[f"{norm}.weight"], shapes[f"{norm}.bias"] = (width,), (width,)
+        shapes["position_bias"] = (heads, window)
+        return shapes
+    raise ValueError(f"unknown cell {cell!r}; known: {', '.join(CELLS)}")
