@@ -2,10 +2,14 @@
 
     python benchmarks/train_throughput.py                  # both parts, CPU
     python benchmarks/train_throughput.py --part speed     # throughput only
+    python benchmarks/train_throughput.py --part cells     # throughput of each sequence model (agent.cell)
     python benchmarks/train_throughput.py --device cuda
 
 Throughput: env steps per second of the whole PPO loop (collect + GAE + 4 epochs of minibatch updates) with the
 paper's network (54 -> LSTM 64 -> LSTM 32), median over updates 2-6, for each LSTM backend.
+Cells: the same loop and widths (64, 32) with each sequence model: the LSTM, peephole LSTM and GRU on their fused
+C++ kernels and on the PyTorch path, the windowed Transformer (window 8, PyTorch only: its training unroll is one
+batched attention over the window, not a time loop).
 Time to 90%: the clean_7x7 preset (curriculum 5x5/0 -> 5x5/1 -> 7x7/3), stopped at the first update whose 7x7/3
 rollout episodes succeed >= 90%; then 1000 fresh evaluation episodes confirm the rate. Several seeds.
 Run it alone on the machine.
@@ -29,7 +33,7 @@ from rich.console import Console
 from rich.table import Table
 
 from seqtrojan.agent import fast_lstm
-from seqtrojan.config import ExperimentConfig, PPOConfig, RunConfig
+from seqtrojan.config import CELLS, AgentConfig, ExperimentConfig, PPOConfig, RunConfig
 from seqtrojan.env import EnvConfig
 from seqtrojan.serde import from_dict, load_yaml
 from seqtrojan.train.trainer import train
@@ -37,9 +41,12 @@ from seqtrojan.train.trainer import train
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def measure_speed(size: int, holes: int, num_envs: int, backend: str, device: str, out_dir: str) -> float:
+def measure_speed(
+    size: int, holes: int, num_envs: int, backend: str, device: str, out_dir: str, cell: str = "lstm"
+) -> float:
     cfg = ExperimentConfig(
         env=EnvConfig(size=size, holes=holes),
+        agent=AgentConfig(cell=cell),
         ppo=PPOConfig(total_steps=num_envs * 64 * 6, num_envs=num_envs, rollout_steps=64),
         run=RunConfig(
             out_dir=out_dir,
@@ -77,7 +84,7 @@ def time_to_90(seed: int, device: str, out_dir: str, curriculum: bool = True) ->
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--part", choices=("speed", "time", "all"), default="all")
+    parser.add_argument("--part", choices=("speed", "cells", "time", "all"), default="all")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--json", default=None)
@@ -98,6 +105,20 @@ def main() -> None:
                     rates = {b: measure_speed(size, holes, envs, b, args.device, tmp) for b in backends}
                     report["speed"].append({"grid": f"{size}x{size}/{holes}", "envs": envs, **rates})
                     table.add_row(f"{size}x{size}/{holes}", str(envs), *(f"{rates[b]:,.0f}" for b in backends))
+            console.print(table)
+        if args.part in ("cells", "all"):
+            kernels = args.device == "cpu" and fast_lstm.extension() is not None
+            table = Table(title=f"PPO training throughput per cell, env steps/s ({args.device}, 512 envs)")
+            for col in ("cell", "grid", "torch", "cpp"):
+                table.add_column(col, justify="right")
+            report["cells"] = []
+            for cell in CELLS:
+                for size, holes in ((7, 3), (17, 30)):
+                    backends = ["torch"] + (["cpp"] if kernels and cell != "transformer" else [])
+                    rates = {b: measure_speed(size, holes, 512, b, args.device, tmp, cell) for b in backends}
+                    report["cells"].append({"cell": cell, "grid": f"{size}x{size}/{holes}", **rates})
+                    shown = [f"{rates[b]:,.0f}" if b in rates else "-" for b in ("torch", "cpp")]
+                    table.add_row(cell, f"{size}x{size}/{holes}", *shown)
             console.print(table)
         if args.part in ("time", "all"):
             report["time_to_90"] = []

@@ -11,8 +11,8 @@ goes in and comes out of every step, and ``keep`` (1 - episode start) multiplies
 - ``gru``: ``h`` as in :class:`torch.nn.GRUCell`; ``c`` has width 0 (a GRU has no cell state).
 - ``transformer``: a causal attention layer over a window of the last ``window`` inputs of the layer (its own one
   and the ``window - 1`` before it). ``h`` is the layer's output at the current step (what the next layer and the
-  heads read); ``c`` is the window: the previous ``window - 1`` layer inputs, each with a validity flag appended
-  (1 for a real input, 0 for an empty slot), flattened oldest first. A one-step trigger therefore leaves a
+  heads read); ``c`` is the key-value cache of the previous ``window - 1`` inputs: per slot, oldest first, the key,
+  the value and a validity flag (1 for a real input, 0 for an empty slot). A one-step trigger therefore leaves a
   Transformer's state after ``window - 1`` steps: whatever persists longer is carried by the agent's own
   trajectory. Positions enter through a learned per-head bias on the attention scores by slot (relative position),
   so keys and values are computed once per input, not once per (query, slot) pair.
@@ -52,7 +52,9 @@ class CellLayer(Protocol):
 
     def init_weights(self, forget_bias: float) -> None: ...
 
-    def step(self, x: torch.Tensor, state: LSTMState, fast: bool) -> LSTMState: ...
+    def step(self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor | None, fast: bool) -> LSTMState:
+        """One step from ``state``, multiplied by ``keep`` (B,) first when given (0: an episode starts)."""
+        ...
 
     def unroll(
         self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
@@ -81,7 +83,9 @@ class LSTMLayer(nn.LSTMCell):
         with torch.no_grad():
             self.bias_ih[self.hidden_size : 2 * self.hidden_size] = forget_bias  # gate order i, f, g, o
 
-    def step(self, x: torch.Tensor, state: LSTMState, fast: bool) -> LSTMState:
+    def step(self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor | None, fast: bool) -> LSTMState:
+        if keep is not None:
+            state = LSTMState(state.h * keep[:, None], state.c * keep[:, None])
         h, c = self(x, (state.h, state.c))
         return LSTMState(h, c)
 
@@ -122,13 +126,12 @@ class PeepholeLSTMLayer(nn.Module):
         with torch.no_grad():
             self.bias_ih[self.hidden_size : 2 * self.hidden_size] = forget_bias
 
-    def step(self, x: torch.Tensor, state: LSTMState, fast: bool) -> LSTMState:
+    def step(self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor | None, fast: bool) -> LSTMState:
+        keep = torch.ones(x.shape[0], dtype=x.dtype, device=x.device) if keep is None else keep
         if fast and not torch.is_grad_enabled():
-            ones = torch.ones(x.shape[0], dtype=x.dtype)
-            h, c = fast_lstm.step_peephole_layer(self, x, ones, state.h, state.c)
+            h, c = fast_lstm.step_peephole_layer(self, x, keep.contiguous(), state.h, state.c)
             return LSTMState(h, c)
-        keep = torch.ones(1, x.shape[0], dtype=x.dtype, device=x.device)
-        _, final, _ = _gated_unroll(self, x.unsqueeze(0), state, keep, False, peephole=self.peephole)
+        _, final, _ = _gated_unroll(self, x.unsqueeze(0), state, keep.unsqueeze(0), False, peephole=self.peephole)
         return final
 
     def unroll(
@@ -199,11 +202,12 @@ class GRULayer(nn.GRUCell):
         with torch.no_grad():
             self.bias_ih[self.hidden_size : 2 * self.hidden_size] = forget_bias  # gate order r, z, n
 
-    def step(self, x: torch.Tensor, state: LSTMState, fast: bool) -> LSTMState:
+    def step(self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor | None, fast: bool) -> LSTMState:
         if fast and not torch.is_grad_enabled():
-            ones = torch.ones(x.shape[0], dtype=x.dtype)
-            return LSTMState(fast_lstm.step_gru_layer(self, x, ones, state.h), state.c)
-        return LSTMState(self(x, state.h), state.c)
+            keep = torch.ones(x.shape[0], dtype=x.dtype) if keep is None else keep
+            return LSTMState(fast_lstm.step_gru_layer(self, x, keep.contiguous(), state.h), state.c)
+        h = state.h if keep is None else state.h * keep[:, None]
+        return LSTMState(self(x, h), state.c)
 
     def unroll(
         self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
@@ -239,9 +243,14 @@ class GRULayer(nn.GRUCell):
 class WindowAttentionLayer(nn.Module):
     """A pre-norm Transformer block over the last ``window`` layer inputs, causal by construction.
 
-    For the current input and the ``window - 1`` stored ones: ``e = input(u)``; attention of the current position
-    over the window's valid positions of the same episode (``heads`` heads, scores plus a learned bias per head and
-    slot); ``y = e_t + out(attention)``; ``y = y + mlp(norm(y))``; ``h = norm(y)``.
+    For the current input ``x``: ``e = input(x)``; its query attends over the keys and values of the current input
+    and of the ``window - 1`` before it (``heads`` heads; scores plus a learned bias per head and slot; only valid
+    slots of the same episode); ``y = e + out(attention)``; ``y = y + mlp(norm(y))``; ``h = norm(y)``.
+
+    The state ``c`` is the key-value cache of the ``window - 1`` previous inputs: per slot (oldest first) the key,
+    the value and a validity flag (0 for an empty slot), so that a step computes one new key and value, not
+    ``window`` of them. As with an LSTM's stored state, a training unroll starts from the cache the rollout
+    recorded (computed with the weights of that time); inside the unroll everything is recomputed.
     """
 
     cell = "transformer"
@@ -259,16 +268,21 @@ class WindowAttentionLayer(nn.Module):
         self.qkv = nn.Linear(hidden_size, 3 * hidden_size)
         self.out = nn.Linear(hidden_size, hidden_size)
         self.norm_mlp = nn.LayerNorm(hidden_size)
-        self.mlp_in = nn.Linear(hidden_size, 2 * hidden_size)
-        self.mlp_out = nn.Linear(2 * hidden_size, hidden_size)
+        self.mlp_in = nn.Linear(hidden_size, hidden_size)
+        self.mlp_out = nn.Linear(hidden_size, hidden_size)
         self.norm_out = nn.LayerNorm(hidden_size)
         self.position_bias = nn.Parameter(torch.zeros(heads, window))
         """added to the attention scores of each slot (0 the oldest, window - 1 the current step)"""
         self.init_weights(0.0)
 
     @property
+    def slot_width(self) -> int:
+        """one cached input: its key, its value and its validity flag"""
+        return 2 * self.hidden_size + 1
+
+    @property
     def c_width(self) -> int:
-        return (self.window - 1) * (self.input_size + 1)
+        return (self.window - 1) * self.slot_width
 
     def init_weights(self, forget_bias: float) -> None:
         """Orthogonal linear weights, zero biases and position biases (``forget_bias`` has no analogue here)."""
@@ -279,65 +293,81 @@ class WindowAttentionLayer(nn.Module):
         for norm in (self.norm_attention, self.norm_mlp, self.norm_out):
             norm.reset_parameters()
 
-    def _block(self, e: torch.Tensor, keys: torch.Tensor, values: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
-        """Current embeddings ``e`` (..., W); per-slot keys and values (..., heads, d, window); ``allowed``
-        (..., window)."""
-        heads, d = self.heads, self.hidden_size // self.heads
-        q = self.qkv(self.norm_attention(e))[..., : self.hidden_size].unflatten(-1, (heads, d))  # (..., heads, d)
-        scores = torch.einsum("...hd,...hdk->...hk", q, keys) / math.sqrt(d) + self.position_bias
-        scores = scores.masked_fill(~allowed.unsqueeze(-2), float("-inf"))
-        attended = torch.einsum("...hk,...hdk->...hd", torch.softmax(scores, -1), values).flatten(-2)
+    def _project(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Embeddings ``e`` (..., W), queries (..., heads, d) and the cache slots [key | value | 1] (..., 2W + 1)."""
+        e = self.input(x)
+        q, kv = self.qkv(self.norm_attention(e)).split((self.hidden_size, 2 * self.hidden_size), -1)
+        slots = torch.cat([kv, kv.new_ones(*kv.shape[:-1], 1)], -1)
+        return e, q.unflatten(-1, (self.heads, self.hidden_size // self.heads)), slots
+
+    def _finish(self, e: torch.Tensor, attended: torch.Tensor) -> torch.Tensor:
+        """The rest of the block after attention: residual, MLP, output norm."""
         y = e + self.out(attended)
         y = y + self.mlp_out(F.relu(self.mlp_in(self.norm_mlp(y))))
         return self.norm_out(y)
 
-    def _keys_values(self, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Keys and values (..., heads, d) of embeddings ``e`` (..., W)."""
-        kv = self.qkv(self.norm_attention(e))[..., self.hidden_size :]
-        k, v = kv.chunk(2, -1)
-        shape = (self.heads, self.hidden_size // self.heads)
-        return k.unflatten(-1, shape), v.unflatten(-1, shape)
-
-    def step(self, x: torch.Tensor, state: LSTMState, fast: bool) -> LSTMState:
-        batch = x.shape[0]
-        window = state.c.view(batch, self.window - 1, self.input_size + 1)
-        current = torch.cat([x, x.new_ones(batch, 1)], -1).unsqueeze(1)
-        slots = torch.cat([window, current], 1)  # (B, window, I + 1)
-        e = self.input(slots[..., :-1])  # (B, window, W)
-        k, v = self._keys_values(e)  # (B, window, heads, d)
-        h = self._block(e[:, -1], k.permute(0, 2, 3, 1), v.permute(0, 2, 3, 1), slots[..., -1] > 0)
-        return LSTMState(h, slots[:, 1:].reshape(batch, -1))
+    def step(self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor | None, fast: bool) -> LSTMState:
+        batch, w, width = x.shape[0], self.window, self.slot_width
+        e = self.input(x)
+        q, kv = self.qkv(self.norm_attention(e)).split((self.hidden_size, 2 * self.hidden_size), -1)
+        # one buffer of all window slots; the next state is a view of its newest w - 1 (no second copy)
+        slots = x.new_empty(batch, w, width)
+        cache = state.c.reshape(batch, w - 1, width)
+        slots[:, : w - 1] = cache if keep is None else cache * keep.view(batch, 1, 1)
+        slots[:, -1, :-1] = kv
+        slots[:, -1, -1] = 1.0
+        heads, d = self.heads, self.hidden_size // self.heads
+        keys = slots[..., : self.hidden_size].unflatten(-1, (heads, d))  # (B, w, heads, d)
+        values = slots[..., self.hidden_size : 2 * self.hidden_size].unflatten(-1, (heads, d))
+        scores = (keys * q.unflatten(-1, (heads, d)).unsqueeze(1)).sum(-1) / math.sqrt(d)  # (B, w, heads)
+        scores = (scores + self.position_bias.t()).masked_fill((slots[..., -1] <= 0).unsqueeze(-1), float("-inf"))
+        attended = (torch.softmax(scores, 1).unsqueeze(-1) * values).sum(1).flatten(-2)  # (B, W)
+        return LSTMState(self._finish(e, attended), slots.view(batch, w * width)[:, width:])
 
     def unroll(
         self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
     ) -> LayerOutput:
         steps, batch = x.shape[:2]
         w = self.window
-        prefix = (state.c.view(batch, w - 1, self.input_size + 1) * keep[0].view(batch, 1, 1)).transpose(0, 1)
-        inputs = torch.cat([prefix, torch.cat([x, x.new_ones(steps, batch, 1)], -1)])  # (w - 1 + T, B, I + 1)
+        prefix = (state.c.reshape(batch, w - 1, self.slot_width) * keep[0].view(batch, 1, 1)).transpose(0, 1)
+        e, q, slots = self._project(x)  # (T, B, .)
+        slots = torch.cat([prefix, slots])  # (w - 1 + T, B, 2W + 1)
         # episode of each position: the prefix is episode 0, and every episode start inside the chunk opens the next
         episode = torch.cat([keep.new_zeros(w - 1, batch), torch.cumsum(1 - keep, 0)])  # (w - 1 + T, B)
-        e = self.input(inputs[..., :-1])  # (w - 1 + T, B, W)
-        k, v = self._keys_values(e)  # (w - 1 + T, B, heads, d)
-        keys, values = k.unfold(0, w, 1), v.unfold(0, w, 1)  # (T, B, heads, d, w)
-        same_episode = episode.unfold(0, w, 1) == episode[w - 1 :].unsqueeze(-1)  # (T, B, w)
-        allowed = (inputs[..., -1].unfold(0, w, 1) > 0) & same_episode
-        h_seq = self._block(e[w - 1 :], keys, values, allowed)
-        # the state after each step: the window's newest w - 1 inputs, emptied where they precede an episode start
+        h_seq = self._finish(e, self._band_attention(q, slots, episode))
+        # the state after each step: the newest w - 1 slots, emptied where they precede an episode start
         if return_states:
-            windows = self._windows(inputs, episode, range(1, steps + 1))
-            return h_seq, LSTMState(h_seq[-1], windows[-1]), LSTMState(h_seq, windows)
-        final = self._windows(inputs, episode, range(steps, steps + 1))[0]
+            caches = self._caches(slots, episode, range(1, steps + 1))
+            return h_seq, LSTMState(h_seq[-1], caches[-1]), LSTMState(h_seq, caches)
+        final = self._caches(slots, episode, range(steps, steps + 1))[0]
         return h_seq, LSTMState(h_seq[-1], final), None
 
-    def _windows(self, inputs: torch.Tensor, episode: torch.Tensor, starts: range) -> torch.Tensor:
-        """The stored windows (len(starts), B, c_width): positions s .. s + window - 2 of ``inputs``, each kept
-        only if it belongs to the episode of the window's newest position."""
+    def _band_attention(self, q: torch.Tensor, slots: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
+        """Attention of T queries (T, B, heads, d) over the w - 1 + T cache slots (w - 1 + T, B, 2W + 1), each
+        query reading the window of slots ending at its own (a band), valid and of its episode: as one batched
+        matrix product over all positions, whose backward is far cheaper than that of per-window views."""
+        steps, w, heads = q.shape[0], self.window, self.heads
+        d, width = self.hidden_size // heads, self.hidden_size
+        keys = slots[..., :width].unflatten(-1, (heads, d)).permute(1, 2, 0, 3)  # (B, heads, P, d)
+        values = slots[..., width : 2 * width].unflatten(-1, (heads, d)).permute(1, 2, 0, 3)
+        offset = torch.arange(slots.shape[0], device=q.device)[None, :] - torch.arange(steps, device=q.device)[:, None]
+        band = (offset >= 0) & (offset < w)  # (T, P): the slot of key p for query t is p - t
+        bias = self.position_bias[:, offset.clamp(0, w - 1)]  # (heads, T, P)
+        same = episode.t()[:, None, :] == episode[w - 1 :].t()[:, :, None]  # (B, T, P)
+        allowed = band & (slots[..., -1].t() > 0)[:, None, :] & same
+        scores = q.permute(1, 2, 0, 3) @ keys.transpose(-1, -2) / math.sqrt(d) + bias  # (B, heads, T, P)
+        scores = scores.masked_fill(~allowed[:, None], float("-inf"))
+        attended = torch.softmax(scores, -1) @ values  # (B, heads, T, d)
+        return attended.permute(2, 0, 1, 3).flatten(-2)  # (T, B, W)
+
+    def _caches(self, slots: torch.Tensor, episode: torch.Tensor, starts: range) -> torch.Tensor:
+        """The stored caches (len(starts), B, c_width): positions s .. s + window - 2 of ``slots``, each kept only
+        if it belongs to the episode of the cache's newest position."""
         w = self.window
         if w == 1:
-            return inputs.new_zeros(len(starts), inputs.shape[1], 0)
-        index = torch.tensor([list(range(s, s + w - 1)) for s in starts], device=inputs.device)  # (N, w - 1)
-        picked = inputs[index]  # (N, w - 1, B, I + 1)
+            return slots.new_zeros(len(starts), slots.shape[1], 0)
+        index = torch.tensor([list(range(s, s + w - 1)) for s in starts], device=slots.device)  # (N, w - 1)
+        picked = slots[index]  # (N, w - 1, B, 2W + 1)
         same = (episode[index] == episode[index[:, -1:]]).unsqueeze(-1)  # (N, w - 1, B, 1)
         return (picked * same).permute(0, 2, 1, 3).flatten(2)
 
@@ -366,7 +396,7 @@ def layer_shapes(cell: str, input_size: int, width: int, window: int = 8, heads:
         return shapes
     if cell == "transformer":
         linears = {"input": (width, input_size), "qkv": (3 * width, width), "out": (width, width),
-                   "mlp_in": (2 * width, width), "mlp_out": (width, 2 * width)}  # fmt: skip
+                   "mlp_in": (width, width), "mlp_out": (width, width)}  # fmt: skip
         shapes = {}
         for name, (rows, cols) in linears.items():
             shapes[f"{name}.weight"], shapes[f"{name}.bias"] = (rows, cols), (rows,)

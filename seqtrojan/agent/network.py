@@ -191,18 +191,19 @@ class RecurrentActorCritic(nn.Module):
         if not self.memory:
             episode_start = torch.ones(obs.shape[0], dtype=torch.bool, device=obs.device)
         fast = not torch.is_grad_enabled() and self.cell != "transformer" and self._fast(obs)
+        keep = None if episode_start is None else (~episode_start.bool()).to(obs.dtype)
         if intervention is None and fast and self.cell == "lstm":
-            keep = torch.ones(obs.shape[0], dtype=obs.dtype) if episode_start is None else (~episode_start.bool())
+            ones = torch.ones(obs.shape[0], dtype=obs.dtype)
             x = self.encode(obs)
-            new = fast_lstm.step_stack(self.cells, x, keep.to(obs.dtype), list(state.layers), self._weight_cache)
+            new = fast_lstm.step_stack(
+                self.cells, x, ones if keep is None else keep, list(state.layers), self._weight_cache
+            )
             fast_layers = tuple(LSTMState(h, c) for h, c in new)
             return StepOutput(*self.heads(new[-1][0]), RecurrentState(fast_layers))
-        if episode_start is not None:
-            state = state.mask(episode_start)
         x = self.encode(obs)
         layers = []
         for i, layer in enumerate(self.layers):
-            s = layer.step(x, state.layers[i], fast)
+            s = layer.step(x, state.layers[i], keep, fast)
             if intervention is not None:
                 s = intervention(i, t, s)
             layers.append(s)

@@ -67,7 +67,7 @@ def test_state_widths_per_cell():
     assert _network("lstm").c_widths == (12, 8)
     assert _network("lstm_peephole").c_widths == (12, 8)
     assert _network("gru").c_widths == (0, 0)  # a GRU has no cell state
-    assert _network("transformer").c_widths == (3 * 55, 3 * 13)  # window - 1 inputs, each with its validity flag
+    assert _network("transformer").c_widths == (3 * 25, 3 * 17)  # window - 1 cached [key | value | valid] slots
 
 
 def test_gru_layer_is_torch_gru_cell():

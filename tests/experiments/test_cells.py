@@ -91,7 +91,7 @@ def test_units_needed_is_the_first_count_that_switches_half():
 @pytest.mark.parametrize(
     ("text", "message"),
     [("cells: [lstm, mamba]", "cells must name one or more of"), ("seeds: 0", "cells.seeds"),
-     ("monitors: [nope]", "nope"), ("sweep: '4x4/1'", "4x4")],
+     ("monitors: [nope]", "nope"), ("sweep: '4x4/1'", "size=4")],
 )  # fmt: skip
 def test_bad_cells_configs_are_refused(text, message):
     with pytest.raises(ConfigError, match=message):
