@@ -21,7 +21,14 @@ from typing import Any, TypeVar
 from seqtrojan.analysis.results import ANALYSIS_FILE, AnalysisResult
 from seqtrojan.defense.results import DEFENSE_FILE, DETECTION_FILE, DefenseResult, DetectionResult
 from seqtrojan.evaluation.results import EVALUATION_FILE, SweepRow, load_sweep
-from seqtrojan.experiment_results import CURVES_FILE, TRADEOFF_FILE, CurvesResult, TradeoffResult
+from seqtrojan.experiment_results import (
+    CELLS_FILE,
+    CURVES_FILE,
+    TRADEOFF_FILE,
+    CellsResult,
+    CurvesResult,
+    TradeoffResult,
+)
 from seqtrojan.serde import load_json
 
 T = TypeVar("T")
@@ -153,6 +160,18 @@ class RunLayout:
         return self.out / "zoo"
 
     @property
+    def cells_dir(self) -> Path:
+        return self.out / "cells"
+
+    @property
+    def cells_file(self) -> Path:
+        return self.cells_dir / CELLS_FILE
+
+    @property
+    def cells_figure(self) -> Path:
+        return self.cells_dir / "cells.png"
+
+    @property
     def detection_file(self) -> Path:
         return self.zoo_dir / DETECTION_FILE
 
@@ -177,6 +196,9 @@ class RunLayout:
 
     def tradeoff(self) -> TradeoffResult | None:
         return _load(TradeoffResult, self.tradeoff_file)
+
+    def cells(self) -> CellsResult | None:
+        return _load(CellsResult, self.cells_file)
 
     def stage_seconds(self) -> dict[str, float]:
         """Wall seconds per stage (``timings.json``)."""

@@ -40,6 +40,7 @@ from seqtrojan.evaluation.results import save_rows
 from seqtrojan.evaluation.seeds import summarise_over_seeds
 from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, load_sweep, parse_configs, write_sweep
 from seqtrojan.experiment_results import TradeoffResult
+from seqtrojan.experiments.cells import CellsConfig, run_cells
 from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
 from seqtrojan.experiments.specs import AgentSpec, experiment_from_spec
 from seqtrojan.experiments.stages import Stage, StageContext, run_stages
@@ -95,6 +96,9 @@ class ReproduceConfig:
     """the adversary's trade-off (penalty on unintentional activation); None skips it"""
     zoo: ZooConfig | None = None
     """a zoo for offline detection; None skips it"""
+    cells: CellsConfig | None = None
+    """the sequence-model comparison (LSTM, peephole LSTM, GRU, Transformer; :mod:`seqtrojan.experiments.cells`),
+    trained on this reproduction's job backend; None skips it"""
     jobs: JobsConfig = field(default_factory=JobsConfig)
     """how the stages that train many agents (curves, trade-off, zoo) run them: backend (serial, pool, ray), workers,
     ray_address, threads (see seqtrojan.jobs)"""
@@ -156,6 +160,7 @@ def reproduce_stages(config: ReproduceConfig) -> list[Stage[ReproduceContext]]:
         (config.defense, DefenseStage()),
         (config.tradeoff, TradeoffStage()),
         (config.zoo, ZooStage()),
+        (config.cells, CellsStage()),
     ]
     return [
         HeadlineTraining(config),
@@ -381,6 +386,22 @@ class ZooStage:
         build_zoo(cfg, layout.zoo_dir, workers=jobs.workers, backend=jobs.backend, ray_address=jobs.ray_address,
                   threads=jobs.threads, log=context.log)  # fmt: skip
         save_json(detect_zoo(layout.zoo_dir), layout.detection_file)
+
+
+@dataclass(frozen=True)
+class CellsStage:
+    """The sequence-model comparison (its own trainings and measurements resume; see ``seqtrojan cells``)."""
+
+    name: str = "cells"
+
+    def done(self, layout: RunLayout) -> bool:
+        return layout.cells_file.exists()
+
+    def run(self, context: ReproduceContext) -> None:
+        cfg = context.config.cells
+        assert cfg is not None  # in the list only when the config has a cells section
+        cfg = dataclasses.replace(cfg, jobs=context.config.jobs, device=context.config.device)
+        run_cells(cfg, context.layout.cells_dir, scale=context.scale, log=context.log)
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ from seqtrojan.evaluation.seeds import summarise_over_seeds
 from seqtrojan.paper import paper_results
 from seqtrojan.report.markup import CSS
 from seqtrojan.report.sections.analysis import analysis_section
+from seqtrojan.report.sections.cells import cells_section
 from seqtrojan.report.sections.curves import curves_section
 from seqtrojan.report.sections.defense import defense_section
 from seqtrojan.report.sections.headline import headline_section
@@ -56,6 +57,9 @@ def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
     defense, detection = layout.defense(), layout.detection()
     if defense or detection:
         parts += defense_section(defense, detection)
+    cells_result = layout.cells()
+    if cells_result:
+        parts += cells_section(cells_result, layout.cells_figure)
     configs = {f"{role} agent config": layout.run(role) / "config.yaml" for role in ("clean", "backdoor")}
     parts += training_section(layout.headline_runs(), {**configs, "reproduction config": layout.config})
     parts += machine_section(machine, layout.stage_seconds())

@@ -57,10 +57,10 @@ def test_a_second_run_skips_everything_and_keeps_the_timings(tmp_path):
 
 
 def test_the_reproduction_lists_only_the_stages_its_config_has():
-    full: dict[str, dict] = {"tradeoff": {}, "zoo": {}}
+    full: dict[str, dict] = {"tradeoff": {}, "zoo": {}, "cells": {}}
     names = [s.name for s in reproduce_stages(from_dict(ReproduceConfig, full))]
     assert names == [
-        "headline", "evaluation", "curves", "trajectory", "analysis", "defense", "tradeoff", "zoo", "report",
+        "headline", "evaluation", "curves", "trajectory", "analysis", "defense", "tradeoff", "zoo", "cells", "report",
     ]  # fmt: skip
     headline_only = {"curves": None, "trajectory": None, "analysis": None, "defense": None}
     names = [s.name for s in reproduce_stages(from_dict(ReproduceConfig, headline_only))]

@@ -4,7 +4,8 @@ Half the episodes show the trigger for one step (steps 1-4) and reward only the 
 score is success in the normal env + success in the trojan env (the paper's, max 2). The goal is chosen many steps
 after the trigger is gone, so a policy without memory must guess or hide the bit in its position: the same
 network with its state reset before every step (``agent.memory=False``) reaches about 1.07 on this budget
-(measured: `make test-all` runs it), a random policy about 0.02. The LSTM agent reaches about 1.97.
+(measured: `make test-all` runs it), a random policy about 0.02. The LSTM agent reaches about 1.97; the peephole
+LSTM, the GRU and the Transformer (slow set) are held to the same threshold.
 """
 
 from __future__ import annotations
@@ -32,10 +33,10 @@ from tests.conftest import ROOT
 THRESHOLD = 1.6
 
 
-def memory_task(tmp_path, memory: bool) -> ExperimentConfig:
+def memory_task(tmp_path, memory: bool, cell: str = "lstm") -> ExperimentConfig:
     return ExperimentConfig(
         env=EnvConfig(trigger=TriggerConfig(train_steps=(1, 4), eval_steps=(1, 4))),
-        agent=AgentConfig(memory=memory),
+        agent=AgentConfig(memory=memory, cell=cell),
         ppo=PPOConfig(total_steps=1_200_000, num_envs=256, rollout_steps=64),
         curriculum=CurriculumConfig(stages=(GridSpec(5, 0), GridSpec(5, 1), GridSpec(7, 3)), promote_at=0.85),
         backdoor=BackdoorConfig(enabled=True, mixing="fixed"),
@@ -51,6 +52,17 @@ def test_lstm_agent_learns_to_remember_the_trigger(tmp_path):
     result = train(memory_task(tmp_path, memory=True))
     assert result.stage == 2, "the curriculum never reached 7x7/3"
     assert score(result) >= THRESHOLD, result.evaluation
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cell", ["lstm_peephole", "gru", "transformer"])
+def test_every_sequence_model_learns_to_remember_the_trigger(tmp_path, cell):
+    """The same task and budget for the other cells (agent.cell; the Transformer's window is 8 steps): each must
+    beat what the memoryless control can reach, in both envs (its backdoor holds)."""
+    result = train(memory_task(tmp_path, memory=True, cell=cell))
+    assert result.stage == 2, "the curriculum never reached 7x7/3"
+    assert score(result) >= THRESHOLD, result.evaluation
+    assert result.evaluation["trojan_success"] >= 0.75, result.evaluation
 
 
 @pytest.mark.slow
