@@ -201,7 +201,8 @@ def plot_responses(agents: Agents, classes: Classes, traces: Traces, cfg: Analys
         for layer in range(len(agent.lstm_sizes)):
             for which in ("h", "c"):
                 heat = out / "figures" / f"heatmap_{name}_layer{layer}_{which}.png"
-                if not heat.exists():
+                width = (agent.lstm_sizes if which == "h" else agent.c_widths)[layer]
+                if width and not heat.exists():  # a GRU has no c units to plot
                     plot_heatmaps(
                         traces[(name, "normal")],
                         traces[(name, "trojan")],

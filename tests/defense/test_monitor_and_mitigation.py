@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from seqtrojan.agent.checkpoint import build_agent
+from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
 from seqtrojan.config import AgentConfig, ExperimentConfig
@@ -205,3 +206,18 @@ def test_conformal_threshold_is_the_finite_sample_quantile():
     rng = np.random.default_rng(0)  # the guarantee: over calibrations, P(fresh peak > threshold) <= target
     rates = [(rng.normal(size=1000) > conformal_threshold(rng.normal(size=199), 0.05)).mean() for _ in range(300)]
     assert np.mean(rates) <= 0.05 + 0.005
+
+
+@pytest.mark.parametrize("cell", ["lstm", "lstm_peephole", "gru", "transformer"])
+def test_pruned_units_stay_at_zero_in_every_cell(cell):
+    torch.manual_seed(0)
+    net = RecurrentActorCritic(54, 4, (12, 8), cell=cell, window=3)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    pruned = prune_units(net, 1, np.array([0, 3, 5]))
+    out = pruned.unroll(torch.randn(10, 4, 54), pruned.initial_state(4), torch.zeros(10, 4, dtype=torch.bool),
+                        return_states=True)  # fmt: skip
+    assert out.states is not None
+    h = out.states[1].h
+    assert h[..., [0, 3, 5]].abs().max() == 0 and h[..., [1, 2]].abs().max() > 0.1
