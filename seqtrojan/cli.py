@@ -11,11 +11,15 @@ import dataclasses
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 import tyro
 
 from seqtrojan.errors import ConfigError, SeqTrojanError
+
+if TYPE_CHECKING:
+    from seqtrojan.experiments.cells import CellsConfig
+    from seqtrojan.experiments.matrix import MatrixConfig
 
 
 def _pop_option(argv: list[str], name: str) -> tuple[str | None, list[str]]:
@@ -297,18 +301,7 @@ def _matrix(argv: list[str]) -> None:
     from seqtrojan.experiments.matrix import load_matrix_config, run_matrix
 
     args = tyro.cli(MatrixArgs, args=argv, prog="seqtrojan matrix")
-    config = load_matrix_config(args.scale)
-    changes: dict[str, Any] = {}
-    if args.attacks is not None:
-        changes["attacks"] = tuple(a.strip() for a in args.attacks.split(",") if a.strip())
-    if args.seeds is not None:
-        changes["seeds"] = args.seeds
-    if args.device is not None:
-        changes["device"] = args.device
-    chosen: dict[str, Any] = {"backend": args.backend, "workers": args.workers, "ray_address": args.ray_address,
-                              "threads": args.threads}  # fmt: skip
-    changes["jobs"] = dataclasses.replace(config.jobs, **{k: v for k, v in chosen.items() if v is not None})
-    config = dataclasses.replace(config, **changes)
+    config = _with_study_options(load_matrix_config(args.scale), args, "attacks", args.attacks)
     scale = Path(args.scale).stem.removeprefix("matrix_")
     out = args.out or Path("results") / f"matrix_{scale}"
     result = run_matrix(config, out, scale=scale)
@@ -336,22 +329,33 @@ class CellsArgs:
     threads: int | None = None
 
 
-def _cells(argv: list[str]) -> None:
-    from seqtrojan.experiments.cells import load_cells_config, run_cells
+StudyConfig = TypeVar("StudyConfig", "MatrixConfig", "CellsConfig")
 
-    args = tyro.cli(CellsArgs, args=argv, prog="seqtrojan cells")
-    config = load_cells_config(args.scale)
+
+def _with_study_options(
+    config: StudyConfig, args: MatrixArgs | CellsArgs, names: str, chosen: str | None
+) -> StudyConfig:
+    """``config`` with the options given on the command line: the names to run (``chosen``, comma-separated, into
+    the field ``names``), seeds, device and the job backend's settings."""
     changes: dict[str, Any] = {}
-    if args.cells is not None:
-        changes["cells"] = tuple(c.strip() for c in args.cells.split(",") if c.strip())
+    if chosen is not None:
+        changes[names] = tuple(n.strip() for n in chosen.split(",") if n.strip())
     if args.seeds is not None:
         changes["seeds"] = args.seeds
     if args.device is not None:
         changes["device"] = args.device
-    chosen: dict[str, Any] = {"backend": args.backend, "workers": args.workers, "ray_address": args.ray_address,
-                              "threads": args.threads}  # fmt: skip
-    changes["jobs"] = dataclasses.replace(config.jobs, **{k: v for k, v in chosen.items() if v is not None})
-    config = dataclasses.replace(config, **changes)
+    jobs: dict[str, Any] = {
+        "backend": args.backend, "workers": args.workers, "ray_address": args.ray_address, "threads": args.threads,
+    }  # fmt: skip
+    changes["jobs"] = dataclasses.replace(config.jobs, **{k: v for k, v in jobs.items() if v is not None})
+    return dataclasses.replace(config, **changes)
+
+
+def _cells(argv: list[str]) -> None:
+    from seqtrojan.experiments.cells import load_cells_config, run_cells
+
+    args = tyro.cli(CellsArgs, args=argv, prog="seqtrojan cells")
+    config = _with_study_options(load_cells_config(args.scale), args, "cells", args.cells)
     scale = Path(args.scale).stem.removeprefix("cells_")
     out = args.out or Path("results") / f"cells_{scale}"
     result = run_cells(config, out, scale=scale)

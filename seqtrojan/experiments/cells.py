@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -53,10 +54,11 @@ from seqtrojan.experiment_results import (
     SweepPoint,
     UnitsToSwitch,
 )
+from seqtrojan.experiments.measured import measured_once, train_all
 from seqtrojan.experiments.specs import AgentSpec, deep_merge, experiment_from_spec
-from seqtrojan.jobs import JobResult, JobsConfig, TrainJob, make_backend, raise_failures
+from seqtrojan.jobs import JobsConfig, TrainJob, make_backend
 from seqtrojan.presets import resolve_preset
-from seqtrojan.serde import from_dict, load_json, load_yaml, save_json
+from seqtrojan.serde import from_dict, load_yaml, save_json
 from seqtrojan.stats import OverSeeds, Rate, auc_interval
 from seqtrojan.zoo.build import ZooConfig
 
@@ -296,31 +298,14 @@ def run_cells(cfg: CellsConfig, out: Path, scale: str = "custom", log: Callable[
     out.mkdir(parents=True, exist_ok=True)
     runs, measured_dir = out / "runs", out / "measured"
     jobs = cell_jobs(cfg, runs)
-    backend = make_backend(cfg.jobs)
-
-    def on_result(r: JobResult) -> None:
-        if not r.ok:
-            log(f"  {r.id} failed: {r.error}")
-        elif r.trained:
-            log(f"  {r.id} trained in {r.seconds:.0f} s")
-
-    todo = sum(not job.done() for job in jobs)
-    if todo:
-        log(f"training {todo} agent(s) on the {backend.name} backend ({backend.describe(todo)}) ...")
-    raise_failures(backend.run(jobs, on_result), "cells agent")
+    train_all(make_backend(cfg.jobs), jobs, "cells agent", log)
     scores = offline_scores(cfg, jobs, out, log)
     base_env = experiment_from_spec(cfg.backdoor, Path("."), "base", cfg.device).env
-    measured_dir.mkdir(exist_ok=True)
-    agents = []
-    for job in jobs:
-        path = measured_dir / f"{job.id}.json"
-        kept = _saved(path, log)
-        if kept is None:
-            log(f"measuring {job.id} ...")
-            kept = measure_agent(job, cfg, base_env, scores.get(job.id))
-            save_json(kept, path.with_suffix(".tmp"))
-            path.with_suffix(".tmp").replace(path)  # a stop mid-write leaves no half-written measurement
-        agents.append(kept)
+    agents = [
+        measured_once(measured_dir / f"{job.id}.json", CellMeasurement,
+                      partial(measure_agent, job, cfg, base_env, scores.get(job.id)), job.id, log)
+        for job in jobs
+    ]  # fmt: skip
     result = assemble(cfg, agents, scale)
     save_json(result, out / CELLS_FILE)
     from seqtrojan.experiments.cells_plot import plot_cells
@@ -329,16 +314,6 @@ def run_cells(cfg: CellsConfig, out: Path, scale: str = "custom", log: Callable[
     plot_cells(result, out / "cells.png")
     (out / "report.html").write_text(cells_page(result, out / "cells.png"))
     return result
-
-
-def _saved(path: Path, log: Callable[[str], None]) -> CellMeasurement | None:
-    if not path.exists():
-        return None
-    try:
-        return load_json(CellMeasurement, path)
-    except ConfigError as err:
-        log(f"  measuring again: {err}")
-        return None
 
 
 def assemble(cfg: CellsConfig, agents: Sequence[CellMeasurement], scale: str) -> CellsResult:

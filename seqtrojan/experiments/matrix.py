@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -49,11 +50,12 @@ from seqtrojan.experiment_results import (
 )
 from seqtrojan.experiments.attacks import ATTACKS
 from seqtrojan.experiments.matrix_plot import plot_matrix
+from seqtrojan.experiments.measured import measured_once, train_all
 from seqtrojan.experiments.specs import AgentSpec, experiment_from_spec
-from seqtrojan.jobs import JobResult, JobsConfig, TrainJob, make_backend, raise_failures
+from seqtrojan.jobs import JobsConfig, TrainJob, make_backend
 from seqtrojan.presets import resolve_preset
 from seqtrojan.report.sections.matrix import matrix_page
-from seqtrojan.serde import from_dict, load_json, load_yaml, save_json
+from seqtrojan.serde import from_dict, load_yaml, save_json
 from seqtrojan.stats import OverSeeds, Rate, auc_interval
 from seqtrojan.zoo.build import ZooConfig
 
@@ -253,51 +255,21 @@ def run_matrix(cfg: MatrixConfig, out: Path, scale: str = "custom", log: Callabl
     runs, measured_dir = out / "runs", out / "measured"
     first, second = matrix_jobs(cfg, runs)
     backend = make_backend(cfg.jobs)
-
-    def on_result(r: JobResult) -> None:
-        if not r.ok:
-            log(f"  {r.id} failed: {r.error}")
-        elif r.trained:
-            log(f"  {r.id} trained in {r.seconds:.0f} s")
-
     for wave in (first, second):
-        todo = sum(not job.done() for job in wave)
-        if todo:
-            log(f"training {todo} matrix agent(s) on the {backend.name} backend ({backend.describe(todo)}) ...")
-        raise_failures(backend.run(wave, on_result), "matrix agent")
+        train_all(backend, wave, "matrix agent", log)
     jobs = first + second
     scores = offline_scores(cfg, jobs, out / "zoo", log) if cfg.offline_names else {}
-    measured_dir.mkdir(exist_ok=True)
     agents = []
     for job in jobs:
         attack, seed = job.id.rsplit("_s", 1)
-        path = measured_dir / f"{job.id}.json"
-        kept = _saved_measurement(path, log)
-        if kept is not None:
-            agents.append(kept)
-            continue
-        log(f"measuring {job.id} ...")
         own = {name: by_agent[job.id] for name, by_agent in scores.items()}
-        measurement = measure_agent(job, attack, int(seed), cfg, out, own)
-        save_json(measurement, path.with_suffix(".tmp"))
-        path.with_suffix(".tmp").replace(path)  # a stop mid-write leaves no half-written measurement
-        agents.append(measurement)
+        measure = partial(measure_agent, job, attack, int(seed), cfg, out, own)
+        agents.append(measured_once(measured_dir / f"{job.id}.json", AgentMeasurement, measure, job.id, log))
     result = assemble(cfg, agents, scale)
     save_json(result, out / MATRIX_FILE)
     plot_matrix(result, out / MATRIX_FIGURE)
     (out / "report.html").write_text(matrix_page(result, out / MATRIX_FIGURE))
     return result
-
-
-def _saved_measurement(path: Path, log: Callable[[str], None]) -> AgentMeasurement | None:
-    """A finished measurement of an earlier call, or None (none, or one that does not load: it is measured again)."""
-    if not path.exists():
-        return None
-    try:
-        return load_json(AgentMeasurement, path)
-    except ConfigError as err:
-        log(f"  measuring again: {err}")
-        return None
 
 
 def _over(values: Sequence[Rate]) -> tuple[OverSeeds, Rate]:
