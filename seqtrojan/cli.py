@@ -277,7 +277,21 @@ def _reproduce(argv: list[str]) -> None:
 
 
 @dataclasses.dataclass
-class MatrixArgs:
+class StudyArgs:
+    """The options of the studies that train many agents (matrix, cells)."""
+
+    seeds: int | None = None
+    """training seeds (default: the scale file's)"""
+    device: str | None = None
+    backend: Literal["serial", "pool", "ray"] | None = None
+    """job backend of the trainings (default: the scale file's jobs.backend, pool)"""
+    workers: int | None = None
+    ray_address: str | None = None
+    threads: int | None = None
+
+
+@dataclasses.dataclass
+class MatrixArgs(StudyArgs):
     """Train every attack over several seeds and measure it against every defense (resumable: finished trainings and
     measurements are kept). Writes matrix.json, matrix.png and report.html."""
 
@@ -287,14 +301,6 @@ class MatrixArgs:
     """output folder (default: results/matrix_<scale>)"""
     attacks: str | None = None
     """comma-separated attack names (default: the scale file's, or every registered attack)"""
-    seeds: int | None = None
-    """training seeds per attack (default: the scale file's)"""
-    device: str | None = None
-    backend: Literal["serial", "pool", "ray"] | None = None
-    """job backend of the trainings (default: the scale file's jobs.backend, pool)"""
-    workers: int | None = None
-    ray_address: str | None = None
-    threads: int | None = None
 
 
 def _matrix(argv: list[str]) -> None:
@@ -311,7 +317,7 @@ def _matrix(argv: list[str]) -> None:
 
 
 @dataclasses.dataclass
-class CellsArgs:
+class CellsArgs(StudyArgs):
     """Train the same backdoor into each sequence model (LSTM, peephole LSTM, GRU, windowed Transformer) over
     several seeds and measure each the same way (resumable). Writes cells.json, cells.png and report.html."""
 
@@ -321,20 +327,12 @@ class CellsArgs:
     """output folder (default: results/cells_<scale>)"""
     cells: str | None = None
     """comma-separated cell names (default: the scale file's, or all)"""
-    seeds: int | None = None
-    device: str | None = None
-    backend: Literal["serial", "pool", "ray"] | None = None
-    workers: int | None = None
-    ray_address: str | None = None
-    threads: int | None = None
 
 
 StudyConfig = TypeVar("StudyConfig", "MatrixConfig", "CellsConfig")
 
 
-def _with_study_options(
-    config: StudyConfig, args: MatrixArgs | CellsArgs, names: str, chosen: str | None
-) -> StudyConfig:
+def _with_study_options(config: StudyConfig, args: StudyArgs, names: str, chosen: str | None) -> StudyConfig:
     """``config`` with the options given on the command line: the names to run (``chosen``, comma-separated, into
     the field ``names``), seeds, device and the job backend's settings."""
     changes: dict[str, Any] = {}
