@@ -327,49 +327,57 @@ class WindowAttentionLayer(nn.Module):
     def unroll(
         self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
     ) -> LayerOutput:
+        # Computed batch-major (B, T, .): the attention products need no permuted copies, and a stacked layer
+        # reads the one below in that layout (h_seq is returned as a time-major view of it).
         steps, batch = x.shape[:2]
-        w = self.window
-        prefix = (state.c.reshape(batch, w - 1, self.slot_width) * keep[0].view(batch, 1, 1)).transpose(0, 1)
-        e, q, slots = self._project(x)  # (T, B, .)
-        slots = torch.cat([prefix, slots])  # (w - 1 + T, B, 2W + 1)
+        w, width, slot = self.window, self.hidden_size, self.slot_width
+        e = self.input(x.transpose(0, 1))  # (B, T, W)
+        q, kv = self.qkv(self.norm_attention(e)).split((width, 2 * width), -1)
+        prefix = state.c.reshape(batch, w - 1, slot) * keep[0].view(batch, 1, 1)  # emptied by an episode start
+        kv = torch.cat([prefix[..., :-1], kv], 1)  # (B, P, 2W), P = w - 1 + T
+        valid = torch.cat([prefix[..., -1] > 0, kv.new_ones(batch, steps, dtype=torch.bool)], 1)  # (B, P)
         # episode of each position: the prefix is episode 0, and every episode start inside the chunk opens the next
-        episode = torch.cat([keep.new_zeros(w - 1, batch), torch.cumsum(1 - keep, 0)])  # (w - 1 + T, B)
-        h_seq = self._finish(e, self._band_attention(q, slots, episode))
+        episode = torch.cat([keep.new_zeros(batch, w - 1), torch.cumsum(1 - keep.t(), 1)], 1)  # (B, P)
+        attended = self._band_attention(q, kv, valid, episode)
+        h_seq = self._finish(e, attended).transpose(0, 1)  # (T, B, W), a view of the batch-major result
         # the state after each step: the newest w - 1 slots, emptied where they precede an episode start
-        if return_states:
-            caches = self._caches(slots, episode, range(1, steps + 1))
-            return h_seq, LSTMState(h_seq[-1], caches[-1]), LSTMState(h_seq, caches)
-        final = self._caches(slots, episode, range(steps, steps + 1))[0]
-        return h_seq, LSTMState(h_seq[-1], final), None
+        starts = range(1, steps + 1) if return_states else range(steps, steps + 1)
+        caches = self._caches(kv, valid, episode, starts)
+        final = LSTMState(h_seq[-1], caches[-1])
+        return h_seq, final, LSTMState(h_seq, caches) if return_states else None
 
-    def _band_attention(self, q: torch.Tensor, slots: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
-        """Attention of T queries (T, B, heads, d) over the w - 1 + T cache slots (w - 1 + T, B, 2W + 1), each
-        query reading the window of slots ending at its own (a band), valid and of its episode: as one batched
-        matrix product over all positions, whose backward is far cheaper than that of per-window views."""
-        steps, w, heads = q.shape[0], self.window, self.heads
+    def _band_attention(
+        self, q: torch.Tensor, kv: torch.Tensor, valid: torch.Tensor, episode: torch.Tensor
+    ) -> torch.Tensor:
+        """Attention of T queries (B, T, W) over the P = w - 1 + T keys and values ``kv`` (B, P, 2W), each query
+        reading the window of positions ending at its own (a band), valid and of its episode: one batched matrix
+        product over all positions, whose backward is far cheaper than that of per-window views. (B, T, W)."""
+        steps, w, heads = q.shape[1], self.window, self.heads
         d, width = self.hidden_size // heads, self.hidden_size
-        keys = slots[..., :width].unflatten(-1, (heads, d)).permute(1, 2, 0, 3)  # (B, heads, P, d)
-        values = slots[..., width : 2 * width].unflatten(-1, (heads, d)).permute(1, 2, 0, 3)
-        offset = torch.arange(slots.shape[0], device=q.device)[None, :] - torch.arange(steps, device=q.device)[:, None]
+
+        def split(t: torch.Tensor) -> torch.Tensor:  # (B, n, W) -> (B, heads, n, d); one head: a view, no copy
+            return t.unsqueeze(1) if heads == 1 else t.unflatten(-1, (heads, d)).transpose(1, 2)
+
+        qh, keys, values = split(q), split(kv[..., :width]), split(kv[..., width:])
+        offset = torch.arange(kv.shape[1], device=q.device)[None, :] - torch.arange(steps, device=q.device)[:, None]
         band = (offset >= 0) & (offset < w)  # (T, P): the slot of key p for query t is p - t
         bias = self.position_bias[:, offset.clamp(0, w - 1)]  # (heads, T, P)
-        same = episode.t()[:, None, :] == episode[w - 1 :].t()[:, :, None]  # (B, T, P)
-        allowed = band & (slots[..., -1].t() > 0)[:, None, :] & same
-        scores = q.permute(1, 2, 0, 3) @ keys.transpose(-1, -2) / math.sqrt(d) + bias  # (B, heads, T, P)
+        allowed = band & valid[:, None, :] & (episode[:, None, :] == episode[:, w - 1 :, None])  # (B, T, P)
+        scores = (qh @ keys.transpose(-1, -2)) / math.sqrt(d) + bias  # (B, heads, T, P)
         scores = scores.masked_fill(~allowed[:, None], float("-inf"))
         attended = torch.softmax(scores, -1) @ values  # (B, heads, T, d)
-        return attended.permute(2, 0, 1, 3).flatten(-2)  # (T, B, W)
+        return attended.squeeze(1) if heads == 1 else attended.transpose(1, 2).flatten(-2)
 
-    def _caches(self, slots: torch.Tensor, episode: torch.Tensor, starts: range) -> torch.Tensor:
-        """The stored caches (len(starts), B, c_width): positions s .. s + window - 2 of ``slots``, each kept only
-        if it belongs to the episode of the cache's newest position."""
+    def _caches(self, kv: torch.Tensor, valid: torch.Tensor, episode: torch.Tensor, starts: range) -> torch.Tensor:
+        """The stored caches (len(starts), B, c_width): positions s .. s + window - 2 as [key | value | valid]
+        slots, each kept only if it belongs to the episode of the cache's newest position."""
         w = self.window
         if w == 1:
-            return slots.new_zeros(len(starts), slots.shape[1], 0)
-        index = torch.tensor([list(range(s, s + w - 1)) for s in starts], device=slots.device)  # (N, w - 1)
-        picked = slots[index]  # (N, w - 1, B, 2W + 1)
-        same = (episode[index] == episode[index[:, -1:]]).unsqueeze(-1)  # (N, w - 1, B, 1)
-        return (picked * same).permute(0, 2, 1, 3).flatten(2)
+            return kv.new_zeros(len(starts), kv.shape[0], 0)
+        index = torch.tensor([list(range(s, s + w - 1)) for s in starts], device=kv.device)  # (N, w - 1)
+        same = (episode[:, index] == episode[:, index[:, -1:]]).unsqueeze(-1)  # (B, N, w - 1, 1)
+        slots = torch.cat([kv[:, index], valid[:, index].unsqueeze(-1).to(kv.dtype)], -1) * same  # (B, N, w - 1, S)
+        return slots.transpose(0, 1).flatten(2)
 
 
 def make_cell(cell: str, input_size: int, hidden_size: int, window: int = 8, heads: int = 1) -> nn.Module:
