@@ -48,6 +48,8 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
     (wheel,) = (tmp / "dist").glob("seqtrojan-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
     assert "seqtrojan/presets/clean_7x7.yaml" in names and "seqtrojan/presets/reproduce_smoke.yaml" in names
+    kernels = {f"seqtrojan/agent/csrc/{p.name}" for p in (ROOT / "seqtrojan" / "agent" / "csrc").iterdir()}
+    assert kernels and kernels <= set(names), kernels - set(names)  # every kernel source and header ships
 
     venv = tmp / "venv"
     run(sys.executable, "-m", "venv", "--without-pip", venv, cwd=tmp)

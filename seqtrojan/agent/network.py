@@ -115,7 +115,8 @@ class RecurrentActorCritic(nn.Module):
                 self.add_module(name, layers)
         self.lstm_backend = "auto"
         """'auto' uses the fused C++ kernels (:mod:`seqtrojan.agent.fast_lstm`) on CPU where they build, 'torch'
-        never, 'cpp' always (an error where unavailable). Both compute the same function."""
+        never, 'cpp' always (an error where unavailable). Both compute the same function. The Transformer has no
+        C++ kernels: it always runs its PyTorch path."""
         self._weight_cache: dict = {}
 
     def set_lstm_backend(self, backend: str) -> None:
@@ -138,7 +139,8 @@ class RecurrentActorCritic(nn.Module):
 
     @property
     def c_widths(self) -> tuple[int, ...]:
-        """Each layer's ``c`` width: its h width for the LSTMs, 0 for the GRU, the stored window for the Transformer."""
+        """Each layer's ``c`` width: its h width for the LSTMs, 0 for the GRU, the key-value cache for the
+        Transformer."""
         return tuple(layer.c_width for layer in self.layers)
 
     def _init_weights(self, forget_bias: float) -> None:
