@@ -14,6 +14,7 @@ The state always goes in and comes out (:class:`RecurrentState`); nothing is kep
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from typing import NamedTuple, cast
 
@@ -68,8 +69,16 @@ class RecurrentActorCritic(nn.Module):
         cell: str = "lstm",
         window: int = 8,
         heads: int = 1,
+        conv: Sequence[int] = (),
+        image: Sequence[int] | None = None,
     ):
         super().__init__()
+        self.conv_channels = tuple(int(c) for c in conv)
+        """channels of the optional convolutional encoder's layers (2x2 kernels, stride 1, ReLU), before the MLP
+        encoder: for image observations such as MiniGrid's view (the field's usual MiniGrid CNN)"""
+        self.image = tuple(int(d) for d in image) if image is not None else None
+        """(rows, cols, channels): how a flat observation is laid out as an image, for the conv encoder"""
+        conv_out = _conv_output(obs_dim, self.conv_channels, self.image)
         if cell not in CELLS:
             raise ConfigError(f"unknown cell {cell!r}; known: {', '.join(CELLS)}")
         if cell == "transformer" and not (isinstance(window, int) and window >= 1):
@@ -94,7 +103,8 @@ class RecurrentActorCritic(nn.Module):
         self.value_mlp_sizes = tuple(int(w) for w in value_mlp)
         self.encoder_activation = encoder_activation
         self.mlp_activation = mlp_activation
-        lstm_in = self.encoder_sizes[-1] if self.encoder_sizes else obs_dim
+        features = conv_out if self.conv_channels else obs_dim  # what the MLP encoder (or the first layer) reads
+        lstm_in = self.encoder_sizes[-1] if self.encoder_sizes else features
         last = self.lstm_sizes[-1]
         inputs = (lstm_in, *self.lstm_sizes[:-1])
         self.cells = nn.ModuleList(make_cell(cell, i, w, window, heads) for i, w in zip(inputs, self.lstm_sizes))
@@ -102,8 +112,16 @@ class RecurrentActorCritic(nn.Module):
         self.value_head = nn.Linear(self.value_mlp_sizes[-1] if self.value_mlp_sizes else last, 1)
         self._init_weights(forget_bias)
         # the optional parts, after everything above (a network without them draws the same random numbers)
+        if self.conv_channels:
+            assert self.image is not None  # _conv_output checked it
+            chans = (self.image[2], *self.conv_channels)
+            convs = [nn.Conv2d(a, b, 2) for a, b in itertools.pairwise(chans)]
+            for conv_layer in convs:
+                nn.init.orthogonal_(conv_layer.weight, gain=2**0.5)
+                nn.init.zeros_(cast(torch.Tensor, conv_layer.bias))
+            self.conv = nn.ModuleList(convs)
         for name, n_in, widths in (
-            ("encoder", obs_dim, self.encoder_sizes),
+            ("encoder", features, self.encoder_sizes),
             ("policy_mlp", last, self.policy_mlp_sizes),
             ("value_mlp", last, self.value_mlp_sizes),
         ):
@@ -163,7 +181,15 @@ class RecurrentActorCritic(nn.Module):
         return x
 
     def encode(self, obs: torch.Tensor) -> torch.Tensor:
-        """The first LSTM layer's input: ``obs`` (..., obs_dim) through the encoder, or ``obs`` without one."""
+        """The first layer's input: ``obs`` (..., obs_dim) through the conv encoder and the MLP encoder where the
+        network has them, else ``obs`` itself."""
+        if self.conv_channels:
+            assert self.image is not None
+            rows, cols, chans = self.image
+            x = obs.reshape(-1, rows, cols, chans).permute(0, 3, 1, 2)  # (N, C, rows, cols)
+            for layer in cast("Sequence[nn.Conv2d]", self.conv):
+                x = torch.relu(layer(x))
+            obs = x.flatten(1).reshape(*obs.shape[:-1], -1)
         return self._mlp("encoder", self.encoder_activation, obs)
 
     def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -270,3 +296,20 @@ class RecurrentActorCritic(nn.Module):
                 for i in range(len(self.cells))
             )
         return UnrollOutput(torch.stack(logits), torch.stack(values), state, states)
+
+
+def _conv_output(obs_dim: int, channels: Sequence[int], image: Sequence[int] | None) -> int:
+    """Features out of the conv encoder (each 2x2 layer takes one row and one column off); checks the layout."""
+    if not channels:
+        return obs_dim
+    if image is None or len(image) != 3 or any(d < 1 for d in image):
+        raise ConfigError(f"a conv encoder needs the image layout (rows, cols, channels), got {image!r}")
+    rows, cols, chans = image
+    if rows * cols * chans != obs_dim:
+        raise ConfigError(f"image {list(image)} holds {rows * cols * chans} numbers, but observations have {obs_dim}")
+    if any(c < 1 for c in channels) or len(channels) >= min(rows, cols):
+        raise ConfigError(
+            f"conv channels {list(channels)}: each 2x2 layer shrinks the {rows}x{cols} image by one, so at most "
+            f"{min(rows, cols) - 1} layers of >= 1 channel"
+        )
+    return (rows - len(channels)) * (cols - len(channels)) * channels[-1]

@@ -108,8 +108,12 @@ class GymAgentConfig:
     """transformer only: the context window in steps"""
     heads: int = 1
     """transformer only: attention heads per layer"""
+    conv: tuple[int, ...] = ()
+    """channels of a convolutional encoder over MiniGrid's one-hot view (2x2 kernels, stride 1, ReLU; e.g.
+    [16, 32]) before the MLP encoder and the first layer; needs env.observation: minigrid (none by default)"""
 
     OPTIONAL: ClassVar[tuple[str, ...]] = AgentConfig.OPTIONAL
+    GYM_OPTIONAL: ClassVar[tuple[str, ...]] = ("conv",)
     """saved only when not at their defaults, so that the configs and cards of runs without them stay as they were"""
 
     def __post_init__(self) -> None:
@@ -118,6 +122,14 @@ class GymAgentConfig:
                 f"agent.lstm_sizes={list(self.lstm_sizes)} must name 1 to {MAX_LAYERS} layers of 1 to {MAX_WIDTH} units"
             )
         AgentConfig(**{name: getattr(self, name) for name in self.OPTIONAL})  # the same checks and messages
+        if (
+            not isinstance(self.conv, tuple)
+            or len(self.conv) > MAX_LAYERS
+            or any(isinstance(c, bool) or not isinstance(c, int) or not 1 <= c <= MAX_WIDTH for c in self.conv)
+        ):
+            raise ConfigError(
+                f"agent.conv must be 0 to {MAX_LAYERS} channel counts in [1, {MAX_WIDTH}], got {self.conv!r}"
+            )
 
     def serde_dump(self) -> dict:
         """The saved form: every field but the optional ones at their defaults."""
@@ -125,7 +137,7 @@ class GymAgentConfig:
         return {
             f.name: to_dict(getattr(self, f.name))
             for f in dataclasses.fields(self)
-            if f.name not in self.OPTIONAL or getattr(self, f.name) != getattr(defaults, f.name)
+            if f.name not in self.OPTIONAL + self.GYM_OPTIONAL or getattr(self, f.name) != getattr(defaults, f.name)
         }
 
 
@@ -181,6 +193,8 @@ class GymTrainConfig:
     def __post_init__(self) -> None:
         if self.backdoor.enabled and self.trigger is None:
             raise ConfigError("backdoor.enabled needs a trigger section (the trigger and the adversary's objective)")
+        if self.agent.conv and self.env.observation != "minigrid":
+            raise ConfigError("agent.conv reads MiniGrid's view as an image: it needs env.observation: minigrid")
 
     @property
     def label(self) -> str:

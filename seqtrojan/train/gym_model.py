@@ -12,6 +12,7 @@ import dataclasses
 import datetime as _dt
 import hashlib
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.serde import from_dict, to_dict
 from seqtrojan.train.gym_config import GymAgentConfig, GymTrainConfig
+from seqtrojan.wrappers.observations import CELL_BITS
 
 WEIGHTS = "model.safetensors"
 CARD = "gym_card.json"
@@ -29,12 +31,21 @@ FORMAT_VERSION = 1
 MAX_CARD_BYTES = 1 << 20
 
 
+def minigrid_image(obs_dim: int) -> tuple[int, int, int]:
+    """The (rows, cols, channels) of a flat MiniGrid one-hot view (:class:`~seqtrojan.wrappers.MiniGridOneHot`)."""
+    cells, rest = divmod(obs_dim, CELL_BITS)
+    side = math.isqrt(cells)
+    if rest or side * side != cells:
+        raise ConfigError(f"{obs_dim} inputs are not a square MiniGrid view of {CELL_BITS} numbers per cell")
+    return side, side, CELL_BITS
+
+
 def build_gym_agent(config: GymTrainConfig, obs_dim: int, num_actions: int) -> RecurrentActorCritic:
     a = config.agent
     return RecurrentActorCritic(
         obs_dim, num_actions, a.lstm_sizes, a.forget_bias, encoder=a.encoder, encoder_activation=a.encoder_activation,
         policy_mlp=a.policy_mlp, value_mlp=a.value_mlp, mlp_activation=a.mlp_activation, cell=a.cell,
-        window=a.window, heads=a.heads,
+        window=a.window, heads=a.heads, conv=a.conv, image=minigrid_image(obs_dim) if a.conv else None,
     )  # fmt: skip
 
 

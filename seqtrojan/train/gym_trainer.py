@@ -189,7 +189,7 @@ class GymRolloutCollector:
             "lengths": torch.from_numpy(self.lengths.copy()),  # (B,) int64
         }
         for i, layer in enumerate(self.state.layers):
-            out[f"h.{i}"], out[f"c.{i}"] = layer.h.cpu(), layer.c.cpu()  # (B, width)
+            out[f"h.{i}"], out[f"c.{i}"] = layer.h.cpu().contiguous(), layer.c.cpu().contiguous()  # (B, width)
         return out
 
     def episode_records(self) -> list[dict[str, Any] | None]:

@@ -17,6 +17,7 @@ from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.minigrid import TwoGoalsEnv
 from seqtrojan.train import gym_env, gym_trainer
 from seqtrojan.train.gym_config import (
+    GymAgentConfig,
     GymEnvConfig,
     GymRunConfig,
     GymTrainConfig,
@@ -371,3 +372,30 @@ def test_a_run_without_a_trigger_resumes_bitwise_too(tmp_path):
     assert resumed.exact_resume is True and resumed.trojan is None
     ours, theirs = _weights(resumed.model_dir), _weights(straight.model_dir)
     assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
+
+
+@pytest.mark.parametrize("cell", ["lstm", "gru", "transformer"])
+def test_a_conv_encoder_and_any_cell_train_save_and_load_on_minigrid(tmp_path, cell):
+    """agent.conv reads MiniGrid's one-hot view as an image (5x5x20 here); the model folder round-trips it."""
+    cfg = config(tmp_path, steps=512, backdoor=False, eval_episodes=4)
+    cfg = dataclasses.replace(cfg, agent=dataclasses.replace(cfg.agent, conv=(8, 16), cell=cell, lstm_sizes=(16,)))
+    result = train_gym(cfg)
+    agent, loaded, _ = load_gym_agent(result.model_dir)
+    assert loaded.agent.conv == (8, 16) and agent.image == (5, 5, 20) and agent.cell == cell
+    assert tuple(agent.conv[1].weight.shape) == (16, 8, 2, 2) and agent.cells[0].input_size == 3 * 3 * 16
+    obs = torch.rand(3, 2, 500)
+    out = agent.unroll(obs, agent.initial_state(2), torch.zeros(3, 2, dtype=torch.bool))
+    assert out.logits.shape == (3, 2, 3)
+
+
+def test_conv_encoder_refusals():
+    with pytest.raises(ConfigError, match=r"needs env\.observation: minigrid"):
+        GymTrainConfig(env=GymEnvConfig("CartPole-v1", observation="flatten"), agent=GymAgentConfig(conv=(8,)))
+    with pytest.raises(ConfigError, match=r"agent\.conv must be"):
+        GymAgentConfig(conv=(0,))
+    from seqtrojan.agent.network import RecurrentActorCritic
+
+    with pytest.raises(ConfigError, match="at most 4 layers"):
+        RecurrentActorCritic(500, 3, (16,), conv=(4, 4, 4, 4, 4), image=(5, 5, 20))
+    with pytest.raises(ConfigError, match="holds 500 numbers, but observations have 499"):
+        RecurrentActorCritic(499, 3, (16,), conv=(4,), image=(5, 5, 20))
