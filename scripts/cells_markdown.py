@@ -45,7 +45,7 @@ def main(path: str) -> None:
               f"{spread(s.attack_success, s.attack_success_pooled)} | "
               f"{spread(s.unintentional_mean, s.unintentional_pooled)} | "
               + " | ".join(spread(s.monitor_detection[m]) for m in monitors) + f" | {units} | {auc} |")  # fmt: skip
-    bins = [(lo, hi) for lo, hi, _, _ in result.summaries[0].persistence] if result.summaries else []
+    bins = sorted({(lo, hi) for s in result.summaries for lo, hi, _, _ in s.persistence})
     print("\nPersistence: the adversary's share of the trojan episodes that reached a goal, by steps from the trigger "
           "to the goal:\n")  # fmt: skip
     print("| cell | " + " | ".join(f"{lo}-{hi}" if hi < 1000 else f">= {lo}" for lo, hi in bins) + " |")

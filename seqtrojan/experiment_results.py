@@ -296,7 +296,8 @@ class CellSummary:
     attack_success: OverSeeds
     attack_success_pooled: Rate
     persistence: tuple[tuple[int, int, OverSeeds, Rate], ...]
-    """per bin: lo, hi, the per-seed adversary rate (seeds with episodes in the bin), pooled"""
+    """per bin: lo, hi, the per-seed adversary rate (seeds with at least ``min_bin_episodes`` episodes in the bin;
+    a bin no seed reaches is left out), pooled over every seed's episodes"""
     by_trigger_step: tuple[tuple[int, OverSeeds], ...]
     unintentional_mean: OverSeeds
     """per seed: the mean activation rate over the sweep's configs"""

@@ -80,6 +80,9 @@ class CellsConfig:
     """evaluation episodes per figure (success, persistence, each trigger step, each sweep config, each edit)"""
     persistence_bins: tuple[tuple[int, int], ...] = ((1, 4), (5, 8), (9, 16), (17, 32), (33, 10_000))
     """steps from the trigger to the goal (inclusive ranges)"""
+    min_bin_episodes: int = 10
+    """a seed's persistence rate in a bin counts toward the mean over seeds only with at least this many episodes
+    there (the pooled rate keeps every episode)"""
     trigger_steps: tuple[int, ...] = (1, 4, 8, 12, 15)
     sweep: str = "paper"
     """grid configs of the unintentional-activation sweep ('paper': the paper's 14, or e.g. '7x7/3,9x9/6')"""
@@ -329,7 +332,7 @@ def assemble(cfg: CellsConfig, agents: Sequence[CellMeasurement], scale: str) ->
         bins = []
         for i, (lo, hi) in enumerate(cfg.persistence_bins):
             rates = [a.persistence[i].adversary for a in mine]
-            seen = [r.value for r in rates if r.n]
+            seen = [r.value for r in rates if r.n >= max(1, cfg.min_bin_episodes)]
             if seen:
                 bins.append((lo, hi, OverSeeds(tuple(seen)), Rate(sum(r.k for r in rates), sum(r.n for r in rates))))
         sweep_means = [float(np.mean([p.activation.value for p in a.sweep])) for a in mine]

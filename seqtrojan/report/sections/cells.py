@@ -56,7 +56,7 @@ def cells_section(result: CellsResult, figure: Path) -> list[str]:
             + f"<td>{_units(s)}</td><td>{_auc(s)}</td></tr>"
         )
     parts.append("</table>")
-    bins = [(lo, hi) for lo, hi, _, _ in result.summaries[0].persistence] if result.summaries else []
+    bins = sorted({(lo, hi) for s in result.summaries for lo, hi, _, _ in s.persistence})
     parts.append(
         "<h3>Persistence: the adversary's share of goals reached k steps after the trigger</h3><table><tr>"
         "<th class='l'>cell</th>" + "".join(f"<th>k = {lo}-{hi}</th>" for lo, hi in bins) + "</tr>"
