@@ -431,6 +431,31 @@ _DEVICE = re.compile(r"cpu|cuda(?::[0-9]+)?")
 
 
 @dataclasses.dataclass(frozen=True)
+class StopConfig:
+    """Stop training once the task is learned, by a fixed rule (off by default: a run trains exactly
+    ``ppo.total_steps``). Once the curriculum is at its last stage, ``updates`` updates in a row whose rollout
+    episodes on that stage (at least ``min_episodes`` of each env type being trained) succeed at least ``success``
+    (normal episodes; and trojan episodes for a backdoored agent) trigger a held-out check: ``confirm_episodes``
+    fresh episodes per env type on the last stage's grid, sampled policy. If each reaches ``success`` too, training
+    stops (``evaluation.json``: ``stopped_early``, ``env_steps``); if not, the count starts again. A resumed run
+    starts its count again."""
+
+    enabled: bool = False
+    success: float = 0.9
+    updates: int = 5
+    min_episodes: int = 50
+    confirm_episodes: int = 500
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.success <= 1.0:
+            raise ConfigError(f"stop.success must be in (0, 1], got {short_repr(self.success)}")
+        for name in ("updates", "min_episodes", "confirm_episodes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"stop.{name} must be a positive integer, got {short_repr(value)}")
+
+
+@dataclasses.dataclass(frozen=True)
 class ExperimentConfig:
     """Everything a training run needs; saved with every checkpoint."""
 
@@ -441,6 +466,7 @@ class ExperimentConfig:
     backdoor: BackdoorConfig = dataclasses.field(default_factory=BackdoorConfig)
     run: RunConfig = dataclasses.field(default_factory=RunConfig)
     attack: AttackConfig = dataclasses.field(default_factory=AttackConfig)
+    stop: StopConfig = dataclasses.field(default_factory=StopConfig)
 
     def __post_init__(self) -> None:
         needing = [f"attack.{name}" for name in AttackConfig.NEEDS_INIT_FROM if getattr(self.attack, name).enabled]

@@ -43,6 +43,7 @@ from seqtrojan.train.mixing import MIXING_RULES, TrojanMixer
 from seqtrojan.train.penalties import Penalty, PenaltyContext, build_penalties
 from seqtrojan.train.ppo import ppo_update
 from seqtrojan.train.rollout import EpisodeStats, RolloutCollector
+from seqtrojan.train.stopping import StopRule
 
 UpdateCallback = Callable[[dict[str, Any]], bool]
 """Called after every update with the logged scalars; returning True stops training (used by benchmarks)."""
@@ -207,6 +208,7 @@ def _train_loop(
     start = time.perf_counter()
     next_checkpoint = (state.global_step // cfg.run.checkpoint_every + 1) * cfg.run.checkpoint_every
     progress = make_progress(cfg.run.progress)
+    stop_rule = StopRule(cfg, device) if cfg.stop.enabled else None
     try:
         with _sigterm_flag() as stop, progress:
             task = progress.add_task("train", total=ppo.total_steps, completed=state.global_step, info="")
@@ -227,6 +229,9 @@ def _train_loop(
                     save_checkpoint(run_dir, cfg, state)
                     next_checkpoint += cfg.run.checkpoint_every
                 if callback is not None and callback({"env_steps": state.global_step, **scalars}):
+                    return True
+                if stop_rule is not None and stop_rule.after_update(scalars, state.curriculum.stage, state.agent):
+                    logger.add_text("stop", f"stopped at {state.global_step} env steps: held-out {stop_rule.confirmed}")
                     return True
         return False
     finally:
@@ -374,6 +379,7 @@ def _scalars(
             n = int(stats.episodes[stage, kind])
             if n:
                 out[f"stages/{stage}/{name}_success"] = int(stats.successes[stage, kind]) / n
+                out[f"stages/{stage}/{name}_count"] = n
     window = curriculum.window_counts()
     rate = window.rate(curriculum.stage, 0)
     if rate is not None:
