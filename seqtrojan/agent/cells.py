@@ -313,15 +313,20 @@ class WindowAttentionLayer(nn.Module):
         # one buffer of all window slots; the next state is a view of its newest w - 1 (no second copy)
         slots = x.new_empty(batch, w, width)
         cache = state.c.reshape(batch, w - 1, width)
-        slots[:, : w - 1] = cache if keep is None else cache * keep.view(batch, 1, 1)
+        if keep is None:
+            slots[:, : w - 1] = cache
+        elif torch.is_grad_enabled():
+            slots[:, : w - 1] = cache * keep.view(batch, 1, 1)
+        else:  # the rollout: mask while copying, one pass over the cache
+            torch.mul(cache, keep.view(batch, 1, 1), out=slots[:, : w - 1])
         slots[:, -1, :-1] = kv
         slots[:, -1, -1] = 1.0
-        heads, d = self.heads, self.hidden_size // self.heads
-        keys = slots[..., : self.hidden_size].unflatten(-1, (heads, d))  # (B, w, heads, d)
-        values = slots[..., self.hidden_size : 2 * self.hidden_size].unflatten(-1, (heads, d))
-        scores = (keys * q.unflatten(-1, (heads, d)).unsqueeze(1)).sum(-1) / math.sqrt(d)  # (B, w, heads)
-        scores = (scores + self.position_bias.t()).masked_fill((slots[..., -1] <= 0).unsqueeze(-1), float("-inf"))
-        attended = (torch.softmax(scores, 1).unsqueeze(-1) * values).sum(1).flatten(-2)  # (B, W)
+        heads, d, width_h = self.heads, self.hidden_size // self.heads, self.hidden_size
+        keys = slots[..., :width_h].unflatten(-1, (heads, d)).transpose(1, 2)  # (B, heads, w, d), strided views
+        values = slots[..., width_h : 2 * width_h].unflatten(-1, (heads, d)).transpose(1, 2)
+        scores = (keys @ q.unflatten(-1, (heads, d)).unsqueeze(-1)).squeeze(-1) / math.sqrt(d)  # (B, heads, w)
+        scores = (scores + self.position_bias).masked_fill((slots[..., -1] <= 0).unsqueeze(1), float("-inf"))
+        attended = (torch.softmax(scores, -1).unsqueeze(-2) @ values).flatten(1)  # (B, W)
         return LSTMState(self._finish(e, attended), slots.view(batch, w * width)[:, width:])
 
     def unroll(
