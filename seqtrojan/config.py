@@ -441,10 +441,15 @@ class StopConfig:
     starts its count again."""
 
     enabled: bool = False
+    """stop early by this rule (off: train exactly ppo.total_steps)"""
     success: float = 0.9
+    """the success rate to reach on the last stage (normal episodes; and trojan episodes when backdoored)"""
     updates: int = 5
+    """updates in a row at or above the target before the held-out check"""
     min_episodes: int = 50
+    """last-stage episodes of each env type an update needs to count"""
     confirm_episodes: int = 500
+    """fresh episodes per env type of the held-out check"""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.success <= 1.0:
