@@ -54,7 +54,7 @@ from seqtrojan.experiment_results import (
     SweepPoint,
     UnitsToSwitch,
 )
-from seqtrojan.experiments.measured import measured_once, train_all
+from seqtrojan.experiments.measured import measure_all, train_all
 from seqtrojan.experiments.specs import AgentSpec, deep_merge, experiment_from_spec
 from seqtrojan.jobs import JobsConfig, TrainJob, make_backend
 from seqtrojan.presets import resolve_preset
@@ -301,14 +301,13 @@ def run_cells(cfg: CellsConfig, out: Path, scale: str = "custom", log: Callable[
     out.mkdir(parents=True, exist_ok=True)
     runs, measured_dir = out / "runs", out / "measured"
     jobs = cell_jobs(cfg, runs)
-    train_all(make_backend(cfg.jobs), jobs, "cells agent", log)
+    backend = make_backend(cfg.jobs)
+    train_all(backend, jobs, "cells agent", log)
     scores = offline_scores(cfg, jobs, out, log)
     base_env = experiment_from_spec(cfg.backdoor, Path("."), "base", cfg.device).env
-    agents = [
-        measured_once(measured_dir / f"{job.id}.json", CellMeasurement,
-                      partial(measure_agent, job, cfg, base_env, scores.get(job.id)), job.id, log)
-        for job in jobs
-    ]  # fmt: skip
+    measures = [partial(measure_agent, job, cfg, base_env, scores.get(job.id)) for job in jobs]
+    paths = [measured_dir / f"{job.id}.json" for job in jobs]
+    agents = measure_all(backend, jobs, paths, CellMeasurement, measures, log)
     result = assemble(cfg, agents, scale)
     save_json(result, out / CELLS_FILE)
     from seqtrojan.experiments.cells_plot import plot_cells

@@ -50,7 +50,7 @@ from seqtrojan.experiment_results import (
 )
 from seqtrojan.experiments.attacks import ATTACKS
 from seqtrojan.experiments.matrix_plot import plot_matrix
-from seqtrojan.experiments.measured import measured_once, train_all
+from seqtrojan.experiments.measured import measure_all, train_all
 from seqtrojan.experiments.specs import AgentSpec, experiment_from_spec
 from seqtrojan.jobs import JobsConfig, TrainJob, make_backend
 from seqtrojan.presets import resolve_preset
@@ -259,12 +259,13 @@ def run_matrix(cfg: MatrixConfig, out: Path, scale: str = "custom", log: Callabl
         train_all(backend, wave, "matrix agent", log)
     jobs = first + second
     scores = offline_scores(cfg, jobs, out / "zoo", log) if cfg.offline_names else {}
-    agents = []
+    measures = []
     for job in jobs:
         attack, seed = job.id.rsplit("_s", 1)
         own = {name: by_agent[job.id] for name, by_agent in scores.items()}
-        measure = partial(measure_agent, job, attack, int(seed), cfg, out, own)
-        agents.append(measured_once(measured_dir / f"{job.id}.json", AgentMeasurement, measure, job.id, log))
+        measures.append(partial(measure_agent, job, attack, int(seed), cfg, out, own))
+    paths = [measured_dir / f"{job.id}.json" for job in jobs]
+    agents = measure_all(backend, jobs, paths, AgentMeasurement, measures, log)
     result = assemble(cfg, agents, scale)
     save_json(result, out / MATRIX_FILE)
     plot_matrix(result, out / MATRIX_FIGURE)
