@@ -217,6 +217,37 @@ def _gym_evaluate(argv: list[str]) -> None:
     print(f"wrote {save_json(report, args.out / GYM_EVALUATION_FILE)}")
 
 
+def _gym_defend(argv: list[str]) -> None:
+    from seqtrojan.defense.gym_monitor import GYM_MONITOR_FILE, monitor_gym_model
+    from seqtrojan.defense.online import MonitorConfig
+    from seqtrojan.serde import save_json
+    from seqtrojan.train.gym_model import load_gym_agent
+
+    @dataclasses.dataclass
+    class GymDefendArgs:
+        """The state monitors (per-unit and multivariate) on a Gymnasium model: calibrated on its own clean episodes
+        at the false-alarm target, then false alarms and detection on fresh episodes. Writes gym_monitor.json."""
+
+        model: Path
+        """the model folder (model.safetensors and gym_card.json)"""
+        monitor: MonitorConfig = dataclasses.field(default_factory=lambda: MonitorConfig(500, 0.01, 500))
+        """calibration and evaluation episodes, false-alarm target, seed"""
+        out: Path = Path("results/gym_defend")
+        """folder for gym_monitor.json"""
+        device: str = "cpu"
+        """torch device of the network (the envs step on the CPU)"""
+
+    args = tyro.cli(GymDefendArgs, args=argv, prog="seqtrojan gym-defend")
+    agent, cfg, card = load_gym_agent(args.model)
+    report = monitor_gym_model(agent.to(args.device), cfg, args.monitor, model=str(args.model),
+                               label=str(card.get("label", "")), device=args.device)  # fmt: skip
+    print(f"model: {args.model} ({report.label}, {report.env_id}); false-alarm target {report.false_alarm_target}")
+    for arm in report.arms:
+        print(f"{arm.monitor:<22} false alarms {arm.false_alarm.text()}  detection {arm.detection.text()}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(f"wrote {save_json(report, args.out / GYM_MONITOR_FILE)}")
+
+
 def _evaluate(argv: list[str]) -> None:
     from rich.console import Console
 
@@ -600,6 +631,7 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "train-gym": (_train_gym, "train on a Gymnasium env: MiniGrid tasks, your own env (--config, --resume RUN_DIR)"),
     "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
     "gym-evaluate": (_gym_evaluate, "clean and trojan success, persistence (95% CIs) of a Gymnasium model"),
+    "gym-defend": (_gym_defend, "the state monitors on a Gymnasium model: false alarms and detection (95% CIs)"),
     "analyze": (_analyze, "LSTM state traces, response types, interventions, unintentional triggers, search"),
     "defend": (_defend, "online state monitor and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),
     "zoo": (_zoo, "zoo build: train clean and backdoored agents; zoo detect: offline detection scored like TrojAI"),

@@ -21,6 +21,8 @@ same way (:mod:`seqtrojan.defense.online`); the measurement is the same typed :c
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 
@@ -69,21 +71,32 @@ class StateMonitor:
             seed=cfg.seed,
             device=device,
         )
-        half = cfg.calibration_episodes // 2
+        layers = [np.concatenate([h, c], axis=-1) for h, c in zip(trace.h, trace.c)]  # per layer (E, T, h + c)
+        return cls.from_states(layers, trace.mask, cfg.false_alarm_target)
+
+    @classmethod
+    def from_states(cls, layers: Sequence[np.ndarray], mask: np.ndarray, false_alarm_target: float) -> StateMonitor:
+        """Statistics from the first half of the clean episodes, the threshold from the other half's peaks.
+        ``layers``: per layer the states (E, T, units) of E clean episodes, h then c; ``mask`` (E, T): the step ran.
+        """
+        episodes = mask.shape[0]
+        half = episodes // 2
         mean, std = [], []
-        for layer in range(len(trace.h)):
-            x = np.concatenate([trace.h[layer], trace.c[layer]], axis=-1)[:half]  # (E, T, 2U)
-            rows = x[trace.mask[:half]]
+        for x in layers:
+            rows = x[:half][mask[:half]]
             mean.append(rows.mean(0))
             std.append(rows.std(0) + 1e-3)
         monitor = cls(mean, std, threshold=float("inf"))
         peaks = []
-        for e in range(half, cfg.calibration_episodes):
-            steps = trace.mask[e]
-            layers = [np.concatenate([trace.h[i][e], trace.c[i][e]], -1)[steps] for i in range(len(trace.h))]
-            peaks.append(max(float(np.abs((x - m) / s).max()) for x, m, s in zip(layers, mean, std)))
-        monitor.threshold = conformal_threshold(np.asarray(peaks), cfg.false_alarm_target)
+        for e in range(half, episodes):
+            steps = mask[e]
+            peaks.append(max(float(np.abs((x[e][steps] - m) / s).max()) for x, m, s in zip(layers, mean, std)))
+        monitor.threshold = conformal_threshold(np.asarray(peaks), false_alarm_target)
         return monitor
+
+    def score_states(self, layers: Sequence[np.ndarray]) -> np.ndarray:
+        """(E, T) the score of recorded states (per layer (E, T, units), h then c): the largest |z| over units."""
+        return np.max([np.abs((x - m.numpy()) / s.numpy()).max(-1) for x, m, s in zip(layers, self.mean, self.std)], 0)
 
     def score(self, state: RecurrentState) -> torch.Tensor:
         """(B,) largest |z| over every unit of every layer."""

@@ -148,17 +148,28 @@ class MultivariateMonitor:
             agent, env, [grid], episodes=cfg.calibration_episodes, trojan=False, trigger_step=None, seed=cfg.seed,
             device=device,
         )  # fmt: skip
-        half = split(cfg.calibration_episodes)
-        x = state_vectors(trace)  # (E, T, D)
         units = tuple(h + c for h, c in zip(agent.lstm_sizes, agent.c_widths))
-        monitor = cls.fit(x[:half], trace.mask[:half], units, options)
-        held = torch.from_numpy(x[half:]).float()
+        return cls.from_states(state_vectors(trace), trace.mask, units, cfg.false_alarm_target, options)
+
+    @classmethod
+    def from_states(
+        cls, x: np.ndarray, mask: np.ndarray, units: tuple[int, ...], false_alarm_target: float,
+        options: MultivariateConfig | None = None,
+    ) -> MultivariateMonitor:  # fmt: skip
+        """Statistics from the first half of clean episodes' states ``x`` (E, T, D) (``mask`` (E, T): the step
+        ran), the threshold from the other half's peaks."""
+        half = split(x.shape[0])
+        monitor = cls.fit(x[:half], mask[:half], units, options)
+        monitor.threshold = conformal_threshold(monitor.score_array(x[half:], mask[half:]).max(1), false_alarm_target)
+        return monitor
+
+    def score_array(self, x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """(E, T) the distance of recorded states ``x`` (E, T, D) at each step (-inf where ``mask`` is false)."""
+        held = torch.from_numpy(x).float()
         e, t = held.shape[:2]
         steps = torch.arange(t).repeat(e)
-        scores = monitor.score_vectors(held.reshape(e * t, -1), steps).reshape(e, t).numpy()
-        peaks = np.where(trace.mask[half:], scores, -np.inf).max(1)
-        monitor.threshold = conformal_threshold(peaks, cfg.false_alarm_target)
-        return monitor
+        scores = self.score_vectors(held.reshape(e * t, -1), steps).reshape(e, t).numpy()
+        return np.where(mask, scores, -np.inf)
 
     def score_vectors(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """(B,) the distance of states ``x`` (B, D) at episode steps ``t`` (B,) int64."""

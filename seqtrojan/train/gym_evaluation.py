@@ -4,7 +4,7 @@ recorded (:class:`GymEpisode`), with success rates and the trojan's persistence 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -32,6 +32,8 @@ class GymEpisode:
     """the ON trigger's first step (-1 in a normal episode)"""
     reached: str
     """the env's ``info["reached"]`` at the end ("user", "adversary", "" for neither; "" when the env has none)"""
+    states: tuple[np.ndarray, ...] | None = field(default=None, repr=False, compare=False)
+    """per layer the agent's state after each step (length, h then c); recorded only when asked"""
 
 
 @dataclass(frozen=True)
@@ -71,10 +73,11 @@ def evaluate_gym(
     greedy: bool = False,
     num_envs: int = 32,
     device: torch.device | str = "cpu",
+    record_states: bool = False,
 ) -> GymEvaluation:
     """``episodes`` episodes of one type (trojan ones need the config's trigger), with the trigger steps of
     ``trigger.eval_steps``. Each of ``num_envs`` envs runs a fixed quota of episodes (so short episodes are not
-    over-counted)."""
+    over-counted). ``record_states`` keeps each episode's states (:attr:`GymEpisode.states`, for the monitors)."""
     if episodes < 1:
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
     if trojan and config.trigger is None:
@@ -93,19 +96,30 @@ def evaluate_gym(
         lengths = np.zeros(n, dtype=np.int64)
         done_count = np.zeros(n, dtype=np.int64)
         found: list[GymEpisode] = []
+        rows: list[list[np.ndarray]] = [[] for _ in range(n)]  # per env, the steps so far: (layers * units,)
+        widths = [h + c for h, c in zip(agent.lstm_sizes, agent.c_widths)]
         while (done_count < quota).any():
             out, actions, _ = act(agent, obs, state, generator, greedy=greedy, episode_start=start)
             state = out.state
+            if record_states:
+                flat = torch.cat([torch.cat([s.h, s.c], -1) for s in state.layers], -1).cpu().numpy()  # (n, D)
+                for i in range(n):
+                    rows[i].append(flat[i])
             obs_np, rewards, terminated, truncated, infos = vec.step(actions.cpu().numpy())
             returns += rewards
             lengths += 1
             for ep in finished_episodes(infos, rewards, terminated):
                 if done_count[ep.env] < quota[ep.env]:
                     info = ep.info
+                    states = None
+                    if record_states:
+                        stacked = np.stack(rows[ep.env])  # (length, D)
+                        states = tuple(np.split(stacked, np.cumsum(widths)[:-1], axis=-1))
                     found.append(GymEpisode(
                         bool(ep.trojan), bool(ep.success), int(lengths[ep.env]), float(returns[ep.env]),
-                        int(info.get("trigger_step", -1)), str(info.get("reached", "")),
+                        int(info.get("trigger_step", -1)), str(info.get("reached", "")), states,
                     ))  # fmt: skip
+                rows[ep.env] = []
                 done_count[ep.env] += 1
                 returns[ep.env], lengths[ep.env] = 0.0, 0
             obs = torch.as_tensor(obs_np, dtype=torch.float32, device=dev)
