@@ -12,15 +12,9 @@ import numpy as np
 
 from seqtrojan.experiment_results import CellsResult
 from seqtrojan.serde import load_json
-from seqtrojan.stats import OverSeeds, Rate
 
-
-def spread(x: OverSeeds, pooled: Rate | None = None, digits: int = 3) -> str:
-    text = x.text(digits)
-    if pooled is not None:
-        low, high = pooled.interval
-        text += f" [{low:.{digits}f}, {high:.{digits}f}]"
-    return text
+sys.path.insert(0, str(Path(__file__).parent))
+from matrix_markdown import spread  # noqa: E402  (the same cell format as the matrix's tables)
 
 
 def main(path: str) -> None:
