@@ -14,7 +14,7 @@ from seqtrojan.experiment_results import CellsResult
 from seqtrojan.serde import load_json
 
 sys.path.insert(0, str(Path(__file__).parent))
-from matrix_markdown import spread  # noqa: E402  (the same cell format as the matrix's tables)
+from matrix_markdown import spread  # the same cell format as the matrix tables
 
 
 def main(path: str) -> None:
