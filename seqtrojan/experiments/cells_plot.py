@@ -47,7 +47,8 @@ def plot_cells(result: CellsResult, path: Path) -> Path:
     units.set(title="goal switched by editing k goal units", xlabel="units edited", xscale="log", ylim=(-0.02, 1.02))
     for ax in axes:
         ax.title.set_fontsize(9)
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:  # a panel with no data (e.g. no persistence bin filled) has no legend
+            ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
