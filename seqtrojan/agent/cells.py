@@ -94,9 +94,7 @@ class LSTMLayer(nn.LSTMCell):
     ) -> LayerOutput:
         if fast:
             h_seq, c_out = fast_lstm.unroll_layer(self, x, keep.contiguous(), state.h, state.c, return_states)
-            if return_states:
-                return h_seq, LSTMState(h_seq[-1], c_out[-1]), LSTMState(h_seq, c_out)
-            return h_seq, LSTMState(h_seq[-1], c_out), None
+            return _kernel_output(h_seq, c_out, return_states)
         return _gated_unroll(self, x, state, keep, return_states, peephole=None)
 
 
@@ -139,10 +137,15 @@ class PeepholeLSTMLayer(nn.Module):
     ) -> LayerOutput:
         if fast:
             h_seq, c_out = fast_lstm.unroll_peephole_layer(self, x, keep.contiguous(), state.h, state.c, return_states)
-            if return_states:
-                return h_seq, LSTMState(h_seq[-1], c_out[-1]), LSTMState(h_seq, c_out)
-            return h_seq, LSTMState(h_seq[-1], c_out), None
+            return _kernel_output(h_seq, c_out, return_states)
         return _gated_unroll(self, x, state, keep, return_states, peephole=self.peephole)
+
+
+def _kernel_output(h_seq: torch.Tensor, c_out: torch.Tensor, return_states: bool) -> LayerOutput:
+    """A fused LSTM kernel's (h_seq, c_seq or final c) as a layer's output."""
+    if return_states:
+        return h_seq, LSTMState(h_seq[-1], c_out[-1]), LSTMState(h_seq, c_out)
+    return h_seq, LSTMState(h_seq[-1], c_out), None
 
 
 def _gated_unroll(

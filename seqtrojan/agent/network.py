@@ -142,6 +142,10 @@ class RecurrentActorCritic(nn.Module):
             raise ConfigError(f"lstm backend must be one of {BACKENDS}, got {backend!r}")
         self.lstm_backend = backend
 
+    def _kernels(self, x: torch.Tensor) -> bool:
+        """Whether the layers run on the fused C++ kernels for input ``x`` (never for the Transformer: it has none)."""
+        return self.cell != "transformer" and self._fast(x)
+
     def _fast(self, x: torch.Tensor) -> bool:
         if self.lstm_backend == "torch":
             return False
@@ -218,7 +222,7 @@ class RecurrentActorCritic(nn.Module):
         ``t`` (B,) is the per-env episode step handed to the intervention."""
         if not self.memory:
             episode_start = torch.ones(obs.shape[0], dtype=torch.bool, device=obs.device)
-        fast = not torch.is_grad_enabled() and self.cell != "transformer" and self._fast(obs)
+        fast = not torch.is_grad_enabled() and self._kernels(obs)
         keep = None if episode_start is None else (~episode_start.bool()).to(obs.dtype)
         if intervention is None and fast and self.cell == "lstm":
             ones = torch.ones(obs.shape[0], dtype=obs.dtype)
@@ -259,7 +263,7 @@ class RecurrentActorCritic(nn.Module):
         if intervention is not None:
             return self._unroll_stepwise(obs, state, episode_starts, intervention, t, return_states)
         keep = (~episode_starts.bool()).to(obs.dtype)  # (T, B)
-        fast = self.cell != "transformer" and self._fast(obs)
+        fast = self._kernels(obs)
         x = self.encode(obs)
         finals: list[LSTMState] = []
         sequences: list[LSTMState] = []  # filled when return_states
