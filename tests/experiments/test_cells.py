@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import types
 
 import numpy as np
@@ -11,7 +12,7 @@ from seqtrojan.config import CELLS
 from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.errors import ConfigError
 from seqtrojan.experiment_results import CELLS_FILE, CellsResult, Rate, UnitsToSwitch
-from seqtrojan.experiments.cells import CellsConfig, load_cells_config, persistence, run_cells
+from seqtrojan.experiments.cells import CellsConfig, assemble, load_cells_config, persistence, run_cells
 from seqtrojan.serde import from_dict, load_json, parse_yaml
 
 TINY = """
@@ -59,6 +60,15 @@ def test_every_cell_is_trained_measured_and_reported(tmp_path):
         assert a.offline_score is not None and 0 <= a.offline_score <= 1
     for s in result.summaries:
         assert s.auc is not None and len(s.units_needed) == 1
+    # a seed counts in a persistence bin only with enough episodes there; the pooled rate keeps them all
+    strict = assemble(dataclasses.replace(cfg, min_bin_episodes=10**6), result.agents, "tiny")
+    loose = assemble(dataclasses.replace(cfg, min_bin_episodes=1), result.agents, "tiny")
+    assert all(not s.persistence for s in strict.summaries)
+    for s in loose.summaries:
+        mine = [a for a in result.agents if a.cell == s.cell and a.label == "backdoored"]
+        for lo, hi, _, pooled in s.persistence:
+            i = cfg.persistence_bins.index((lo, hi))
+            assert pooled.n == sum(a.persistence[i].adversary.n for a in mine) > 0
     gru = next(a for a in result.agents if a.agent == "gru_backdoored_s0")
     assert gru.units is None or gru.units.which == "h"  # a GRU has only h
     page = (tmp_path / "report.html").read_text()
