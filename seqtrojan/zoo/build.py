@@ -35,7 +35,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -114,6 +114,18 @@ class ZooConfig:
     @property
     def size(self) -> int:
         return self.clean + self.backdoored
+
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("cell", "window")
+    """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
+    built before them is the same config"""
+
+    def serde_dump(self) -> dict:
+        defaults = ZooConfig()
+        return {
+            f.name: to_dict(getattr(self, f.name))
+            for f in dataclasses.fields(self)
+            if f.name not in self.OPTIONAL or getattr(self, f.name) != getattr(defaults, f.name)
+        }
 
 
 @dataclass(frozen=True)

@@ -107,6 +107,19 @@ def test_a_corrupt_or_stale_manifest_is_rebuilt_from_the_model_folders(built, tm
     assert not list(zoo.glob(".manifest.json.*"))  # no temp file left behind
 
 
+def test_a_zoo_built_before_the_cell_fields_is_the_same_config(built, tmp_path):
+    """zoo.json of a zoo built before ZooConfig had cell and window: no such keys; a rerun is no new config."""
+    zoo = copy_of(built, tmp_path)
+    stored = json.loads((zoo / "zoo.json").read_text())
+    assert "cell" not in stored and "window" not in stored  # at their defaults they are not saved
+    logs: list[str] = []
+    build_zoo(TINY, zoo, workers=1, log=logs.append)
+    assert any(line.startswith("zoo: 4 of 4 models done; training 0") for line in logs)
+    gru = ZooConfig(**{**TINY.__dict__, "cell": "gru"})
+    with pytest.raises(ConfigError, match=r'different config: cell \(built with nothing, now "gru"\)'):
+        build_zoo(gru, zoo, workers=1, log=lambda *_: None)
+
+
 def test_a_rerun_with_another_config_is_refused(built, tmp_path):
     zoo = copy_of(built, tmp_path)
     before = {p: p.stat().st_mtime_ns for p in zoo.rglob("*") if p.suffix != ".lock"}
