@@ -112,7 +112,7 @@ def train(
         # process: the handler installed by _train_loop only stops the loop between updates.
         fast_lstm.extension()
     try:
-        stopped_early = _train_loop(cfg, env, state, device, run_dir, logger, callback)
+        stopped_early, confirmed = _train_loop(cfg, env, state, device, run_dir, logger, callback)
     except (KeyboardInterrupt, _Stop):
         save_checkpoint(run_dir, cfg, state)
         logger.close()
@@ -120,12 +120,12 @@ def train(
             f"training stopped at {state.global_step} env steps; resume with --resume {run_dir}"
         ) from None
 
-    return _finish(cfg, state, device, run_dir, stopped_early, logger)
+    return _finish(cfg, state, device, run_dir, stopped_early, confirmed, logger)
 
 
 def _finish(
     cfg: ExperimentConfig, state: TrainerState, device: torch.device, run_dir: Path, stopped_early: bool,
-    logger: RunLogger,
+    confirmed: dict[str, float], logger: RunLogger,
 ) -> TrainResult:  # fmt: skip
     """FINAL EVALUATION AND MODEL: ``evaluation.json``, a last checkpoint and the model folder."""
     evaluation = evaluate_final(state.agent, cfg, device) if cfg.run.eval_episodes > 0 else {}
@@ -133,6 +133,8 @@ def _finish(
         env_steps=state.global_step, train_seconds=state.elapsed_s, stage=state.curriculum.stage,
         stopped_early=stopped_early,
     )  # fmt: skip
+    if confirmed:
+        evaluation["stop_confirmed"] = confirmed
     (run_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=2))
     save_checkpoint(run_dir, cfg, state)
     model_dir = save_agent(
@@ -200,9 +202,10 @@ def _train_loop(
     run_dir: Path,
     logger: RunLogger,
     callback: UpdateCallback | None,
-) -> bool:
+) -> tuple[bool, dict[str, float]]:
     """Update until ``ppo.total_steps`` (LOG and CHECKPOINT after each update); raise _Stop on SIGTERM (between
-    updates). Returns whether ``callback`` stopped training early; ``state.elapsed_s`` is up to date at the end."""
+    updates). Returns whether ``callback`` or the stop rule stopped training early, and the stop rule's held-out
+    success per env type when it did (else empty); ``state.elapsed_s`` is up to date at the end."""
     ppo = cfg.ppo
     elapsed_before = state.elapsed_s
     start = time.perf_counter()
@@ -229,11 +232,11 @@ def _train_loop(
                     save_checkpoint(run_dir, cfg, state)
                     next_checkpoint += cfg.run.checkpoint_every
                 if callback is not None and callback({"env_steps": state.global_step, **scalars}):
-                    return True
+                    return True, {}
                 if stop_rule is not None and stop_rule.after_update(scalars, state.curriculum.stage, state.agent):
                     logger.add_text("stop", f"stopped at {state.global_step} env steps: held-out {stop_rule.confirmed}")
-                    return True
-        return False
+                    return True, stop_rule.confirmed
+        return False, {}
     finally:
         state.elapsed_s = elapsed_before + time.perf_counter() - start
 

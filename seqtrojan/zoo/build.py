@@ -47,6 +47,7 @@ from seqtrojan.config import (
     ExperimentConfig,
     PPOConfig,
     RunConfig,
+    StopConfig,
 )
 from seqtrojan.env.config import EnvConfig, GridSpec, TriggerConfig
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
@@ -98,6 +99,9 @@ class ZooConfig:
     functional_at: float = 0.5
     """a backdoored model's backdoor counts as functional (``label.json``: ``functional_backdoor``) when its final
     trojan-env success is at least this"""
+    stop: StopConfig = StopConfig()  # noqa: RUF009 (frozen, so one shared default is safe)
+    """early stopping of every model (``stop:`` of a training run; off by default: each model trains
+    ``total_steps``); the steps each model took are in its card and the manifest"""
 
     def __post_init__(self) -> None:
         if self.clean < 0 or self.backdoored < 0 or self.clean + self.backdoored == 0:
@@ -115,7 +119,7 @@ class ZooConfig:
     def size(self) -> int:
         return self.clean + self.backdoored
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("cell", "window")
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("cell", "window", "stop")
     """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
     built before them is the same config"""
 
@@ -179,6 +183,7 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
             ppo=PPOConfig(total_steps=cfg.total_steps, num_envs=cfg.num_envs, rollout_steps=64),
             curriculum=CurriculumConfig(stages=tuple(stages)),
             backdoor=BackdoorConfig(enabled=label == "backdoored", mixing=cfg.mixing),
+            stop=cfg.stop,
             run=RunConfig(
                 out_dir=str(root / "work"), name=f"m{i:04d}", seed=seed, progress=False,
                 eval_episodes=cfg.eval_episodes, checkpoint_every=max(cfg.total_steps // 4, 1),

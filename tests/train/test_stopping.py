@@ -68,6 +68,7 @@ def test_training_stops_early_on_an_easy_task_and_says_so(tmp_path):
     result = train(cfg)
     evaluation = json.loads((result.run_dir / "evaluation.json").read_text())
     assert evaluation["stopped_early"] and evaluation["env_steps"] < 2_000_000
+    assert set(evaluation["stop_confirmed"]) == {"normal"} and evaluation["stop_confirmed"]["normal"] >= 0.8
     assert evaluation["normal_success"] >= 0.7
 
 

@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.config import StopConfig
 from seqtrojan.env import GridSpec
 from seqtrojan.errors import ConfigError, SeqTrojanError
 from seqtrojan.jobs import JobsFailed
@@ -111,13 +112,24 @@ def test_a_zoo_built_before_the_cell_fields_is_the_same_config(built, tmp_path):
     """zoo.json of a zoo built before ZooConfig had cell and window: no such keys; a rerun is no new config."""
     zoo = copy_of(built, tmp_path)
     stored = json.loads((zoo / "zoo.json").read_text())
-    assert "cell" not in stored and "window" not in stored  # at their defaults they are not saved
+    assert not {"cell", "window", "stop"} & stored.keys()  # at their defaults they are not saved
     logs: list[str] = []
     build_zoo(TINY, zoo, workers=1, log=logs.append)
     assert any(line.startswith("zoo: 4 of 4 models done; training 0") for line in logs)
     gru = ZooConfig(**{**TINY.__dict__, "cell": "gru"})
     with pytest.raises(ConfigError, match=r'different config: cell \(built with nothing, now "gru"\)'):
         build_zoo(gru, zoo, workers=1, log=lambda *_: None)
+
+
+def test_zoo_models_stop_early_by_the_rule_and_record_their_steps(tmp_path):
+    stop = StopConfig(enabled=True, success=0.5, updates=1, min_episodes=10, confirm_episodes=50)
+    cfg = ZooConfig(clean=1, backdoored=0, curricula=((GridSpec(5, 0),),), total_steps=400_000, num_envs=64,
+                    eval_episodes=50, stop=stop)  # fmt: skip
+    assert make_jobs(cfg, tmp_path)[0].config.stop == stop
+    build_zoo(cfg, tmp_path, workers=1, backend="serial", log=lambda *_: None)
+    (entry,) = manifest_of(tmp_path)
+    assert entry["metrics"]["stopped_early"] and entry["metrics"]["env_steps"] < cfg.total_steps
+    assert json.loads((tmp_path / "zoo.json").read_text())["stop"]["enabled"]
 
 
 def test_a_rerun_with_another_config_is_refused(built, tmp_path):
