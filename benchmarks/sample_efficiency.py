@@ -65,6 +65,13 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "promote0.8": {"curriculum": {"promote_at": 0.8}},
     "minep100": {"curriculum": {"min_episodes": 100, "window_updates": 2}},
     "lambda0.9": {"ppo": {"gae_lambda": 0.9}},
+    "envs64": {"ppo": {"num_envs": 64}},
+    "envs128+rollout32": {"ppo": {"num_envs": 128, "rollout_steps": 32}},
+    "envs128+lr2e-3": {"ppo": {"num_envs": 128, "learning_rate": 0.002}},
+    "rollout32+lr2e-3": {"ppo": {"rollout_steps": 32, "learning_rate": 0.002}},
+    "envs128+rollout32+lr2e-3": {"ppo": {"num_envs": 128, "rollout_steps": 32, "learning_rate": 0.002}},
+    "rollout32+epochs8": {"ppo": {"rollout_steps": 32, "update_epochs": 8}},
+    "envs64+rollout32": {"ppo": {"num_envs": 64, "rollout_steps": 32}},
 }
 """Named changes to a preset for the settings study (nested like the YAML)."""
 
