@@ -1,9 +1,10 @@
 """Print sample efficiency: env steps and wall time until an agent reaches a success target, over seeds.
 
-    python benchmarks/sample_efficiency.py                              # 7x7/3 clean, shipped settings, 5 seeds
-    python benchmarks/sample_efficiency.py --settings shipped,epochs8    # compare PPO settings (see SETTINGS)
+    python benchmarks/sample_efficiency.py                              # 7x7/3 clean, the shipped preset, 5 seeds
+    python benchmarks/sample_efficiency.py --settings base,epochs8    # compare PPO settings (see SETTINGS)
     python benchmarks/sample_efficiency.py --task 17x17 --kind backdoored --target 0.95
     python benchmarks/sample_efficiency.py --sb3                        # also sb3-contrib RecurrentPPO, same env
+    python benchmarks/sample_efficiency.py --base previous --settings base,rollout32   # the study's screens
     python benchmarks/sample_efficiency.py --list                       # the settings and what they change
 
 The rule, the same for every agent: after each update (ours) or rollout (sb3-contrib), the training episodes on the
@@ -52,7 +53,7 @@ PRESETS = {("7x7", "clean"): "clean_7x7", ("17x17", "clean"): "clean_s17_h30",
 SB3_ENVS = {"7x7": "seqtrojan/Normal-v0", "17x17": "seqtrojan/Normal-17x17-H30-v0"}
 
 SETTINGS: dict[str, dict[str, Any]] = {
-    "shipped": {},
+    "base": {},  # the base settings unchanged (--base)
     "envs128": {"ppo": {"num_envs": 128}},
     "envs512": {"ppo": {"num_envs": 512}},
     "rollout32": {"ppo": {"rollout_steps": 32}},
@@ -72,8 +73,16 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "envs128+rollout32+lr2e-3": {"ppo": {"num_envs": 128, "rollout_steps": 32, "learning_rate": 0.002}},
     "rollout32+epochs8": {"ppo": {"rollout_steps": 32, "update_epochs": 8}},
     "envs64+rollout32": {"ppo": {"num_envs": 64, "rollout_steps": 32}},
+    "envs256+rollout32": {"ppo": {"num_envs": 256, "rollout_steps": 32}},
+    "envs256+rollout32+lr2e-3": {"ppo": {"num_envs": 256, "rollout_steps": 32, "learning_rate": 0.002}},
 }
 """Named changes to a preset for the settings study (nested like the YAML)."""
+
+PREVIOUS: dict[str, dict[str, Any]] = {
+    "7x7": {"ppo": {"total_steps": 3_000_000, "num_envs": 256, "rollout_steps": 64, "learning_rate": 0.001}},
+    "17x17": {"ppo": {"total_steps": 10_000_000, "rollout_steps": 64, "learning_rate": 0.001}},
+}
+"""The presets' PPO settings before the study (2026-12-02): ``--base previous`` starts from them, as the study did."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,8 +103,9 @@ def merge(base: dict[str, Any], change: dict[str, Any]) -> dict[str, Any]:
 
 
 def ours(task: str, kind: str, setting: str, seed: int, target: float, budget: int, curriculum: bool,
-         out_dir: str) -> Reached:  # fmt: skip
-    data = merge(load_yaml(ROOT / "configs" / f"{PRESETS[task, kind]}.yaml"), SETTINGS[setting])
+         out_dir: str, previous: bool = False) -> Reached:  # fmt: skip
+    data = load_yaml(ROOT / "configs" / f"{PRESETS[task, kind]}.yaml")
+    data = merge(merge(data, PREVIOUS[task]) if previous else data, SETTINGS[setting])
     data = merge(data, {"ppo": {"total_steps": budget},
                         "stop": {"enabled": True, "success": target, "updates": 1, "confirm_episodes": 1000},
                         "run": {"out_dir": out_dir, "seed": seed, "progress": False, "eval_episodes": 0,
@@ -195,10 +205,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", choices=("7x7", "17x17"), default="7x7")
     parser.add_argument("--kind", choices=("clean", "backdoored"), default="clean")
-    parser.add_argument("--settings", default="shipped", help="comma-separated names from SETTINGS (--list)")
+    parser.add_argument("--settings", default="base", help="comma-separated names from SETTINGS (--list)")
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--target", type=float, default=None, help="success target (default 0.9 on 7x7, 0.95 on 17x17)")
     parser.add_argument("--budget", type=int, default=None, help="env steps per run (default 3M on 7x7, 10M on 17x17)")
+    parser.add_argument(
+        "--base",
+        choices=("preset", "previous"),
+        default="preset",
+        help="start from the shipped preset, or from its settings before the study (PREVIOUS)",
+    )
     parser.add_argument("--no-curriculum", action="store_true", help="ours trains on the target grid directly")
     parser.add_argument("--sb3", action="store_true", help="also sb3-contrib RecurrentPPO (clean only; slow)")
     parser.add_argument("--sb3-only", action="store_true", help="only sb3-contrib (ours not run)")
@@ -220,15 +236,16 @@ def main() -> None:
     threads = torch.get_num_threads()
     with tempfile.TemporaryDirectory() as tmp:
         for setting in [] if args.sb3_only else args.settings.split(","):
-            rows[setting] = [ours(args.task, args.kind, setting, s, target, budget, not args.no_curriculum, tmp)
-                             for s in seeds]  # fmt: skip
+            rows[setting] = [ours(args.task, args.kind, setting, s, target, budget, not args.no_curriculum, tmp,
+                                  args.base == "previous") for s in seeds]  # fmt: skip
             print(setting, *summary(rows[setting], budget), flush=True)
     if args.sb3 or args.sb3_only:
         rows["sb3-contrib RecurrentPPO"] = []
         for seed in seeds:
             rows["sb3-contrib RecurrentPPO"].append(sb3(args.task, seed, target, args.sb3_budget))
             print("sb3-contrib", rows["sb3-contrib RecurrentPPO"][-1], flush=True)
-    how = f"{args.seeds} seeds, {threads} threads, sb3-contrib 1; {'no ' if args.no_curriculum else ''}curriculum"
+    curriculum = "no curriculum" if args.no_curriculum else "curriculum"
+    how = f"{args.base} settings, {args.seeds} seeds, {threads} threads, sb3-contrib 1; {curriculum}"
     table = Table(title=f"Env steps to {target:.0%} success, {args.task} {args.kind} ({how})")
     for col in ("settings", "median steps", "median seconds", "per seed"):
         table.add_column(col, justify="right" if col != "settings" else "left")
@@ -238,6 +255,7 @@ def main() -> None:
     Console().print(table)
     if args.json:
         report = {"task": args.task, "kind": args.kind, "target": target, "curriculum": not args.no_curriculum,
+                  "base": args.base,
                   "runs": {name: [dataclasses.asdict(r) for r in runs] for name, runs in rows.items()}}  # fmt: skip
         Path(args.json).write_text(json.dumps(report, indent=1))
 

@@ -1,4 +1,4 @@
-"""Print recurrent-PPO training figures: throughput of the whole loop and time to 90% success on 7x7/3.
+"""Print recurrent-PPO training throughput: env steps per second of the whole loop.
 
     python benchmarks/train_throughput.py                  # both parts, CPU
     python benchmarks/train_throughput.py --part speed     # throughput only
@@ -10,15 +10,13 @@ paper's network (54 -> LSTM 64 -> LSTM 32), median over updates 2-6, for each LS
 Cells: the same loop and widths (64, 32) with each sequence model: the LSTM, peephole LSTM and GRU on their fused
 C++ kernels and on the PyTorch path, the windowed Transformer (window 8, PyTorch only: its training unroll is one
 batched attention over the window, not a time loop).
-Time to 90%: the clean_7x7 preset (curriculum 5x5/0 -> 5x5/1 -> 7x7/3), stopped at the first update whose 7x7/3
-rollout episodes succeed >= 90%; then 1000 fresh evaluation episodes confirm the rate. Several seeds.
+Time and env steps to a success target: benchmarks/sample_efficiency.py.
 Run it alone on the machine.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import statistics
 import tempfile
@@ -35,10 +33,7 @@ from rich.table import Table
 from seqtrojan.agent import fast_lstm
 from seqtrojan.config import CELLS, AgentConfig, ExperimentConfig, PPOConfig, RunConfig
 from seqtrojan.env import EnvConfig
-from seqtrojan.serde import from_dict, load_yaml
 from seqtrojan.train.trainer import train
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def measure_speed(
@@ -62,31 +57,10 @@ def measure_speed(
     return statistics.median(rates[1:])
 
 
-def time_to_90(seed: int, device: str, out_dir: str, curriculum: bool = True) -> dict:
-    cfg = from_dict(ExperimentConfig, load_yaml(ROOT / "configs" / "clean_7x7.yaml"), "")
-    cfg = dataclasses.replace(
-        cfg, run=dataclasses.replace(cfg.run, out_dir=out_dir, seed=seed, device=device, progress=False)
-    )
-    if not curriculum:
-        cfg = dataclasses.replace(cfg, curriculum=dataclasses.replace(cfg.curriculum, stages=()))
-    last = len(cfg.grids) - 1
-    hit: dict = {}
-
-    def stop(s: dict) -> bool:
-        if s["curriculum/stage"] == last and s.get(f"stages/{last}/normal_success", 0.0) >= 0.9:
-            hit.update(env_steps=s["env_steps"], seconds=s["time/elapsed_s"])
-            return True
-        return False
-
-    result = train(cfg, callback=stop)
-    return {"seed": seed, "curriculum": curriculum, **hit, "eval_success": result.evaluation["normal_success"]}
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--part", choices=("speed", "cells", "time", "all"), default="all")
+    parser.add_argument("--part", choices=("speed", "cells", "all"), default="all")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--json", default=None)
     args = parser.parse_args()
     console = Console()
@@ -120,26 +94,6 @@ def main() -> None:
                     shown = [f"{rates[b]:,.0f}" if b in rates else "-" for b in ("torch", "cpp")]
                     table.add_row(cell, f"{size}x{size}/{holes}", *shown)
             console.print(table)
-        if args.part in ("time", "all"):
-            report["time_to_90"] = []
-            for curriculum in (True, False):
-                runs = [time_to_90(seed, args.device, tmp, curriculum) for seed in range(args.seeds)]
-                report["time_to_90"] += runs
-                how = "with the curriculum 5x5/0 -> 5x5/1 -> 7x7/3" if curriculum else "directly on 7x7/3"
-                table = Table(title=f"Time to 90% success on 7x7/3, {how}")
-                for col in ("seed", "env steps", "seconds", "eval success (1000 episodes)"):
-                    table.add_column(col, justify="right")
-                for r in runs:
-                    table.add_row(
-                        str(r["seed"]),
-                        f"{r.get('env_steps', 0):,}",
-                        f"{r.get('seconds', float('nan')):.1f}",
-                        f"{r['eval_success']:.3f}",
-                    )
-                console.print(table)
-                secs = [r["seconds"] for r in runs if "seconds" in r]
-                if secs:
-                    console.print(f"median {statistics.median(secs):.1f} s over {len(secs)} seeds")
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2))
 
