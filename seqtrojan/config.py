@@ -14,7 +14,7 @@ from typing import Literal
 
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.errors import ConfigError
-from seqtrojan.serde import from_dict, load_yaml, parse_yaml, short_repr, to_dict
+from seqtrojan.serde import dump_omitting_defaults, from_dict, load_yaml, parse_yaml, short_repr, to_dict
 
 __all__ = [
     "ACTIVATIONS",
@@ -134,12 +134,7 @@ class AgentConfig:
 
     def serde_dump(self) -> dict:
         """The saved form: every field but the optional ones at their defaults."""
-        defaults = AgentConfig()
-        return {
-            f.name: to_dict(getattr(self, f.name))
-            for f in dataclasses.fields(self)
-            if f.name not in self.OPTIONAL or getattr(self, f.name) != getattr(defaults, f.name)
-        }
+        return dump_omitting_defaults(self, self.OPTIONAL)
 
     @classmethod
     def serde_load(cls, data: object, path: str) -> AgentConfig:

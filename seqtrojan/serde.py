@@ -30,7 +30,28 @@ from seqtrojan.errors import ConfigError
 
 T = TypeVar("T")
 
-__all__ = ["from_dict", "load_json", "load_yaml", "parse_yaml", "save_json", "short_repr", "to_dict"]
+__all__ = [
+    "dump_omitting_defaults",
+    "from_dict",
+    "load_json",
+    "load_yaml",
+    "parse_yaml",
+    "save_json",
+    "short_repr",
+    "to_dict",
+]
+
+
+def dump_omitting_defaults(obj: Any, optional: tuple[str, ...]) -> dict[str, Any]:
+    """A dataclass's saved form (its ``serde_dump``) with the ``optional`` fields left out where they equal the
+    defaults of ``type(obj)()``: fields added after files were first written, so that an old file reads as the
+    same config."""
+    defaults = type(obj)()
+    return {
+        f.name: to_dict(getattr(obj, f.name))
+        for f in dataclasses.fields(obj)
+        if f.name not in optional or getattr(obj, f.name) != getattr(defaults, f.name)
+    }
 
 
 def to_dict(obj: Any) -> Any:

@@ -15,7 +15,7 @@ from typing import Any, ClassVar, Literal
 from seqtrojan.config import MAX_LAYERS, MAX_WIDTH, AgentConfig, BackdoorConfig, PPOConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.presets import resolve_preset
-from seqtrojan.serde import from_dict, load_yaml, short_repr, to_dict
+from seqtrojan.serde import dump_omitting_defaults, from_dict, load_yaml, short_repr
 
 Cell = tuple[int, int]
 
@@ -133,12 +133,7 @@ class GymAgentConfig:
 
     def serde_dump(self) -> dict:
         """The saved form: every field but the optional ones at their defaults."""
-        defaults = GymAgentConfig()
-        return {
-            f.name: to_dict(getattr(self, f.name))
-            for f in dataclasses.fields(self)
-            if f.name not in self.OPTIONAL + self.GYM_OPTIONAL or getattr(self, f.name) != getattr(defaults, f.name)
-        }
+        return dump_omitting_defaults(self, self.OPTIONAL + self.GYM_OPTIONAL)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -52,7 +52,7 @@ from seqtrojan.config import (
 from seqtrojan.env.config import EnvConfig, GridSpec, TriggerConfig
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.jobs import JobResult, JobsConfig, TrainJob, make_backend, raise_failures
-from seqtrojan.serde import to_dict
+from seqtrojan.serde import dump_omitting_defaults, to_dict
 
 try:
     import fcntl
@@ -124,12 +124,7 @@ class ZooConfig:
     built before them is the same config"""
 
     def serde_dump(self) -> dict:
-        defaults = ZooConfig()
-        return {
-            f.name: to_dict(getattr(self, f.name))
-            for f in dataclasses.fields(self)
-            if f.name not in self.OPTIONAL or getattr(self, f.name) != getattr(defaults, f.name)
-        }
+        return dump_omitting_defaults(self, self.OPTIONAL)
 
 
 @dataclass(frozen=True)
