@@ -19,6 +19,7 @@ from pathlib import Path
 import seqtrojan  # noqa: F401  (first: it sets the OpenMP wait policy before torch loads its runtime)
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.env import GridSpec
+from seqtrojan.errors import SeqTrojanError
 from seqtrojan.experiments.cells import CellsConfig, settling
 from seqtrojan.serde import to_dict
 
@@ -32,13 +33,19 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=12345)
     parser.add_argument("--json", default=None, help="write every model's Settling here")
     args = parser.parse_args()
-    grid = GridSpec.parse(args.grid)
-    steps = tuple(int(s) for s in args.trigger_steps.split(","))
-    cfg = CellsConfig(settle_grid=grid, settle_trigger_steps=steps, episodes=args.episodes)
+    try:
+        grid = GridSpec.parse(args.grid)
+        steps = tuple(int(s) for s in args.trigger_steps.split(","))
+        cfg = CellsConfig(settle_grid=grid, settle_trigger_steps=steps, episodes=args.episodes)
+    except (SeqTrojanError, ValueError) as err:
+        parser.error(str(err))
     results = []
     for folder in args.models:
-        agent, agent_cfg, _ = load_agent(folder)
-        results.append(settling(agent, agent_cfg.env, cfg, args.seed))
+        try:
+            agent, agent_cfg, _ = load_agent(folder)
+            results.append(settling(agent, agent_cfg.env, cfg, args.seed))
+        except SeqTrojanError as err:
+            parser.error(str(err))
         result = results[-1]
         print(f"{folder}: change {', '.join(f'{c:.2f}' for c in result.change[:10])}; attack success "
               + ", ".join(f"{r.value:.3f}" for r in result.attack_success), flush=True)  # fmt: skip

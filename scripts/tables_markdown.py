@@ -18,9 +18,13 @@ TITLES = ("clean, normal env", "backdoored, normal env", "backdoored, trojan env
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("summary", help="evaluation/summary.json of a reproduction")
-    with open(parser.parse_args().summary) as f:
-        rows = json.load(f)
-    cells = {(r["agent"], r["env"], r["config"]): r for r in rows}
+    path = parser.parse_args().summary
+    try:
+        with open(path) as f:
+            rows = json.load(f)
+        cells = {(r["agent"], r["env"], r["config"]): r for r in rows}
+    except (OSError, ValueError, TypeError, KeyError) as err:
+        parser.error(f"cannot read {path!r} as a reproduction's evaluation/summary.json: {err}")
     configs = list(dict.fromkeys(r["config"] for r in rows))
     print("| grid | " + " | ".join(f"{t} | paper" for t in TITLES) + " |")
     print("|---|" + "---|---|" * len(COLUMNS))
