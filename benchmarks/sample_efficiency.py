@@ -25,7 +25,6 @@ Step counts do not depend on the machine's load; wall times do: time them with n
 from __future__ import annotations
 
 import argparse
-import copy
 import dataclasses
 import json
 import statistics
@@ -44,10 +43,11 @@ from rich.console import Console
 from rich.table import Table
 
 from seqtrojan.config import ExperimentConfig
+from seqtrojan.experiments.specs import deep_merge
+from seqtrojan.presets import resolve_preset
 from seqtrojan.serde import from_dict, load_yaml
 from seqtrojan.train.trainer import train
 
-ROOT = Path(__file__).resolve().parents[1]
 PRESETS = {("7x7", "clean"): "clean_7x7", ("17x17", "clean"): "clean_s17_h30",
            ("17x17", "backdoored"): "trojan_s17_h30"}  # fmt: skip
 SB3_ENVS = {"7x7": "seqtrojan/Normal-v0", "17x17": "seqtrojan/Normal-17x17-H30-v0"}
@@ -95,18 +95,11 @@ class Reached:
     confirmed_success: float | None
 
 
-def merge(base: dict[str, Any], change: dict[str, Any]) -> dict[str, Any]:
-    out = copy.deepcopy(base)
-    for key, value in change.items():
-        out[key] = merge(out.get(key, {}), value) if isinstance(value, dict) else value
-    return out
-
-
 def ours(task: str, kind: str, setting: str, seed: int, target: float, budget: int, curriculum: bool,
          out_dir: str, previous: bool = False) -> Reached:  # fmt: skip
-    data = load_yaml(ROOT / "configs" / f"{PRESETS[task, kind]}.yaml")
-    data = merge(merge(data, PREVIOUS[task]) if previous else data, SETTINGS[setting])
-    data = merge(data, {"ppo": {"total_steps": budget},
+    data = load_yaml(resolve_preset(PRESETS[task, kind]))
+    data = deep_merge(deep_merge(data, PREVIOUS[task]) if previous else data, SETTINGS[setting])
+    data = deep_merge(data, {"ppo": {"total_steps": budget},
                         "stop": {"enabled": True, "success": target, "updates": 1, "confirm_episodes": 1000},
                         "run": {"out_dir": out_dir, "seed": seed, "progress": False, "eval_episodes": 0,
                                 "checkpoint_every": 10**12}})  # fmt: skip
