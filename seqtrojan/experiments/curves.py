@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from seqtrojan.config import BackdoorConfig, CurriculumConfig, ExperimentConfig
+from seqtrojan.errors import ConfigError
 from seqtrojan.experiment_results import Curve, CurvesResult
 from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 
@@ -35,6 +36,24 @@ class CurvesConfig:
     """envs per run"""
     points: int = 40
     """steps on the common grid where mean and standard deviation are taken"""
+    config_steps: tuple[int, ...] | None = None
+    """env steps per run of each config, in the order of ``configs`` (None: ``total_steps`` for every config): a
+    grid that is learned early needs no more steps to show it"""
+
+    def __post_init__(self) -> None:
+        if self.config_steps is not None:
+            if len(self.config_steps) != len(self.configs):
+                raise ConfigError(
+                    f"curves.config_steps has {len(self.config_steps)} entries for {len(self.configs)} configs"
+                )
+            if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in self.config_steps):
+                raise ConfigError(f"curves.config_steps must be positive integers, got {list(self.config_steps)}")
+
+    def steps(self, size: int, holes: int) -> int:
+        """Env steps per run of the config (size, holes)."""
+        if self.config_steps is None:
+            return self.total_steps
+        return self.config_steps[list(self.configs).index((size, holes))]
 
 
 def curve_run_config(base: ExperimentConfig, size: int, holes: int, seed: int, cfg: CurvesConfig, out: Path):
@@ -42,7 +61,7 @@ def curve_run_config(base: ExperimentConfig, size: int, holes: int, seed: int, c
     return dataclasses.replace(
         base,
         env=base.env.with_grid((size, holes)),
-        ppo=dataclasses.replace(base.ppo, total_steps=cfg.total_steps, num_envs=cfg.num_envs),
+        ppo=dataclasses.replace(base.ppo, total_steps=cfg.steps(size, holes), num_envs=cfg.num_envs),
         curriculum=CurriculumConfig(),
         backdoor=backdoor,
         run=dataclasses.replace(

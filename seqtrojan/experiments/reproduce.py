@@ -5,11 +5,11 @@ unintentional triggers, searches), and a self-contained HTML report beside the p
     seqtrojan reproduce --scale smoke      # minutes on 2 cores: the README's main job
     seqtrojan reproduce --scale paper      # the paper's setting (17x17/30 agents, 1000 trials, 10 seeds)
 
-:func:`reproduce` is a list of stages (:func:`reproduce_stages`: headline training, evaluation, curves, trajectory,
-analysis, defense, trade-off, zoo, report; a section set to None in the config is not in the list) run by
-:func:`seqtrojan.experiments.stages.run_stages`. Each stage writes its outputs under ``--out`` at the paths of
-:class:`seqtrojan.artifacts.RunLayout` and is skipped when they exist, so a stopped reproduction continues where it
-stopped (training runs resume from their last checkpoint).
+:func:`reproduce` is a list of stages (:func:`reproduce_stages`: training (headline agents, curves, trade-off in one
+queue), evaluation, curves, trajectory, analysis, defense, trade-off, zoo, report; a section set to None in the
+config is not in the list) run by :func:`seqtrojan.experiments.stages.run_stages`. Each stage writes its outputs
+under ``--out`` at the paths of :class:`seqtrojan.artifacts.RunLayout` and is skipped when they exist, so a stopped
+reproduction continues where it stopped (training runs resume from their last checkpoint).
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from seqtrojan.evaluation.seeds import summarise_over_seeds
 from seqtrojan.evaluation.sweep import SweepRow, evaluate_sweep, load_sweep, parse_configs, write_sweep
 from seqtrojan.experiment_results import TradeoffResult
 from seqtrojan.experiments.cells import CellsConfig, run_cells
-from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, plot_curves, run_curves
+from seqtrojan.experiments.curves import CurvesConfig, aggregate_curves, curve_jobs, plot_curves, run_curves
 from seqtrojan.experiments.specs import AgentSpec, experiment_from_spec
 from seqtrojan.experiments.stages import Stage, StageContext, run_stages
 from seqtrojan.experiments.tradeoff import TradeoffConfig, measure_tradeoff_agent, summarise_penalties, tradeoff_agents
@@ -163,7 +163,7 @@ def reproduce_stages(config: ReproduceConfig) -> list[Stage[ReproduceContext]]:
         (config.cells, CellsStage()),
     ]
     return [
-        HeadlineTraining(config),
+        TrainingQueue(config),
         EvaluationStage(config),
         *(stage for section, stage in optional if section is not None),
         ReportStage(),
@@ -192,25 +192,41 @@ def headline_jobs(config: ReproduceConfig, layout: RunLayout) -> list[TrainJob]:
     return jobs
 
 
+def queued_jobs(config: ReproduceConfig, layout: RunLayout) -> list[TrainJob]:
+    """Every training job known before any agent exists (the headline agents, the learning curves' runs, the
+    trade-off's agents), longest first: run on one backend, no worker waits at the end of a stage for the last
+    job of that stage while jobs of the next are pending, and the shortest jobs fill the end. The zoo builds its
+    own models (its manifest records them)."""
+    jobs = headline_jobs(config, layout)
+    base = next(job.config for job in jobs if job.id == headline_run_name("backdoor", 0))
+    if config.curves is not None:
+        jobs += curve_jobs(base, config.curves, layout.curves_dir)
+    if config.tradeoff is not None:
+        agents = tradeoff_agents(base, config.tradeoff, layout.runs, trained_seeds=config.seeds)
+        jobs += [a.job for a in agents if a.job is not None]
+    return sorted(jobs, key=lambda job: (-job.config.ppo.total_steps, not job.config.backdoor.enabled))
+
+
 @dataclass(frozen=True)
-class HeadlineTraining:
-    """The clean and backdoored agents of every training seed, on the job backend (each job's training time is
-    recorded as ``train_<id>``)."""
+class TrainingQueue:
+    """Every job of :func:`queued_jobs` on the job backend in one queue (each job's training time is recorded as
+    ``train_<id>``); the stages that use them then find them finished."""
 
     config: ReproduceConfig
-    name: str = "headline"
+    name: str = "training"
 
     def done(self, layout: RunLayout) -> bool:
-        return all(job.done() for job in headline_jobs(self.config, layout))
+        return all(job.done() for job in queued_jobs(self.config, layout))
 
     def run(self, context: ReproduceContext) -> None:
-        jobs = headline_jobs(self.config, context.layout)
+        jobs = queued_jobs(self.config, context.layout)
         backend = context.backend()
-        todo = sum(not job.done() for job in jobs)
-        grid, steps = jobs[-1].config.grids[-1].label, jobs[-1].config.ppo.total_steps
-        context.log(f"training {todo} headline agent(s) ({grid}, {steps:,} env steps each) on the {backend.name} "
-                    f"backend ({backend.describe(todo)}) ...")  # fmt: skip
-        raise_failures(backend.run(jobs, _job_log(context.log, context.timings)), "headline agent")
+        todo = [job for job in jobs if not job.done()]
+        steps = sum(job.config.ppo.total_steps for job in todo)
+        where = f"the {backend.name} backend ({backend.describe(len(todo))})"
+        context.log(f"training {len(todo)} agent(s) (headline, learning curves, trade-off; {steps:,} env steps at "
+                    f"most) on {where}, longest first ...")  # fmt: skip
+        raise_failures(backend.run(todo, _job_log(context.log, context.timings)), "training job")
 
 
 @dataclass(frozen=True)
@@ -337,7 +353,8 @@ class DefenseStage:
 @dataclass(frozen=True)
 class TradeoffStage:
     """The adversary's trade-off: agents trained with each penalty on unintentional activation (the base penalty's
-    first seed is the backdoored agent itself), each measured (timed as ``tradeoff_measure<penalty>_seed<k>``)."""
+    seed k is the headline backdoored agent of training seed k, for every seed the headline has), each measured
+    (timed as ``tradeoff_measure<penalty>_seed<k>``)."""
 
     name: str = "tradeoff"
 
@@ -347,10 +364,10 @@ class TradeoffStage:
     def run(self, context: ReproduceContext) -> None:
         cfg, layout, log = context.config.tradeoff, context.layout, context.log
         assert cfg is not None  # in the list only when the config has a trade-off section
-        backdoor_model = context.models()["backdoor"]
         backend = context.backend()
         base = load_run_config(layout.run("backdoor"))
-        agents = tradeoff_agents(base, cfg, layout.runs)  # the penalty == base agent reuses the backdoored agent
+        # the base penalty's seed-k agent is the headline backdoored agent of training seed k (same config)
+        agents = tradeoff_agents(base, cfg, layout.runs, trained_seeds=context.config.seeds)
         jobs = [a.job for a in agents if a.job is not None]
         todo = sum(not job.done() for job in jobs)
         if todo:
@@ -358,7 +375,7 @@ class TradeoffStage:
         raise_failures(backend.run(jobs, _job_log(log, context.timings)), "trade-off agent")
         measured = []
         for a in agents:
-            model = backdoor_model if a.job is None else a.job.model_dir
+            model = context.models(a.seed_offset)["backdoor"] if a.job is None else a.job.model_dir
             seed = a.config.run.seed
             log(f"measuring the trade-off for false_activation={a.penalty:g}, seed {seed} ...")
             t0 = time.perf_counter()

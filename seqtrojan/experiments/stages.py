@@ -5,7 +5,7 @@ A :class:`Stage` has a name, knows from its outputs whether it is done (``done(l
 stopped pipeline continues where it stopped), every stage that runs has its wall seconds recorded under its name in
 ``timings.json`` (:class:`Timings`), and each start and skip is logged.
 
-    run_stages([HeadlineTraining(config), Evaluation(config), ...], context)
+    run_stages([TrainingQueue(config), EvaluationStage(config), ...], context)
 
 :mod:`seqtrojan.experiments.reproduce` is the reproduction as such a list.
 """

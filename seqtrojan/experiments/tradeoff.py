@@ -8,10 +8,10 @@ adversary's goal while the user's goal is correct (``env.rewards.false_activatio
 * stealth: the unintentional activation rate over the sweep configs (the paper's Tables 1 and 2 by default), and
   the agent's precision and recall as a trigger detector (:mod:`seqtrojan.analysis.trigger_detection`).
 
-This module plans the agents (:func:`tradeoff_agents`: one training job per agent that is not the backdoored agent
-itself), measures them (:class:`~seqtrojan.experiment_results.TradeoffAgentResult`), and summarises each penalty
-over its training seeds (:class:`~seqtrojan.experiment_results.PenaltySummary`: mean and standard deviation): the
-confidence intervals of one agent cover the evaluation's sampling, the seeds the training's spread. The caller runs
+This module plans the agents (:func:`tradeoff_agents`: one training job per agent that is not one of the backdoored
+agents already trained), measures them (:class:`~seqtrojan.experiment_results.TradeoffAgentResult`), and summarises each
+penalty over its training seeds (:class:`~seqtrojan.experiment_results.PenaltySummary`: mean and standard deviation):
+the confidence intervals of one agent cover the evaluation's sampling, the seeds the training's spread. The caller runs
 the jobs on a job backend (:mod:`seqtrojan.jobs`; ``seqtrojan reproduce`` uses its ``jobs:`` backend).
 """
 
@@ -76,8 +76,15 @@ def penalised_config(
     return dataclasses.replace(base, env=env, ppo=ppo, run=run)
 
 
-def reuses_backdoor_agent(base: ExperimentConfig, penalty: float, cfg: TradeoffConfig, seed_offset: int = 0) -> bool:
-    return seed_offset == 0 and penalty == own_penalty(base) and cfg.total_steps in (None, base.ppo.total_steps)
+def reuses_backdoor_agent(
+    base: ExperimentConfig, penalty: float, cfg: TradeoffConfig, seed_offset: int = 0, trained_seeds: int = 1
+) -> bool:
+    """Whether this agent is one already trained: the backdoored agent of training seed ``seed_offset`` (the caller
+    has ``trained_seeds`` of them, seeds 0 .. trained_seeds-1), when the penalty and the budget are its own. Its
+    training config is then the same as this agent's, so training it again would repeat the same experiment."""
+    return (
+        seed_offset < trained_seeds and penalty == own_penalty(base) and cfg.total_steps in (None, base.ppo.total_steps)
+    )
 
 
 @dataclass(frozen=True)
@@ -89,17 +96,22 @@ class TradeoffAgent:
     config: ExperimentConfig
     """its training config (what it is measured with)"""
     job: TrainJob | None
-    """the job that trains it; None when it is the backdoored agent itself (reused, not trained again)"""
+    """the job that trains it; None when it is the backdoored agent of training seed ``seed_offset`` (reused, not
+    trained again)"""
 
 
-def tradeoff_agents(base: ExperimentConfig, cfg: TradeoffConfig, runs_dir: Path) -> list[TradeoffAgent]:
-    """The agents, penalty by penalty and seed by seed. Each one trained is a job whose run is
-    ``<runs_dir>/backdoor_penalty<penalty>`` (``..._seed<seed>`` after the first seed) and whose id is that name."""
+def tradeoff_agents(
+    base: ExperimentConfig, cfg: TradeoffConfig, runs_dir: Path, trained_seeds: int = 1
+) -> list[TradeoffAgent]:
+    """The agents, penalty by penalty and seed by seed. ``trained_seeds``: how many training seeds of the backdoored
+    agent ``base`` exist (seed k trained with run.seed = base's + k); the base penalty's first ``trained_seeds``
+    seeds are those agents. Each one trained is a job whose run is ``<runs_dir>/backdoor_penalty<penalty>``
+    (``..._seed<seed>`` after the first seed) and whose id is that name."""
     agents = []
     for penalty in cfg.penalties:
         for offset in range(cfg.seeds):
             train_cfg = penalised_config(base, penalty, cfg.total_steps, offset)
-            if reuses_backdoor_agent(base, penalty, cfg, offset):
+            if reuses_backdoor_agent(base, penalty, cfg, offset, trained_seeds):
                 agents.append(TradeoffAgent(penalty, offset, train_cfg, None))
                 continue
             name = f"backdoor_penalty{penalty:g}" + (f"_seed{train_cfg.run.seed}" if offset else "")

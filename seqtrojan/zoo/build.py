@@ -92,6 +92,10 @@ class ZooConfig:
     """curricula to draw from (the last stage is the model's training grid)"""
     total_steps: int = 1_500_000
     num_envs: int = 256
+    rollout_steps: int = 64
+    """PPO rollout length of every model (``ppo.rollout_steps``)"""
+    learning_rate: float = 1e-3
+    """PPO learning rate of every model (``ppo.learning_rate``)"""
     mixing: str = "running"
     """backdoor mixing of the backdoored models (exact / running / fixed)"""
     eval_episodes: int = 200
@@ -111,6 +115,10 @@ class ZooConfig:
             raise ConfigError(f"unknown trigger value(s) {sorted(unknown)}; choose from {TRIGGER_VALUES}")
         if self.cell not in CELLS:
             raise ConfigError(f"zoo cell must be one of {CELLS}, got {self.cell!r}")
+        if isinstance(self.rollout_steps, bool) or not isinstance(self.rollout_steps, int) or self.rollout_steps < 1:
+            raise ConfigError(f"zoo rollout_steps must be a positive integer, got {self.rollout_steps!r}")
+        if not 0.0 < self.learning_rate < 1.0:
+            raise ConfigError(f"zoo learning_rate must be in (0, 1), got {self.learning_rate!r}")
         lo, hi = self.trigger_cells
         if not 1 <= lo <= hi <= 9:
             raise ConfigError(f"trigger_cells={self.trigger_cells} must be a range within 1..9")
@@ -119,7 +127,7 @@ class ZooConfig:
     def size(self) -> int:
         return self.clean + self.backdoored
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("cell", "window", "stop")
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("cell", "window", "stop", "rollout_steps", "learning_rate")
     """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
     built before them is the same config"""
 
@@ -175,7 +183,8 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
         config = ExperimentConfig(
             env=EnvConfig(size=last.size, holes=last.holes, trigger=trigger),
             agent=AgentConfig(lstm_sizes=tuple(sizes), cell=cfg.cell, window=cfg.window),
-            ppo=PPOConfig(total_steps=cfg.total_steps, num_envs=cfg.num_envs, rollout_steps=64),
+            ppo=PPOConfig(total_steps=cfg.total_steps, num_envs=cfg.num_envs, rollout_steps=cfg.rollout_steps,
+                          learning_rate=cfg.learning_rate),
             curriculum=CurriculumConfig(stages=tuple(stages)),
             backdoor=BackdoorConfig(enabled=label == "backdoored", mixing=cfg.mixing),
             stop=cfg.stop,

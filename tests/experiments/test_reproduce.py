@@ -345,3 +345,24 @@ def test_scale_files_load_and_bad_presets_are_named(tmp_path):
     assert load_reproduce_config("paper").curves.seeds == 10
     with pytest.raises(ConfigError, match="preset 'nope' not found"):
         reproduce(from_dict(ReproduceConfig, {"clean": {"preset": "nope"}}), tmp_path)
+
+
+def test_the_training_queue_holds_every_known_agent_longest_first(tmp_path):
+    from seqtrojan.artifacts import RunLayout
+    from seqtrojan.experiments.reproduce import queued_jobs
+
+    config = load_reproduce_config("paper")
+    jobs = queued_jobs(config, RunLayout(tmp_path))
+    ids = [job.id for job in jobs]
+    assert len(ids) == len(set(ids)) == 2 * 5 + 3 * 10 + 4  # headline, curves, trade-off (-1 seed 1 is reused)
+    steps = [job.config.ppo.total_steps for job in jobs]
+    assert steps == sorted(steps, reverse=True)
+    assert "backdoor_seed1" in ids and "backdoor_penalty-1_seed1" not in ids
+    curve_steps = {job.id.split("_")[0]: job.config.ppo.total_steps for job in jobs if job.id[0].isdigit()}
+    assert curve_steps == {"5x5h0": 200_000, "5x5h1": 300_000, "7x7h3": 1_000_000}
+
+
+@pytest.mark.parametrize("steps", [[100, 200], [100, 0, 300]])
+def test_curve_steps_per_config_are_checked(steps):
+    with pytest.raises(ConfigError, match=r"curves\.config_steps"):
+        from_dict(ReproduceConfig, {"curves": {"configs": [[5, 0], [5, 1], [7, 3]], "config_steps": steps}})

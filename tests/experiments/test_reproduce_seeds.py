@@ -78,7 +78,8 @@ def test_rerun_reuses_every_seed_and_its_evaluation(two_seeds):
     reproduce(from_dict(ReproduceConfig, HEADLINE_ONLY), out, scale="tiny", log=logs.append)
     assert (out / "evaluation" / "seed1.json").read_text() == before
     assert (out / "runs" / "backdoor_seed1" / "model" / "card.json").stat().st_mtime_ns == stamp
-    assert not any("training" in line or "evaluating" in line for line in logs)
+    assert "training: done (outputs exist), skipped" in logs
+    assert not any(line.startswith("training ") or "evaluating" in line for line in logs)
 
 
 @pytest.mark.parametrize("seeds", [0, -1, 101])

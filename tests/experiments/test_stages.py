@@ -60,10 +60,10 @@ def test_the_reproduction_lists_only_the_stages_its_config_has():
     full: dict[str, dict] = {"tradeoff": {}, "zoo": {}, "cells": {}}
     names = [s.name for s in reproduce_stages(from_dict(ReproduceConfig, full))]
     assert names == [
-        "headline", "evaluation", "curves", "trajectory", "analysis", "defense", "tradeoff", "zoo", "cells", "report",
+        "training", "evaluation", "curves", "trajectory", "analysis", "defense", "tradeoff", "zoo", "cells", "report",
     ]  # fmt: skip
     headline_only = {"curves": None, "trajectory": None, "analysis": None, "defense": None}
     names = [s.name for s in reproduce_stages(from_dict(ReproduceConfig, headline_only))]
-    assert names == ["headline", "evaluation", "report"]
+    assert names == ["training", "evaluation", "report"]
     stages = reproduce_stages(from_dict(ReproduceConfig, {"defense": None}))
-    assert [s.name for s in stages] == ["headline", "evaluation", "curves", "trajectory", "analysis", "report"]
+    assert [s.name for s in stages] == ["training", "evaluation", "curves", "trajectory", "analysis", "report"]

@@ -112,7 +112,7 @@ def test_a_zoo_built_before_the_cell_fields_is_the_same_config(built, tmp_path):
     """zoo.json of a zoo built before ZooConfig had cell and window: no such keys; a rerun is no new config."""
     zoo = copy_of(built, tmp_path)
     stored = json.loads((zoo / "zoo.json").read_text())
-    assert not {"cell", "window", "stop"} & stored.keys()  # at their defaults they are not saved
+    assert not {"cell", "window", "stop", "rollout_steps", "learning_rate"} & stored.keys()  # not saved at defaults
     logs: list[str] = []
     build_zoo(TINY, zoo, workers=1, log=logs.append)
     assert any(line.startswith("zoo: 4 of 4 models done; training 0") for line in logs)
@@ -130,6 +130,14 @@ def test_zoo_models_stop_early_by_the_rule_and_record_their_steps(tmp_path):
     (entry,) = manifest_of(tmp_path)
     assert entry["metrics"]["stopped_early"] and entry["metrics"]["env_steps"] < cfg.total_steps
     assert json.loads((tmp_path / "zoo.json").read_text())["stop"]["enabled"]
+
+
+def test_zoo_ppo_settings_reach_every_model_and_bad_ones_are_refused(tmp_path):
+    cfg = ZooConfig(clean=1, backdoored=1, rollout_steps=32, learning_rate=2e-3)
+    assert {(j.config.ppo.rollout_steps, j.config.ppo.learning_rate) for j in make_jobs(cfg, tmp_path)} == {(32, 2e-3)}
+    for bad in ({"rollout_steps": 0}, {"rollout_steps": True}, {"learning_rate": 0.0}, {"learning_rate": 1.5}):
+        with pytest.raises(ConfigError, match=f"zoo {next(iter(bad))}"):
+            ZooConfig(**bad)
 
 
 def test_a_rerun_with_another_config_is_refused(built, tmp_path):
