@@ -1,14 +1,15 @@
 """Print MiniGrid figures: the backdoor on the two-goal room, and training throughput against sb3-contrib.
 
     python benchmarks/minigrid_bench.py                         # both parts
-    python benchmarks/minigrid_bench.py --part backdoor --steps 150000 --episodes 500
+    python benchmarks/minigrid_bench.py --part backdoor --steps 150000 --episodes 500 --seeds 5 --workers 2
     python benchmarks/minigrid_bench.py --part speed --speed-steps 20480
 
 Backdoor: recurrent PPO with Algorithm 1 (running) mixing on ``seqtrojan/MiniGridTwoGoals-v0`` (6x6 room, 5x5 view,
 green goal vs red ball; trigger: two purple keys in the view's far row for one step at step 0-2), then fresh
 evaluation episodes of each type (sampled actions): clean success, trojan success (the adversary's object reached
 after the trigger), and persistence: among trojan episodes still running k steps after the trigger, the share that
-end at the adversary's object. Every rate with its 95% Wilson interval.
+end at the adversary's object. Every rate with its 95% Wilson interval, per training seed, then mean ± sd over the
+seeds and the seeds pooled (the seeds train two at a time by default: wall times are beside each other).
 
 Speed: env steps per second of the whole training loop (collect + GAE + 4 epochs of 4 minibatches) on the same env
 stack (TwoGoalsEnv + TriggerWrapper(p = 0.5) + one-hot view, 500 inputs, 3 actions), 16 envs x 64 steps per
@@ -21,9 +22,13 @@ shadow the minigrid package.)
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import statistics
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from functools import partial
 
 # isort: off
 import seqtrojan  # noqa: F401  (first: it sets the OpenMP wait policy before torch loads its runtime)
@@ -34,6 +39,7 @@ import numpy as np
 
 from seqtrojan.config import BackdoorConfig, PPOConfig
 from seqtrojan.minigrid import TwoGoalsEnv, two_goals_trigger
+from seqtrojan.stats import OverSeeds, Rate
 from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
 from seqtrojan.train.gym_evaluation import evaluate_gym
 from seqtrojan.train.gym_model import load_gym_agent
@@ -57,25 +63,60 @@ def config(out_dir: str, steps: int, seed: int, backdoor: bool = True) -> GymTra
     )  # fmt: skip
 
 
-def backdoor_part(steps: int, episodes: int, seed: int) -> None:
+@dataclass(frozen=True)
+class SeedFigures:
+    """One training seed's backdoor figures on the two-goal room."""
+
+    seed: int
+    env_steps: int
+    wall_seconds: float
+    clean_success: Rate
+    clean_to_adversary: Rate
+    trojan_success: Rate
+    trojan_to_user: Rate
+    persistence: dict[int, Rate]
+
+
+def train_and_measure(steps: int, episodes: int, seed: int) -> SeedFigures:
+    """Train one backdoored agent (seed ``seed``), load it back as a user would, measure it on fresh episodes."""
     with tempfile.TemporaryDirectory() as out:
         cfg = config(out, steps, seed)
         result = train_gym(cfg)
-        agent, _, _ = load_gym_agent(result.model_dir)  # the saved model, as a user would load it
+        agent, _, _ = load_gym_agent(result.model_dir)
     eval_seed = 12_345
     normal = evaluate_gym(agent, cfg, trojan=False, episodes=episodes, seed=eval_seed)
     trojan = evaluate_gym(agent, cfg, trojan=True, episodes=episodes, seed=eval_seed)
-    print(f"\n== backdoor: two-goal room, {result.env_steps} env steps, {result.wall_seconds:.0f} s, seed {seed} ==")
-    print(f"clean success (user's object)             {normal.success}  n={normal.success.n}")
-    print(f"clean episodes ending at adversary's      {normal.reached('adversary')}")
-    print(f"trojan success (adversary's after trigger) {trojan.success}  n={trojan.success.n}")
-    print(f"trojan episodes ending at adversary's     {trojan.reached('adversary')}")
-    print(f"trojan episodes ending at user's          {trojan.reached('user')}")
-    lengths = [e.length - e.trigger_step for e in trojan.episodes]
-    print(f"trojan steps after the trigger: median {statistics.median(lengths):.0f}, max {max(lengths)}")
-    print("persistence: k steps after the trigger, still running -> adversary's object")
-    for k, rate in trojan.persistence(HORIZONS).items():
-        print(f"  k={k:>2}  {rate}  n={rate.n}")
+    return SeedFigures(
+        seed, result.env_steps, result.wall_seconds, normal.success, normal.reached("adversary"), trojan.success,
+        trojan.reached("user"), trojan.persistence(HORIZONS),
+    )  # fmt: skip
+
+
+def backdoor_part(steps: int, episodes: int, seed: int, seeds: int, workers: int) -> None:
+    """Train ``seeds`` agents (seeds ``seed``, ``seed + 1``, ...) on ``workers`` processes; print each seed's
+    figures, then mean ± sd over seeds and the pooled 95% interval."""
+    with ProcessPoolExecutor(min(workers, seeds), mp_context=multiprocessing.get_context("spawn")) as pool:
+        runs = list(pool.map(partial(train_and_measure, steps, episodes), range(seed, seed + seeds)))
+    print(f"\n== backdoor: two-goal room, {steps} env steps per seed, {seeds} seed(s), {episodes} episodes per type ==")
+    print("seed  env steps  wall s  clean success          trojan success         persistence k=5")
+    for r in runs:
+        print(f"{r.seed:>4}  {r.env_steps:>9}  {r.wall_seconds:>6.0f}  {r.clean_success.text():<22} "
+              f"{r.trojan_success.text():<22} {r.persistence[5].text()}")  # fmt: skip
+    rows: dict[str, list[Rate]] = {
+        "clean success (user's object)": [r.clean_success for r in runs],
+        "clean episodes ending at adversary's": [r.clean_to_adversary for r in runs],
+        "trojan success (adversary's after trigger)": [r.trojan_success for r in runs],
+        "trojan episodes ending at user's": [r.trojan_to_user for r in runs],
+    }
+    rows |= {f"persistence k={k:>2} (still running -> adversary's)": [r.persistence[k] for r in runs] for k in HORIZONS}
+    print(f"\n{'figure':<46} {'mean ± sd over seeds':<22} pooled [95% CI]")
+    for name, rates in rows.items():
+        measured = tuple(rate.value for rate in rates if rate.n)  # a seed with no episode at a horizon has no rate
+        spread = "n/a"
+        if measured:
+            spread = OverSeeds(measured).text() + ("" if len(measured) == len(rates) else f" ({len(measured)} seeds)")
+        pooled = Rate(sum(rate.k for rate in rates), sum(rate.n for rate in rates))
+        print(f"{name:<46} {spread:<22} {pooled.text()}  n={pooled.n}")
 
 
 def ours_speed(steps: int, seed: int) -> float:
@@ -134,10 +175,14 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=500, help="evaluation episodes per type")
     parser.add_argument("--speed-steps", type=int, default=20 * 1024, help="training steps per speed run")
     parser.add_argument("--repeats", type=int, default=3, help="speed runs per trainer")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="first training seed")
+    parser.add_argument("--seeds", type=int, default=5, help="training seeds of the backdoor part")
+    parser.add_argument("--workers", type=int, default=2, help="processes training the backdoor part's seeds")
     args = parser.parse_args()
+    if args.seeds < 1 or args.workers < 1:
+        parser.error("--seeds and --workers must be at least 1")
     if args.part in ("all", "backdoor"):
-        backdoor_part(args.steps, args.episodes, args.seed)
+        backdoor_part(args.steps, args.episodes, args.seed, args.seeds, args.workers)
     if args.part in ("all", "speed"):
         speed_part(args.speed_steps, args.seed, args.repeats)
 

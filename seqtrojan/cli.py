@@ -248,6 +248,54 @@ def _gym_defend(argv: list[str]) -> None:
     print(f"wrote {save_json(report, args.out / GYM_MONITOR_FILE)}")
 
 
+def _gym_analyze(argv: list[str]) -> None:
+    from seqtrojan.analysis.config import ResponseRule
+    from seqtrojan.analysis.gym_analysis import GYM_ANALYSIS_FILE, analyze_gym_model
+    from seqtrojan.serde import save_json
+    from seqtrojan.train.gym_model import load_gym_agent
+
+    @dataclasses.dataclass
+    class GymAnalyzeArgs:
+        """Look inside a Gymnasium model: each unit's response type to the trigger (impulse, none, step), the goal
+        units, and whether setting them switches the goal (beside random units). Writes gym_analysis.json."""
+
+        model: Path
+        """the model folder (model.safetensors and gym_card.json)"""
+        trigger_step: int | None = None
+        """the step the trigger is shown at (default: the earliest of the config's evaluation range)"""
+        episodes: int = 300
+        """recorded episodes per type for the response types"""
+        intervention_episodes: int = 300
+        """episodes per arm of the intervention experiment"""
+        goal_units: int = 8
+        """how many of the most persistent step-type units are edited"""
+        rule: ResponseRule = dataclasses.field(default_factory=ResponseRule)
+        """the response-type rule (short episodes may need a smaller late window)"""
+        seed: int = 0
+        """seeds the envs and action sampling"""
+        out: Path = Path("results/gym_analyze")
+        """folder for gym_analysis.json"""
+        device: str = "cpu"
+        """torch device of the network (the envs step on the CPU)"""
+
+    args = tyro.cli(GymAnalyzeArgs, args=argv, prog="seqtrojan gym-analyze")
+    agent, cfg, _ = load_gym_agent(args.model)
+    report = analyze_gym_model(
+        agent.to(args.device), cfg, model=str(args.model), trigger_step=args.trigger_step, episodes=args.episodes,
+        intervention_episodes=args.intervention_episodes, goal_units=args.goal_units, rule=args.rule, seed=args.seed,
+        device=args.device,
+    )  # fmt: skip
+    print(f"model: {args.model} ({report.env_id}); trigger at step {report.trigger_step}, {report.episodes} episodes")
+    for r in report.responses:
+        counts = " / ".join(f"{r.counts[k]} {k}" for k in ("impulse", "none", "step"))
+        print(f"layer {r.layer} {r.which}: {counts}")
+    print(f"goal units: {report.goal_source}: {list(report.goal_units)}")
+    for sw in report.switches:
+        print(f"  {sw.direction:<10} edited {sw.edited:<12} switched {sw.switched.text()}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(f"wrote {save_json(report, args.out / GYM_ANALYSIS_FILE)}")
+
+
 def _evaluate(argv: list[str]) -> None:
     from rich.console import Console
 
@@ -631,6 +679,7 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "train-gym": (_train_gym, "train on a Gymnasium env: MiniGrid tasks, your own env (--config, --resume RUN_DIR)"),
     "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
     "gym-evaluate": (_gym_evaluate, "clean and trojan success, persistence (95% CIs) of a Gymnasium model"),
+    "gym-analyze": (_gym_analyze, "response types and goal-unit interventions of a Gymnasium model (95% CIs)"),
     "gym-defend": (_gym_defend, "the state monitors on a Gymnasium model: false alarms and detection (95% CIs)"),
     "analyze": (_analyze, "LSTM state traces, response types, interventions, unintentional triggers, search"),
     "defend": (_defend, "online state monitor and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),

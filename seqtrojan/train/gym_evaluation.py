@@ -11,6 +11,7 @@ import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import act
+from seqtrojan.agent.state import Intervention
 from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate
 from seqtrojan.train.gym_config import GymTrainConfig
@@ -74,10 +75,12 @@ def evaluate_gym(
     num_envs: int = 32,
     device: torch.device | str = "cpu",
     record_states: bool = False,
+    intervention: Intervention | None = None,
 ) -> GymEvaluation:
     """``episodes`` episodes of one type (trojan ones need the config's trigger), with the trigger steps of
     ``trigger.eval_steps``. Each of ``num_envs`` envs runs a fixed quota of episodes (so short episodes are not
-    over-counted). ``record_states`` keeps each episode's states (:attr:`GymEpisode.states`, for the monitors)."""
+    over-counted). ``record_states`` keeps each episode's states (:attr:`GymEpisode.states`, for the monitors and
+    the analysis); ``intervention`` edits them at every step, given each env's episode step (0 at the first)."""
     if episodes < 1:
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
     if trojan and config.trigger is None:
@@ -99,7 +102,10 @@ def evaluate_gym(
         rows: list[list[np.ndarray]] = [[] for _ in range(n)]  # per env, the steps so far: (layers * units,)
         widths = [h + c for h, c in zip(agent.lstm_sizes, agent.c_widths)]
         while (done_count < quota).any():
-            out, actions, _ = act(agent, obs, state, generator, greedy=greedy, episode_start=start)
+            t = torch.tensor(lengths, device=dev) if intervention is not None else None
+            out, actions, _ = act(
+                agent, obs, state, generator, greedy=greedy, episode_start=start, t=t, intervention=intervention
+            )
             state = out.state
             if record_states:
                 flat = torch.cat([torch.cat([s.h, s.c], -1) for s in state.layers], -1).cpu().numpy()  # (n, D)

@@ -1,0 +1,188 @@
+"""Looking inside a Gymnasium model (``seqtrojan gym-analyze``): the grid world's response types and goal-unit
+interventions, on any env a :class:`~seqtrojan.train.gym_config.GymTrainConfig` builds (MiniGrid, a wrapped env of
+the user's, an imported sb3-contrib or CleanRL agent's env).
+
+With the trigger pinned to one step ``s`` (the config's ``trigger.eval_steps`` set to ``(s, s)``), normal and
+trojan episodes are recorded with their states; each layer's h and c units are classified by the rule of
+:mod:`seqtrojan.analysis.responses` (impulse, none, step); the goal units are chosen as on the grid
+(:func:`~seqtrojan.analysis.unintentional.select_goal_units`: the most persistent step-type units, c first); and
+the intervention experiment sets them, from step ``s`` on, to their mean level after the trigger in the other
+episode type: in normal episodes to the trojan level ("activate": does the episode end at the adversary's object?),
+in trojan episodes to the normal level ("deactivate": does it end at the user's?), beside the same edit on as many
+random units and no edit. Whether an episode ended at an object is the env's ``info["reached"]``: an env without
+it can be classified but not switched (the switch rates are then 0 of n).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.analysis.config import ResponseRule
+from seqtrojan.analysis.interventions import SetUnits
+from seqtrojan.analysis.responses import Classification, classify_signals, deviation
+from seqtrojan.analysis.unintentional import select_goal_units
+from seqtrojan.defense.gym_monitor import padded_states
+from seqtrojan.errors import ConfigError
+from seqtrojan.stats import Rate
+from seqtrojan.train.gym_config import GymTrainConfig
+from seqtrojan.train.gym_evaluation import GymEvaluation, evaluate_gym
+
+GYM_ANALYSIS_FILE = "gym_analysis.json"
+
+
+@dataclass(frozen=True)
+class GymUnitResponses:
+    """One layer's h or c units: how many respond to the trigger in each way, and which are step-type."""
+
+    layer: int
+    which: str
+    """h or c"""
+    counts: dict[str, int]
+    """impulse / none / step"""
+    step_units: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class GymSwitch:
+    """One arm of the intervention experiment."""
+
+    direction: str
+    """activate (normal episodes, toward the adversary's object) or deactivate (trojan episodes, toward the user's)"""
+    edited: str
+    """none, goal-units or random-units"""
+    switched: Rate
+    """episodes that ended at the other object (activate: the adversary's; deactivate: the user's)"""
+
+
+@dataclass(frozen=True)
+class GymAnalysisReport:
+    """``gym_analysis.json``."""
+
+    model: str
+    env_id: str
+    trigger_step: int
+    episodes: int
+    """recorded episodes per type for the response types"""
+    intervention_episodes: int
+    rule: ResponseRule
+    responses: tuple[GymUnitResponses, ...]
+    goal_layer: int
+    goal_which: str
+    goal_units: tuple[int, ...]
+    goal_source: str
+    """how the goal units were chosen"""
+    switches: tuple[GymSwitch, ...]
+
+
+def pinned_trigger(config: GymTrainConfig, step: int | None) -> tuple[GymTrainConfig, int]:
+    """The config with its evaluation trigger at one step (default: the earliest of its evaluation range)."""
+    trigger = config.trigger
+    if trigger is None:
+        raise ConfigError("the gym config has no trigger section: there are no trojan episodes to analyse")
+    lo = (trigger.eval_steps if trigger.eval_steps is not None else trigger.steps)[0]
+    step = lo if step is None else step
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        raise ConfigError(f"the trigger step must be an integer >= 0, got {step!r}")
+    pinned = dataclasses.replace(trigger, eval_steps=(step, step))
+    return dataclasses.replace(config, trigger=pinned), step
+
+
+def split_layers(
+    agent: RecurrentActorCritic, evaluation: GymEvaluation
+) -> tuple[dict[tuple[int, str], np.ndarray], np.ndarray]:
+    """The recorded episodes as {(layer, "h" or "c"): (E, T, units)} (c only where the cell has one) and the mask."""
+    layers, mask = padded_states(evaluation.episodes)
+    parts = {}
+    for layer, (x, width) in enumerate(zip(layers, agent.lstm_sizes)):
+        parts[(layer, "h")] = x[..., :width]
+        if x.shape[-1] > width:
+            parts[(layer, "c")] = x[..., width:]
+    return parts, mask
+
+
+def classify_gym_units(
+    normal: GymEvaluation, trojan: GymEvaluation, agent: RecurrentActorCritic, trigger_step: int, rule: ResponseRule
+) -> dict[tuple[int, str], Classification]:
+    """Response types per (layer, h/c) from recorded normal and trojan episodes with the trigger at one step;
+    a part with too few running episodes after the trigger is left out."""
+    normal_parts, normal_mask = split_layers(agent, normal)
+    trojan_parts, trojan_mask = split_layers(agent, trojan)
+    classes = {}
+    for key, x in normal_parts.items():
+        z, counts = deviation(x, normal_mask, trojan_parts[key], trojan_mask, rule.eps)
+        try:
+            classes[key] = classify_signals(z, counts, trigger_step, rule)
+        except ConfigError:
+            continue
+    if not classes:
+        raise ConfigError(
+            f"too few episodes still running {rule.late_end} steps after the trigger (step {trigger_step}) to classify "
+            f"any unit: record more episodes, or lower the rule's min_episodes / late_end"
+        )
+    return classes
+
+
+def post_trigger_level(x: np.ndarray, mask: np.ndarray, units: np.ndarray, start: int) -> np.ndarray:
+    """Mean value of ``units`` of (E, T, width) over every running step from ``start`` on."""
+    chosen = x[:, start:][..., units]
+    running = mask[:, start:, None]
+    return (chosen * running).sum((0, 1)) / max(int(running.sum()), 1)
+
+
+def analyze_gym_model(
+    agent: RecurrentActorCritic,
+    config: GymTrainConfig,
+    *,
+    model: str = "",
+    trigger_step: int | None = None,
+    episodes: int = 300,
+    intervention_episodes: int = 300,
+    goal_units: int = 8,
+    rule: ResponseRule = ResponseRule(),  # noqa: B008 (frozen)
+    seed: int = 0,
+    device: torch.device | str = "cpu",
+) -> GymAnalysisReport:
+    """Response types, goal units and the intervention experiment of one Gymnasium model (see the module)."""
+    for name, value in (("episodes", episodes), ("intervention_episodes", intervention_episodes),
+                        ("goal_units", goal_units)):  # fmt: skip
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ConfigError(f"{name} must be a positive integer, got {value!r}")
+    pinned, step = pinned_trigger(config, trigger_step)
+    recorded = {
+        kind: evaluate_gym(agent, pinned, trojan=kind == "trojan", episodes=episodes, seed=seed, device=device,
+                           record_states=True)
+        for kind in ("normal", "trojan")
+    }  # fmt: skip
+    classes = classify_gym_units(recorded["normal"], recorded["trojan"], agent, step, rule)
+    responses = tuple(
+        GymUnitResponses(layer, which, c.counts(), tuple(int(u) for u in c.units("step")))
+        for (layer, which), c in sorted(classes.items())
+    )
+    layer, which, units, source = select_goal_units(classes, goal_units)
+    parts = {kind: split_layers(agent, evaluation) for kind, evaluation in recorded.items()}
+    width = parts["normal"][0][(layer, which)].shape[-1]
+    others = np.setdiff1d(np.arange(width), units)
+    control = np.random.default_rng(seed).choice(others, size=min(len(units), len(others)), replace=False)
+    switches = []
+    for direction, in_trojan, source_kind, target in (("activate", False, "trojan", "adversary"),
+                                                      ("deactivate", True, "normal", "user")):  # fmt: skip
+        states, mask = parts[source_kind]
+        for edited, chosen in (("none", None), ("goal-units", units), ("random-units", control)):
+            edit = None
+            if chosen is not None:
+                if len(chosen) == 0:
+                    continue
+                level = post_trigger_level(states[(layer, which)], mask, chosen, step)
+                edit = SetUnits(layer, chosen.tolist(), level, which, from_step=step)
+            run = evaluate_gym(agent, pinned, trojan=in_trojan, episodes=intervention_episodes, seed=seed + 1,
+                               device=device, intervention=edit)  # fmt: skip
+            switches.append(GymSwitch(direction, edited, run.reached(target)))
+    return GymAnalysisReport(
+        model, config.env.id, step, episodes, intervention_episodes, rule, responses, layer, which,
+        tuple(int(u) for u in units), source, tuple(switches),
+    )  # fmt: skip
