@@ -269,6 +269,8 @@ def _gym_analyze(argv: list[str]) -> None:
         """episodes per arm of the intervention experiment"""
         goal_units: int = 8
         """how many of the most persistent step-type units are edited"""
+        selection_episodes: int = 100
+        """normal episodes per layer part on which the goal units are chosen (by their edit's effect)"""
         rule: ResponseRule = dataclasses.field(default_factory=ResponseRule)
         """the response-type rule (short episodes may need a smaller late window)"""
         seed: int = 0
@@ -282,13 +284,15 @@ def _gym_analyze(argv: list[str]) -> None:
     agent, cfg, _ = load_gym_agent(args.model)
     report = analyze_gym_model(
         agent.to(args.device), cfg, model=str(args.model), trigger_step=args.trigger_step, episodes=args.episodes,
-        intervention_episodes=args.intervention_episodes, goal_units=args.goal_units, rule=args.rule, seed=args.seed,
-        device=args.device,
+        intervention_episodes=args.intervention_episodes, goal_units=args.goal_units,
+        selection_episodes=args.selection_episodes, rule=args.rule, seed=args.seed, device=args.device,
     )  # fmt: skip
     print(f"model: {args.model} ({report.env_id}); trigger at step {report.trigger_step}, {report.episodes} episodes")
     for r in report.responses:
         counts = " / ".join(f"{r.counts[k]} {k}" for k in ("impulse", "none", "step"))
         print(f"layer {r.layer} {r.which}: {counts}")
+    for c in report.candidates:
+        print(f"  candidate layer {c.layer} {c.which} {list(c.units)}: activates {c.activated.text()}")
     print(f"goal units: {report.goal_source}: {list(report.goal_units)}")
     for sw in report.switches:
         print(f"  {sw.direction:<10} edited {sw.edited:<12} switched {sw.switched.text()}")

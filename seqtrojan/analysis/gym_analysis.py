@@ -2,15 +2,17 @@
 interventions, on any env a :class:`~seqtrojan.train.gym_config.GymTrainConfig` builds (MiniGrid, a wrapped env of
 the user's, an imported sb3-contrib or CleanRL agent's env).
 
-With the trigger pinned to one step ``s`` (the config's ``trigger.eval_steps`` set to ``(s, s)``), normal and
-trojan episodes are recorded with their states; each layer's h and c units are classified by the rule of
-:mod:`seqtrojan.analysis.responses` (impulse, none, step); the goal units are chosen as on the grid
-(:func:`~seqtrojan.analysis.unintentional.select_goal_units`: the most persistent step-type units, c first); and
-the intervention experiment sets them, from step ``s`` on, to their mean level after the trigger in the other
-episode type: in normal episodes to the trojan level ("activate": does the episode end at the adversary's object?),
-in trojan episodes to the normal level ("deactivate": does it end at the user's?), beside the same edit on as many
-random units and no edit. Whether an episode ended at an object is the env's ``info["reached"]``: an env without
-it can be classified but not switched (the switch rates are then 0 of n).
+With the trigger pinned to one step ``s`` (the config's ``trigger.eval_steps`` set to ``(s, s)``), normal and trojan
+episodes are recorded with their states; each layer's h and c units are classified by the rule of
+:mod:`seqtrojan.analysis.responses` (impulse, none, step); the goal units are chosen by their effect (not, as on
+the grid, as the c units of the layer that deviates most, which picked units that do nothing in a MiniGrid agent
+whose goal lives in layer 0): for each layer's h and c, its ``goal_units`` most persistent step-type units are set
+to their trojan level in ``selection_episodes`` normal episodes, and the part whose edit sends most of them to the
+adversary's object wins; and the intervention experiment, on fresh episodes, sets them, from step ``s`` on, to their
+mean level after the trigger in the other episode type: in normal episodes to the trojan level ("activate": does the
+episode end at the adversary's object?), in trojan episodes to the normal level ("deactivate": does it end at the
+user's?), beside the same edit on as many random units and no edit. Whether an episode ended at an object is the
+env's ``info["reached"]``: an env without it can be classified but not switched (the switch rates are then 0 of n).
 """
 
 from __future__ import annotations
@@ -60,6 +62,17 @@ class GymSwitch:
 
 
 @dataclass(frozen=True)
+class GymGoalCandidate:
+    """One layer's h or c as the goal's carrier: its most persistent step-type units and how often setting them to
+    their trojan level sent a normal episode to the adversary's object (the selection episodes)."""
+
+    layer: int
+    which: str
+    units: tuple[int, ...]
+    activated: Rate
+
+
+@dataclass(frozen=True)
 class GymAnalysisReport:
     """``gym_analysis.json``."""
 
@@ -71,12 +84,15 @@ class GymAnalysisReport:
     intervention_episodes: int
     rule: ResponseRule
     responses: tuple[GymUnitResponses, ...]
+    candidates: tuple[GymGoalCandidate, ...]
+    """every part with step-type units, tried on the selection episodes"""
     goal_layer: int
     goal_which: str
     goal_units: tuple[int, ...]
     goal_source: str
     """how the goal units were chosen"""
     switches: tuple[GymSwitch, ...]
+    """measured on episodes other than the selection's"""
 
 
 def pinned_trigger(config: GymTrainConfig, step: int | None) -> tuple[GymTrainConfig, int]:
@@ -143,13 +159,14 @@ def analyze_gym_model(
     episodes: int = 300,
     intervention_episodes: int = 300,
     goal_units: int = 8,
+    selection_episodes: int = 100,
     rule: ResponseRule = ResponseRule(),  # noqa: B008 (frozen)
     seed: int = 0,
     device: torch.device | str = "cpu",
 ) -> GymAnalysisReport:
     """Response types, goal units and the intervention experiment of one Gymnasium model (see the module)."""
     for name, value in (("episodes", episodes), ("intervention_episodes", intervention_episodes),
-                        ("goal_units", goal_units)):  # fmt: skip
+                        ("goal_units", goal_units), ("selection_episodes", selection_episodes)):  # fmt: skip
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ConfigError(f"{name} must be a positive integer, got {value!r}")
     pinned, step = pinned_trigger(config, trigger_step)
@@ -163,8 +180,30 @@ def analyze_gym_model(
         GymUnitResponses(layer, which, c.counts(), tuple(int(u) for u in c.units("step")))
         for (layer, which), c in sorted(classes.items())
     )
-    layer, which, units, source = select_goal_units(classes, goal_units)
     parts = {kind: split_layers(agent, evaluation) for kind, evaluation in recorded.items()}
+    trojan_states, trojan_mask = parts["trojan"]
+
+    def activation(key: tuple[int, str], units: np.ndarray, episodes_: int, seed_: int) -> Rate:
+        level = post_trigger_level(trojan_states[key], trojan_mask, units, step)
+        edit = SetUnits(key[0], units.tolist(), level, key[1], from_step=step)
+        run = evaluate_gym(agent, pinned, trojan=False, episodes=episodes_, seed=seed_, device=device,
+                           intervention=edit)  # fmt: skip
+        return run.reached("adversary")
+
+    candidates = []
+    for key, cl in sorted(classes.items()):
+        step_units = cl.units("step")
+        picked = step_units[np.argsort(-cl.late[step_units])][:goal_units]
+        if len(picked):
+            rate = activation(key, picked, selection_episodes, seed + 2)
+            candidates.append(GymGoalCandidate(key[0], key[1], tuple(int(u) for u in picked), rate))
+    if candidates:
+        best = max(candidates, key=lambda c: c.activated.value)
+        layer, which, units = best.layer, best.which, np.asarray(best.units, dtype=np.int64)
+        source = (f"the {len(units)} most persistent step-type {which} units of layer {layer}, the part whose edit "
+                  f"switched most of {selection_episodes} selection episodes ({best.activated.value:.3f})")  # fmt: skip
+    else:  # no step-type units anywhere: the grid's fallback (most persistent units of any type)
+        layer, which, units, source = select_goal_units(classes, goal_units)
     width = parts["normal"][0][(layer, which)].shape[-1]
     others = np.setdiff1d(np.arange(width), units)
     control = np.random.default_rng(seed).choice(others, size=min(len(units), len(others)), replace=False)
@@ -183,6 +222,6 @@ def analyze_gym_model(
                                device=device, intervention=edit)  # fmt: skip
             switches.append(GymSwitch(direction, edited, run.reached(target)))
     return GymAnalysisReport(
-        model, config.env.id, step, episodes, intervention_episodes, rule, responses, layer, which,
-        tuple(int(u) for u in units), source, tuple(switches),
+        model, config.env.id, step, episodes, intervention_episodes, rule, responses, tuple(candidates), layer,
+        which, tuple(int(u) for u in units), source, tuple(switches),
     )  # fmt: skip

@@ -60,7 +60,9 @@ def test_units_are_typed_and_editing_the_goal_units_switches_the_goal(monkeypatc
     by_part = {(r.layer, r.which): r for r in report.responses}
     assert by_part[(0, "c")].counts == {"impulse": 1, "none": 1, "step": 1} and by_part[(0, "c")].step_units == (0,)
     assert by_part[(0, "h")].counts == {"impulse": 0, "none": 2, "step": 1} and by_part[(0, "h")].step_units == (2,)
-    assert (report.goal_layer, report.goal_which, report.goal_units) == (0, "c", (0,))  # c before h
+    chosen = {(c.layer, c.which, c.units): c.activated.value for c in report.candidates}
+    assert chosen == {(0, "c", (0,)): 1.0, (0, "h", (2,)): 0.0}  # each part's most persistent step unit, tried
+    assert (report.goal_layer, report.goal_which, report.goal_units) == (0, "c", (0,))  # the one that switches
     rates = {(s.direction, s.edited): s.switched for s in report.switches}
     assert rates[("activate", "goal-units")].value == rates[("deactivate", "goal-units")].value == 1.0
     assert all(rates[(d, e)].value == 0.0 for d in ("activate", "deactivate") for e in ("none", "random-units"))
@@ -112,13 +114,15 @@ def test_an_intervention_sees_each_env_s_episode_step(tiny_model):
 def test_a_trained_gym_model_is_analysed_end_to_end(tiny_model):
     agent, cfg = tiny_model
     rule = ResponseRule(response_window=2, late_start=2, late_end=4, min_episodes=5)
-    report = analyze_gym_model(agent, cfg, episodes=40, intervention_episodes=16, goal_units=4, rule=rule)
+    report = analyze_gym_model(agent, cfg, episodes=40, intervention_episodes=16, goal_units=4, rule=rule,
+                               selection_episodes=8)  # fmt: skip
     assert {(r.layer, r.which) for r in report.responses} <= {(0, "h"), (0, "c"), (1, "h"), (1, "c")}
     assert [(s.direction, s.edited) for s in report.switches] == [
         ("activate", "none"), ("activate", "goal-units"), ("activate", "random-units"),
         ("deactivate", "none"), ("deactivate", "goal-units"), ("deactivate", "random-units"),
     ]  # fmt: skip
     assert all(s.switched.n == 16 for s in report.switches) and 1 <= len(report.goal_units) <= 4
+    assert all(c.activated.n == 8 for c in report.candidates)
     with pytest.raises(ConfigError, match="positive integer"):
         analyze_gym_model(agent, cfg, episodes=0)
     with pytest.raises(ConfigError, match="no trigger section"):
