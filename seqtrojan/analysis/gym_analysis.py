@@ -28,11 +28,10 @@ from seqtrojan.analysis.config import ResponseRule
 from seqtrojan.analysis.interventions import SetUnits
 from seqtrojan.analysis.responses import Classification, classify_signals, deviation
 from seqtrojan.analysis.unintentional import select_goal_units
-from seqtrojan.defense.gym_monitor import padded_states
 from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate
 from seqtrojan.train.gym_config import GymTrainConfig
-from seqtrojan.train.gym_evaluation import GymEvaluation, evaluate_gym
+from seqtrojan.train.gym_evaluation import GymEvaluation, evaluate_gym, padded_states
 
 GYM_ANALYSIS_FILE = "gym_analysis.json"
 

@@ -8,7 +8,6 @@ The monitors only raise alarms here (they do not reset the state): the measureme
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +20,7 @@ from seqtrojan.defense.online import MonitorConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate
 from seqtrojan.train.gym_config import GymTrainConfig
-from seqtrojan.train.gym_evaluation import GymEpisode, evaluate_gym
+from seqtrojan.train.gym_evaluation import GymEpisode, evaluate_gym, padded_states
 
 GYM_MONITOR_FILE = "gym_monitor.json"
 GYM_MONITORS = ("state_monitor", "multivariate_monitor")
@@ -48,22 +47,6 @@ class GymMonitorReport:
     episodes: int
     false_alarm_target: float
     arms: tuple[GymMonitorArm, ...]
-
-
-def padded_states(episodes: Sequence[GymEpisode]) -> tuple[list[np.ndarray], np.ndarray]:
-    """Recorded episodes as per-layer arrays (E, T, units), zero after an episode's end, and the mask (E, T)."""
-    if not episodes or any(e.states is None for e in episodes):
-        raise ConfigError("the episodes were recorded without their states (record_states=True)")
-    steps = max(e.length for e in episodes)
-    layers = []
-    for i in range(len(episodes[0].states or ())):
-        width = (episodes[0].states or ())[i].shape[-1]
-        x = np.zeros((len(episodes), steps, width), np.float32)
-        for k, e in enumerate(episodes):
-            x[k, : e.length] = (e.states or ())[i]
-        layers.append(x)
-    mask = np.arange(steps)[None, :] < np.array([e.length for e in episodes])[:, None]
-    return layers, mask
 
 
 def monitor_gym_model(

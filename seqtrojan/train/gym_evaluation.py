@@ -63,6 +63,22 @@ class GymEvaluation:
         return out
 
 
+def padded_states(episodes: Sequence[GymEpisode]) -> tuple[list[np.ndarray], np.ndarray]:
+    """Recorded episodes as per-layer arrays (E, T, units), zero after an episode's end, and the mask (E, T)."""
+    if not episodes or any(e.states is None for e in episodes):
+        raise ConfigError("the episodes were recorded without their states (record_states=True)")
+    steps = max(e.length for e in episodes)
+    layers = []
+    for i in range(len(episodes[0].states or ())):
+        width = (episodes[0].states or ())[i].shape[-1]
+        x = np.zeros((len(episodes), steps, width), np.float32)
+        for k, e in enumerate(episodes):
+            x[k, : e.length] = (e.states or ())[i]
+        layers.append(x)
+    mask = np.arange(steps)[None, :] < np.array([e.length for e in episodes])[:, None]
+    return layers, mask
+
+
 @torch.no_grad()
 def evaluate_gym(
     agent: RecurrentActorCritic,

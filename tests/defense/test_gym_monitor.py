@@ -9,11 +9,11 @@ import pytest
 
 from seqtrojan.config import BackdoorConfig, PPOConfig
 from seqtrojan.defense import gym_monitor
-from seqtrojan.defense.gym_monitor import monitor_gym_model, padded_states
+from seqtrojan.defense.gym_monitor import monitor_gym_model
 from seqtrojan.defense.online import MonitorConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
-from seqtrojan.train.gym_evaluation import GymEpisode, GymEvaluation
+from seqtrojan.train.gym_evaluation import GymEpisode, GymEvaluation, padded_states
 from seqtrojan.train.gym_model import load_gym_agent
 from seqtrojan.train.gym_trainer import train_gym
 
