@@ -300,6 +300,47 @@ def _gym_analyze(argv: list[str]) -> None:
     print(f"wrote {save_json(report, args.out / GYM_ANALYSIS_FILE)}")
 
 
+def _gym_mitigate(argv: list[str]) -> None:
+    from seqtrojan.defense.gym_mitigation import GYM_MITIGATION_FILE, mitigate_gym_model
+    from seqtrojan.serde import save_json
+    from seqtrojan.train.gym_model import load_gym_agent
+
+    @dataclasses.dataclass
+    class GymMitigateArgs:
+        """Mitigations a defender with the weights and clean episodes can apply to a Gymnasium model: pruning the
+        least active units of the last layer, fine-pruning, fine-tuning on normal episodes; clean and attack
+        success of each on fresh episodes (95% CIs). Writes gym_mitigation.json."""
+
+        model: Path
+        """the model folder (model.safetensors and gym_card.json)"""
+        finetune_steps: int = 100_000
+        """env steps of PPO on normal episodes (with the model's own PPO settings)"""
+        prune_fraction: float = 0.25
+        """share of the last layer's units pruned (the least active on normal episodes)"""
+        calibration_episodes: int = 200
+        """normal episodes that measure each unit's activity"""
+        episodes: int = 500
+        """fresh episodes per type and arm"""
+        seed: int = 0
+        """seeds the fine-tuning, the envs and action sampling"""
+        out: Path = Path("results/gym_mitigate")
+        """folder for gym_mitigation.json and the fine-tuning runs (a finished one is reused)"""
+        device: str = "cpu"
+        """torch device of the network (the envs step on the CPU)"""
+
+    args = tyro.cli(GymMitigateArgs, args=argv, prog="seqtrojan gym-mitigate")
+    agent, cfg, _ = load_gym_agent(args.model)
+    report = mitigate_gym_model(
+        agent.to(args.device), cfg, args.out, model=str(args.model), finetune_steps=args.finetune_steps,
+        prune_fraction=args.prune_fraction, calibration_episodes=args.calibration_episodes, episodes=args.episodes,
+        seed=args.seed, device=args.device,
+    )  # fmt: skip
+    print(f"model: {args.model} ({report.env_id}); {report.episodes} fresh episodes per type and arm")
+    for arm in report.arms:
+        print(f"{arm.name:<12} clean success {arm.clean_success.text()}  attack success {arm.attack_success.text()}")
+    print(f"wrote {save_json(report, args.out / GYM_MITIGATION_FILE)}")
+
+
 def _evaluate(argv: list[str]) -> None:
     from rich.console import Console
 
@@ -684,6 +725,7 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
     "gym-evaluate": (_gym_evaluate, "clean and trojan success, persistence (95% CIs) of a Gymnasium model"),
     "gym-analyze": (_gym_analyze, "response types and goal-unit interventions of a Gymnasium model (95% CIs)"),
+    "gym-mitigate": (_gym_mitigate, "pruning, fine-pruning and fine-tuning of a Gymnasium model (95% CIs)"),
     "gym-defend": (_gym_defend, "the state monitors on a Gymnasium model: false alarms and detection (95% CIs)"),
     "analyze": (_analyze, "LSTM state traces, response types, interventions, unintentional triggers, search"),
     "defend": (_defend, "online state monitor and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),

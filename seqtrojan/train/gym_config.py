@@ -154,6 +154,8 @@ class GymRunConfig:
     """LSTM kernels on CPU (see RunConfig.lstm_backend)"""
     eval_episodes: int = 200
     """episodes per episode type in the final evaluation (0: none)"""
+    init_from: str | None = None
+    """a Gymnasium model folder whose weights start a new run (fine-tuning; a resumed run loads its checkpoint's)"""
     checkpoint_every: int = 50_000
     """env steps between checkpoints, a positive integer (one is also written after the last update, and one on a
     stop; a value above ppo.total_steps means none in between)"""

@@ -292,6 +292,14 @@ def train_gym(
 
     torch.manual_seed(cfg.run.seed)
     agent = build_gym_agent(cfg, obs_dim, num_actions).to(device)
+    if cfg.run.init_from is not None and checkpoint is None:
+        start_from, _, _ = load_gym_agent(cfg.run.init_from)
+        try:
+            agent.load_state_dict(start_from.state_dict())
+        except RuntimeError as err:
+            raise ConfigError(
+                f"run.init_from={cfg.run.init_from!r} does not fit this config's network: {_first_line(err)}"
+            ) from None
     agent.set_lstm_backend(cfg.run.lstm_backend)
     optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
     mixer = TrojanMixer(cfg.backdoor, 1)
@@ -595,3 +603,7 @@ def _write_config(run_dir: Path, cfg: GymTrainConfig) -> None:
     tmp = run_dir / "config.yaml.tmp"
     tmp.write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
     tmp.replace(run_dir / "config.yaml")
+
+
+def _first_line(err: Exception) -> str:
+    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
