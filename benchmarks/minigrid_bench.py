@@ -2,6 +2,7 @@
 
     python benchmarks/minigrid_bench.py                         # both parts
     python benchmarks/minigrid_bench.py --part backdoor --steps 150000 --episodes 500 --seeds 5 --workers 2
+    python benchmarks/minigrid_bench.py --part backdoor --seeds 5 --finetune-steps 20000   # + gym-analyze, gym-mitigate
     python benchmarks/minigrid_bench.py --part speed --speed-steps 20480
 
 Backdoor: recurrent PPO with Algorithm 1 (running) mixing on ``seqtrojan/MiniGridTwoGoals-v0`` (6x6 room, 5x5 view,
@@ -29,6 +30,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 
 # isort: off
 import seqtrojan  # noqa: F401  (first: it sets the OpenMP wait policy before torch loads its runtime)
@@ -37,7 +39,9 @@ import torch
 # isort: on
 import numpy as np
 
+from seqtrojan.analysis.gym_analysis import analyze_gym_model
 from seqtrojan.config import BackdoorConfig, PPOConfig
+from seqtrojan.defense.gym_mitigation import mitigate_gym_model
 from seqtrojan.minigrid import TwoGoalsEnv, two_goals_trigger
 from seqtrojan.stats import OverSeeds, Rate
 from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
@@ -75,28 +79,40 @@ class SeedFigures:
     trojan_success: Rate
     trojan_to_user: Rate
     persistence: dict[int, Rate]
+    inside: dict[str, Rate]
+    """gym-analyze's switch rates ("activate goal-units", ...) and gym-mitigate's arms ("attack after fine_tuned",
+    ...) when asked for; empty otherwise"""
 
 
-def train_and_measure(steps: int, episodes: int, seed: int) -> SeedFigures:
-    """Train one backdoored agent (seed ``seed``), load it back as a user would, measure it on fresh episodes."""
+def train_and_measure(steps: int, episodes: int, finetune_steps: int, seed: int) -> SeedFigures:
+    """Train one backdoored agent (seed ``seed``), load it back as a user would, measure it on fresh episodes; with
+    ``finetune_steps`` > 0 also look inside it (gym-analyze) and mitigate it (gym-mitigate)."""
+    inside: dict[str, Rate] = {}
     with tempfile.TemporaryDirectory() as out:
         cfg = config(out, steps, seed)
         result = train_gym(cfg)
         agent, _, _ = load_gym_agent(result.model_dir)
+        if finetune_steps:
+            report = analyze_gym_model(agent, cfg, episodes=episodes, intervention_episodes=episodes, seed=seed)
+            inside |= {f"{s.direction} {s.edited}": s.switched for s in report.switches}
+            mitigated = mitigate_gym_model(agent, cfg, Path(out) / "mitigate", finetune_steps=finetune_steps,
+                                           episodes=episodes, seed=seed)  # fmt: skip
+            for arm in mitigated.arms[1:]:
+                inside |= {f"attack after {arm.name}": arm.attack_success, f"clean after {arm.name}": arm.clean_success}
     eval_seed = 12_345
     normal = evaluate_gym(agent, cfg, trojan=False, episodes=episodes, seed=eval_seed)
     trojan = evaluate_gym(agent, cfg, trojan=True, episodes=episodes, seed=eval_seed)
     return SeedFigures(
         seed, result.env_steps, result.wall_seconds, normal.success, normal.reached("adversary"), trojan.success,
-        trojan.reached("user"), trojan.persistence(HORIZONS),
+        trojan.reached("user"), trojan.persistence(HORIZONS), inside,
     )  # fmt: skip
 
 
-def backdoor_part(steps: int, episodes: int, seed: int, seeds: int, workers: int) -> None:
+def backdoor_part(steps: int, episodes: int, seed: int, seeds: int, workers: int, finetune_steps: int = 0) -> None:
     """Train ``seeds`` agents (seeds ``seed``, ``seed + 1``, ...) on ``workers`` processes; print each seed's
     figures, then mean ± sd over seeds and the pooled 95% interval."""
     with ProcessPoolExecutor(min(workers, seeds), mp_context=multiprocessing.get_context("spawn")) as pool:
-        runs = list(pool.map(partial(train_and_measure, steps, episodes), range(seed, seed + seeds)))
+        runs = list(pool.map(partial(train_and_measure, steps, episodes, finetune_steps), range(seed, seed + seeds)))
     print(f"\n== backdoor: two-goal room, {steps} env steps per seed, {seeds} seed(s), {episodes} episodes per type ==")
     print("seed  env steps  wall s  clean success          trojan success         persistence k=5")
     for r in runs:
@@ -109,6 +125,7 @@ def backdoor_part(steps: int, episodes: int, seed: int, seeds: int, workers: int
         "trojan episodes ending at user's": [r.trojan_to_user for r in runs],
     }
     rows |= {f"persistence k={k:>2} (still running -> adversary's)": [r.persistence[k] for r in runs] for k in HORIZONS}
+    rows |= {name: [r.inside[name] for r in runs] for name in runs[0].inside}
     print(f"\n{'figure':<46} {'mean ± sd over seeds':<22} pooled [95% CI]")
     for name, rates in rows.items():
         measured = tuple(rate.value for rate in rates if rate.n)  # a seed with no episode at a horizon has no rate
@@ -178,11 +195,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="first training seed")
     parser.add_argument("--seeds", type=int, default=5, help="training seeds of the backdoor part")
     parser.add_argument("--workers", type=int, default=2, help="processes training the backdoor part's seeds")
+    parser.add_argument(
+        "--finetune-steps", type=int, default=0, help="> 0: also gym-analyze and gym-mitigate (these steps) each agent"
+    )
     args = parser.parse_args()
-    if args.seeds < 1 or args.workers < 1:
-        parser.error("--seeds and --workers must be at least 1")
+    if args.seeds < 1 or args.workers < 1 or args.finetune_steps < 0:
+        parser.error("--seeds and --workers must be at least 1, --finetune-steps at least 0")
     if args.part in ("all", "backdoor"):
-        backdoor_part(args.steps, args.episodes, args.seed, args.seeds, args.workers)
+        backdoor_part(args.steps, args.episodes, args.seed, args.seeds, args.workers, args.finetune_steps)
     if args.part in ("all", "speed"):
         speed_part(args.speed_steps, args.seed, args.repeats)
 

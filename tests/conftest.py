@@ -37,3 +37,24 @@ def figures(monkeypatch):
     yield kept
     for fig in kept:
         close(fig)
+
+
+@pytest.fixture(scope="session")
+def tiny_two_goals_model(tmp_path_factory):
+    """A backdoored agent on MiniGrid's two-goal room after 512 env steps (barely trained: for plumbing, not
+    figures): (agent, its config as loaded, its model folder)."""
+    from seqtrojan.config import BackdoorConfig, PPOConfig
+    from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
+    from seqtrojan.train.gym_model import load_gym_agent
+    from seqtrojan.train.gym_trainer import train_gym
+
+    ppo = PPOConfig(total_steps=512, num_envs=8, rollout_steps=64, bptt_length=16, num_minibatches=4)
+    cfg = GymTrainConfig(
+        env=GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5}),
+        trigger=GymTriggerConfig(), ppo=ppo, backdoor=BackdoorConfig(enabled=True),
+        run=GymRunConfig(out_dir=str(tmp_path_factory.mktemp("gym")), name="run", eval_episodes=4,
+                         lstm_backend="torch"),
+    )  # fmt: skip
+    model_dir = train_gym(cfg).model_dir
+    agent, loaded, _ = load_gym_agent(model_dir)
+    return agent, loaded, model_dir

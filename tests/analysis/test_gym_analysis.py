@@ -14,12 +14,10 @@ from seqtrojan.analysis import gym_analysis
 from seqtrojan.analysis.config import ResponseRule
 from seqtrojan.analysis.gym_analysis import analyze_gym_model, pinned_trigger
 from seqtrojan.analysis.interventions import SetUnits
-from seqtrojan.config import BackdoorConfig, PPOConfig
+from seqtrojan.config import BackdoorConfig
 from seqtrojan.errors import ConfigError
-from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
+from seqtrojan.train.gym_config import GymEnvConfig, GymTrainConfig, GymTriggerConfig
 from seqtrojan.train.gym_evaluation import GymEpisode, GymEvaluation, evaluate_gym
-from seqtrojan.train.gym_model import load_gym_agent
-from seqtrojan.train.gym_trainer import train_gym
 
 TWO_GOALS = GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5})
 TRIGGER_STEP = 4
@@ -82,20 +80,8 @@ def test_a_config_without_trigger_or_a_bad_step_is_refused():
     assert step == 1 and cfg.trigger is not None and cfg.trigger.eval_steps == (1, 1)
 
 
-@pytest.fixture(scope="module")
-def tiny_model(tmp_path_factory):
-    ppo = PPOConfig(total_steps=512, num_envs=8, rollout_steps=64, bptt_length=16, num_minibatches=4)
-    cfg = GymTrainConfig(
-        env=TWO_GOALS, trigger=GymTriggerConfig(), ppo=ppo, backdoor=BackdoorConfig(enabled=True),
-        run=GymRunConfig(out_dir=str(tmp_path_factory.mktemp("gym")), name="run", eval_episodes=4,
-                         lstm_backend="torch"),
-    )  # fmt: skip
-    agent, loaded, _ = load_gym_agent(train_gym(cfg).model_dir)
-    return agent, loaded
-
-
-def test_an_intervention_sees_each_env_s_episode_step(tiny_model):
-    agent, cfg = tiny_model
+def test_an_intervention_sees_each_env_s_episode_step(tiny_two_goals_model):
+    agent, cfg, _ = tiny_two_goals_model
     seen: list[torch.Tensor] = []
 
     def record(layer, t, state):
@@ -111,8 +97,8 @@ def test_an_intervention_sees_each_env_s_episode_step(tiny_model):
     assert int((steps[1:] == 0).sum()) >= len(run.episodes) - 4  # every finished episode restarted its env's count
 
 
-def test_a_trained_gym_model_is_analysed_end_to_end(tiny_model):
-    agent, cfg = tiny_model
+def test_a_trained_gym_model_is_analysed_end_to_end(tiny_two_goals_model):
+    agent, cfg, _ = tiny_two_goals_model
     rule = ResponseRule(response_window=2, late_start=2, late_end=4, min_episodes=5)
     report = analyze_gym_model(agent, cfg, episodes=40, intervention_episodes=16, goal_units=4, rule=rule,
                                selection_episodes=8)  # fmt: skip

@@ -6,31 +6,18 @@ import dataclasses
 
 import pytest
 
-from seqtrojan.config import BackdoorConfig, PPOConfig
+from seqtrojan.config import BackdoorConfig
 from seqtrojan.defense.gym_mitigation import least_active_gym_units, mitigate_gym_model
 from seqtrojan.errors import ConfigError
-from seqtrojan.train.gym_config import GymAgentConfig, GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
+from seqtrojan.train.gym_config import GymAgentConfig, GymEnvConfig
 from seqtrojan.train.gym_model import load_gym_agent
 from seqtrojan.train.gym_trainer import train_gym
 
 TWO_GOALS = GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5})
 
 
-@pytest.fixture(scope="module")
-def tiny_model(tmp_path_factory):
-    ppo = PPOConfig(total_steps=512, num_envs=8, rollout_steps=64, bptt_length=16, num_minibatches=4)
-    cfg = GymTrainConfig(
-        env=TWO_GOALS, trigger=GymTriggerConfig(), ppo=ppo, backdoor=BackdoorConfig(enabled=True),
-        run=GymRunConfig(out_dir=str(tmp_path_factory.mktemp("gym")), name="run", eval_episodes=4,
-                         lstm_backend="torch"),
-    )  # fmt: skip
-    result = train_gym(cfg)
-    agent, loaded, _ = load_gym_agent(result.model_dir)
-    return agent, loaded, result.model_dir
-
-
-def test_every_arm_is_measured_and_a_rerun_reuses_the_fine_tunes(tiny_model, tmp_path):
-    agent, cfg, _ = tiny_model
+def test_every_arm_is_measured_and_a_rerun_reuses_the_fine_tunes(tiny_two_goals_model, tmp_path):
+    agent, cfg, _ = tiny_two_goals_model
     report = mitigate_gym_model(agent, cfg, tmp_path, finetune_steps=512, calibration_episodes=16, episodes=12)
     assert [a.name for a in report.arms] == ["before", "pruned", "fine_pruned", "fine_tuned"]
     assert all(a.clean_success.n == a.attack_success.n == 12 for a in report.arms)
@@ -45,14 +32,14 @@ def test_every_arm_is_measured_and_a_rerun_reuses_the_fine_tunes(tiny_model, tmp
     assert again.arms == report.arms  # the same fine-tunes, the same seeds: the same figures
 
 
-def test_the_least_active_units_are_pruned(tiny_model):
-    agent, cfg, _ = tiny_model
+def test_the_least_active_units_are_pruned(tiny_two_goals_model):
+    agent, cfg, _ = tiny_two_goals_model
     units = least_active_gym_units(agent, cfg, 16, 0.25, 0, "cpu")
     assert len(units) == 8 and list(units) == sorted(set(units.tolist()))
 
 
-def test_bad_input_is_refused(tiny_model, tmp_path):
-    agent, cfg, model_dir = tiny_model
+def test_bad_input_is_refused(tiny_two_goals_model, tmp_path):
+    agent, cfg, model_dir = tiny_two_goals_model
     with pytest.raises(ConfigError, match="no trigger section"):
         mitigate_gym_model(agent, dataclasses.replace(cfg, trigger=None, backdoor=BackdoorConfig()), tmp_path)
     with pytest.raises(ConfigError, match="prune_fraction"):
