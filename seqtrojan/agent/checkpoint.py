@@ -191,3 +191,13 @@ def _write_json(path: Path, data: dict[str, Any]) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(data, indent=2, sort_keys=False))
     tmp.replace(path)
+
+
+def load_start_weights(agent: RecurrentActorCritic, start: RecurrentActorCritic, source: str) -> None:
+    """Copy ``start``'s weights into ``agent`` (a run's ``run.init_from``, named ``source`` in the error); weights
+    that do not fit the agent's network are refused in one line."""
+    try:
+        agent.load_state_dict(start.state_dict())
+    except RuntimeError as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ConfigError(f"run.init_from={source!r} does not fit this config's network: {first}") from None

@@ -46,7 +46,7 @@ import yaml
 from gymnasium.vector import SyncVectorEnv
 from safetensors.torch import save_file
 
-from seqtrojan.agent.checkpoint import read_safetensors
+from seqtrojan.agent.checkpoint import load_start_weights, read_safetensors
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import act
 from seqtrojan.agent.state import LSTMState, RecurrentState
@@ -294,12 +294,7 @@ def train_gym(
     agent = build_gym_agent(cfg, obs_dim, num_actions).to(device)
     if cfg.run.init_from is not None and checkpoint is None:
         start_from, _, _ = load_gym_agent(cfg.run.init_from)
-        try:
-            agent.load_state_dict(start_from.state_dict())
-        except RuntimeError as err:
-            raise ConfigError(
-                f"run.init_from={cfg.run.init_from!r} does not fit this config's network: {_first_line(err)}"
-            ) from None
+        load_start_weights(agent, start_from, cfg.run.init_from)
     agent.set_lstm_backend(cfg.run.lstm_backend)
     optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
     mixer = TrojanMixer(cfg.backdoor, 1)
@@ -603,7 +598,3 @@ def _write_config(run_dir: Path, cfg: GymTrainConfig) -> None:
     tmp = run_dir / "config.yaml.tmp"
     tmp.write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
     tmp.replace(run_dir / "config.yaml")
-
-
-def _first_line(err: Exception) -> str:
-    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__

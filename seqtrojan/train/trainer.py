@@ -29,7 +29,7 @@ import yaml
 from safetensors.torch import save_file
 
 from seqtrojan.agent import fast_lstm
-from seqtrojan.agent.checkpoint import build_agent, load_agent, read_safetensors, save_agent
+from seqtrojan.agent.checkpoint import build_agent, load_agent, load_start_weights, read_safetensors, save_agent
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.core import TrojanGridCore
@@ -168,12 +168,7 @@ def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tupl
     agent = build_agent(cfg).to(device)
     if cfg.run.init_from is not None and not resuming:
         start_from, _, _ = load_agent(cfg.run.init_from)
-        try:
-            agent.load_state_dict(start_from.state_dict())
-        except RuntimeError as err:
-            raise ConfigError(
-                f"run.init_from={cfg.run.init_from!r} does not fit this config's network: {err}"
-            ) from None
+        load_start_weights(agent, start_from, cfg.run.init_from)
     agent.set_lstm_backend(cfg.run.lstm_backend)
     optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
     curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0, 1) if cfg.backdoor.enabled else (0,))
