@@ -25,7 +25,7 @@ import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.analysis.config import ResponseRule
-from seqtrojan.analysis.interventions import SetUnits
+from seqtrojan.analysis.interventions import SetUnits, running_mean_from
 from seqtrojan.analysis.responses import Classification, classify_signals, deviation
 from seqtrojan.analysis.unintentional import select_goal_units
 from seqtrojan.errors import ConfigError
@@ -142,13 +142,6 @@ def classify_gym_units(
     return classes
 
 
-def post_trigger_level(x: np.ndarray, mask: np.ndarray, units: np.ndarray, start: int) -> np.ndarray:
-    """Mean value of ``units`` of (E, T, width) over every running step from ``start`` on."""
-    chosen = x[:, start:][..., units]
-    running = mask[:, start:, None]
-    return (chosen * running).sum((0, 1)) / max(int(running.sum()), 1)
-
-
 def analyze_gym_model(
     agent: RecurrentActorCritic,
     config: GymTrainConfig,
@@ -180,13 +173,16 @@ def analyze_gym_model(
         for (layer, which), c in sorted(classes.items())
     )
     parts = {kind: split_layers(agent, evaluation) for kind, evaluation in recorded.items()}
-    trojan_states, trojan_mask = parts["trojan"]
+
+    def edit(key: tuple[int, str], units: np.ndarray, level_of: str) -> SetUnits:
+        """``units`` of ``key`` set from the trigger step on to their level after it in ``level_of`` episodes."""
+        states, mask = parts[level_of]
+        level = running_mean_from(states[key], mask, units, step)
+        return SetUnits(key[0], units.tolist(), level, key[1], from_step=step)
 
     def activation(key: tuple[int, str], units: np.ndarray, episodes_: int, seed_: int) -> Rate:
-        level = post_trigger_level(trojan_states[key], trojan_mask, units, step)
-        edit = SetUnits(key[0], units.tolist(), level, key[1], from_step=step)
         run = evaluate_gym(agent, pinned, trojan=False, episodes=episodes_, seed=seed_, device=device,
-                           intervention=edit)  # fmt: skip
+                           intervention=edit(key, units, "trojan"))  # fmt: skip
         return run.reached("adversary")
 
     candidates = []
@@ -209,16 +205,12 @@ def analyze_gym_model(
     switches = []
     for direction, in_trojan, source_kind, target in (("activate", False, "trojan", "adversary"),
                                                       ("deactivate", True, "normal", "user")):  # fmt: skip
-        states, mask = parts[source_kind]
         for edited, chosen in (("none", None), ("goal-units", units), ("random-units", control)):
-            edit = None
-            if chosen is not None:
-                if len(chosen) == 0:
-                    continue
-                level = post_trigger_level(states[(layer, which)], mask, chosen, step)
-                edit = SetUnits(layer, chosen.tolist(), level, which, from_step=step)
+            if chosen is not None and len(chosen) == 0:
+                continue
+            intervention = None if chosen is None else edit((layer, which), chosen, source_kind)
             run = evaluate_gym(agent, pinned, trojan=in_trojan, episodes=intervention_episodes, seed=seed + 1,
-                               device=device, intervention=edit)  # fmt: skip
+                               device=device, intervention=intervention)  # fmt: skip
             switches.append(GymSwitch(direction, edited, run.reached(target)))
     return GymAnalysisReport(
         model, config.env.id, step, episodes, intervention_episodes, rule, responses, tuple(candidates), layer,

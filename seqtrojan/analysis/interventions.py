@@ -61,9 +61,14 @@ class SetUnits:
 
 def post_trigger_means(trace: StateTrace, layer: int, which: str, units: np.ndarray, start: int) -> np.ndarray:
     """Mean value of ``units`` over every running step from ``start`` on, over all episodes of ``trace``."""
-    x = trace.states(which, layer)[:, start:][..., units]  # (E, T', k)
-    mask = trace.mask[:, start:, None]
-    return (x * mask).sum((0, 1)) / max(int(mask.sum()), 1)
+    return running_mean_from(trace.states(which, layer), trace.mask, units, start)
+
+
+def running_mean_from(x: np.ndarray, mask: np.ndarray, units: np.ndarray, start: int) -> np.ndarray:
+    """Mean value of ``units`` of ``x`` (E, T, width) over every running step (``mask`` (E, T)) from ``start`` on."""
+    chosen = x[:, start:][..., units]  # (E, T', k)
+    running = mask[:, start:, None]
+    return (chosen * running).sum((0, 1)) / max(int(running.sum()), 1)
 
 
 def switch_experiment(

@@ -23,7 +23,7 @@ import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import BackdoorConfig
-from seqtrojan.defense.mitigation import prune_units
+from seqtrojan.defense.mitigation import least_active, prune_units
 from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate
 from seqtrojan.train.gym_config import GymTrainConfig
@@ -77,11 +77,7 @@ def least_active_gym_units(
     """The ``fraction`` (at least one) of the last layer's units with the smallest mean |h| over normal episodes."""
     run = evaluate_gym(agent, config, trojan=False, episodes=episodes, seed=seed, device=device, record_states=True)
     layers, mask = padded_states(run.episodes)
-    last = len(agent.lstm_sizes) - 1
-    h = layers[last][..., : agent.lstm_sizes[last]]
-    activity = (np.abs(h) * mask[..., None]).sum((0, 1)) / max(int(mask.sum()), 1)
-    count = max(1, round(fraction * agent.lstm_sizes[last]))
-    return np.sort(np.argsort(activity)[:count])
+    return np.sort(least_active(layers[-1][..., : agent.lstm_sizes[-1]], mask, fraction))
 
 
 def finetune_gym(

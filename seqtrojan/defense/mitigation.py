@@ -90,10 +90,14 @@ def prune_units(agent: RecurrentActorCritic, layer: int, units: np.ndarray) -> R
 def least_active_units(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, episodes: int,
                        fraction: float, seed: int) -> np.ndarray:  # fmt: skip
     trace = record_traces(agent, cfg.env, [grid], episodes=episodes, trojan=False, trigger_step=None, seed=seed)
-    layer = len(agent.lstm_sizes) - 1
-    activity = (np.abs(trace.h[layer]) * trace.mask[..., None]).sum((0, 1)) / max(int(trace.mask.sum()), 1)
-    k = max(1, round(fraction * agent.lstm_sizes[layer]))
-    return np.argsort(activity)[:k]
+    return least_active(trace.h[-1], trace.mask, fraction)
+
+
+def least_active(h: np.ndarray, mask: np.ndarray, fraction: float) -> np.ndarray:
+    """The ``fraction`` (at least one) of the units of ``h`` (E, T, units) with the smallest mean |h| over the
+    running steps (``mask`` (E, T)), least active first."""
+    activity = (np.abs(h) * mask[..., None]).sum((0, 1)) / max(int(mask.sum()), 1)
+    return np.argsort(activity)[: max(1, round(fraction * h.shape[-1]))]
 
 
 def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, steps: int, out: Path, seed: int):
