@@ -25,7 +25,7 @@ import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.analysis.config import ResponseRule
-from seqtrojan.analysis.interventions import SetUnits, running_mean_from
+from seqtrojan.analysis.interventions import SetUnits, control_units, running_mean_from
 from seqtrojan.analysis.responses import Classification, classify_signals, deviation
 from seqtrojan.analysis.unintentional import select_goal_units
 from seqtrojan.errors import ConfigError
@@ -180,18 +180,14 @@ def analyze_gym_model(
         level = running_mean_from(states[key], mask, units, step)
         return SetUnits(key[0], units.tolist(), level, key[1], from_step=step)
 
-    def activation(key: tuple[int, str], units: np.ndarray, episodes_: int, seed_: int) -> Rate:
-        run = evaluate_gym(agent, pinned, trojan=False, episodes=episodes_, seed=seed_, device=device,
-                           intervention=edit(key, units, "trojan"))  # fmt: skip
-        return run.reached("adversary")
-
     candidates = []
     for key, cl in sorted(classes.items()):
         step_units = cl.units("step")
         picked = step_units[np.argsort(-cl.late[step_units])][:goal_units]
         if len(picked):
-            rate = activation(key, picked, selection_episodes, seed + 2)
-            candidates.append(GymGoalCandidate(key[0], key[1], tuple(int(u) for u in picked), rate))
+            run = evaluate_gym(agent, pinned, trojan=False, episodes=selection_episodes, seed=seed + 2, device=device,
+                               intervention=edit(key, picked, "trojan"))  # fmt: skip
+            candidates.append(GymGoalCandidate(key[0], key[1], tuple(int(u) for u in picked), run.reached("adversary")))
     if candidates:
         best = max(candidates, key=lambda c: c.activated.value)
         layer, which, units = best.layer, best.which, np.asarray(best.units, dtype=np.int64)
@@ -199,9 +195,7 @@ def analyze_gym_model(
                   f"switched most of {selection_episodes} selection episodes ({best.activated.value:.3f})")  # fmt: skip
     else:  # no step-type units anywhere: the grid's fallback (most persistent units of any type)
         layer, which, units, source = select_goal_units(classes, goal_units)
-    width = parts["normal"][0][(layer, which)].shape[-1]
-    others = np.setdiff1d(np.arange(width), units)
-    control = np.random.default_rng(seed).choice(others, size=min(len(units), len(others)), replace=False)
+    control = control_units(parts["normal"][0][(layer, which)].shape[-1], units, seed)
     switches = []
     for direction, in_trojan, source_kind, target in (("activate", False, "trojan", "adversary"),
                                                       ("deactivate", True, "normal", "user")):  # fmt: skip

@@ -64,6 +64,15 @@ def post_trigger_means(trace: StateTrace, layer: int, which: str, units: np.ndar
     return running_mean_from(trace.states(which, layer), trace.mask, units, start)
 
 
+def control_units(width: int, units: np.ndarray, seed: int) -> np.ndarray:
+    """As many units as ``units`` (fewer if the part has not that many others), drawn from the other units of a
+    part ``width`` wide: the control of an edit experiment."""
+    others = np.setdiff1d(np.arange(width), units)
+    if not len(others):
+        return others
+    return np.random.default_rng(seed).choice(others, size=min(len(units), len(others)), replace=False)
+
+
 def running_mean_from(x: np.ndarray, mask: np.ndarray, units: np.ndarray, start: int) -> np.ndarray:
     """Mean value of ``units`` of ``x`` (E, T, width) over every running step (``mask`` (E, T)) from ``start`` on."""
     chosen = x[:, start:][..., units]  # (E, T', k)
@@ -89,9 +98,7 @@ def switch_experiment(
     """Activate and deactivate with ``units`` edited, with random other units edited, and with no edit."""
     unit_ids = np.asarray(units, dtype=np.int64)
     width = (agent.lstm_sizes if which == "h" else agent.c_widths)[layer]
-    others = np.setdiff1d(np.arange(width), unit_ids)
-    rng = np.random.default_rng(control_seed)
-    control = rng.choice(others, size=min(len(unit_ids), len(others)), replace=False) if len(others) else others
+    control = control_units(width, unit_ids, control_seed)
     trig_env = dataclasses.replace(env.trigger, eval_steps=(trigger_step, trigger_step))
     env = dataclasses.replace(env, trigger=trig_env)
     results = []
