@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from seqtrojan.agent import fast_lstm
+from seqtrojan.agent.fast_attention import band_attention
 from seqtrojan.agent.state import LSTMState
 from seqtrojan.config import CELLS
 
@@ -325,6 +326,10 @@ class WindowAttentionLayer(nn.Module):
         slots[:, -1, :-1] = kv
         slots[:, -1, -1] = 1.0
         heads, d, width_h = self.heads, self.hidden_size // self.heads, self.hidden_size
+        if fast:  # the kernel reads the slots in place (rows of 2W + 1: key, value, validity flag)
+            allowed = (slots[..., -1] > 0).unsqueeze(1)  # (B, 1, w)
+            attended = band_attention(q.unsqueeze(1), slots, allowed, self.position_bias, 1 / math.sqrt(d))
+            return LSTMState(self._finish(e, attended.squeeze(1)), slots.view(batch, w * width)[:, width:])
         keys = slots[..., :width_h].unflatten(-1, (heads, d)).transpose(1, 2)  # (B, heads, w, d), strided views
         values = slots[..., width_h : 2 * width_h].unflatten(-1, (heads, d)).transpose(1, 2)
         scores = (keys @ q.unflatten(-1, (heads, d)).unsqueeze(-1)).squeeze(-1) / math.sqrt(d)  # (B, heads, w)
@@ -346,7 +351,13 @@ class WindowAttentionLayer(nn.Module):
         valid = torch.cat([prefix[..., -1] > 0, kv.new_ones(batch, steps, dtype=torch.bool)], 1)  # (B, P)
         # episode of each position: the prefix is episode 0, and every episode start inside the chunk opens the next
         episode = torch.cat([keep.new_zeros(batch, w - 1), torch.cumsum(1 - keep.t(), 1)], 1)  # (B, P)
-        attended = self._band_attention(q, kv, valid, episode)
+        if fast:
+            # slot j of query t is position t + j: readable if valid and of the query's episode
+            window_episodes = episode.unfold(1, w, 1)  # (B, T, w) views
+            allowed = valid.unfold(1, w, 1) & (window_episodes == window_episodes[..., -1:])
+            attended = band_attention(q, kv, allowed, self.position_bias, 1 / math.sqrt(width // self.heads))
+        else:
+            attended = self._band_attention(q, kv, valid, episode)
         h_seq = self._finish(e, attended).transpose(0, 1)  # (T, B, W), a view of the batch-major result
         # the state after each step: the newest w - 1 slots, emptied where they precede an episode start
         starts = range(1, steps + 1) if return_states else range(steps, steps + 1)

@@ -133,8 +133,8 @@ class RecurrentActorCritic(nn.Module):
                 self.add_module(name, layers)
         self.lstm_backend = "auto"
         """'auto' uses the fused C++ kernels (:mod:`seqtrojan.agent.fast_lstm`) on CPU where they build, 'torch'
-        never, 'cpp' always (an error where unavailable). Both compute the same function. The Transformer has no
-        C++ kernels: it always runs its PyTorch path."""
+        never, 'cpp' always (an error where unavailable). Both compute the same function. For the Transformer the
+        kernel is its band attention (:mod:`seqtrojan.agent.fast_attention`); the rest of its block is PyTorch."""
         self._weight_cache: dict = {}
 
     def set_lstm_backend(self, backend: str) -> None:
@@ -143,10 +143,7 @@ class RecurrentActorCritic(nn.Module):
         self.lstm_backend = backend
 
     def _kernels(self, x: torch.Tensor) -> bool:
-        """Whether the layers run on the fused C++ kernels for input ``x`` (never for the Transformer: it has none)."""
-        return self.cell != "transformer" and self._fast(x)
-
-    def _fast(self, x: torch.Tensor) -> bool:
+        """Whether the layers run on the fused C++ kernels for input ``x``."""
         if self.lstm_backend == "torch":
             return False
         ok = fast_lstm.usable(x)

@@ -203,7 +203,7 @@ def test_weight_features_per_cell(cell):
         assert "spectral/first.qkv.weight.effective_rank" in feats
 
 
-@pytest.mark.parametrize("cell", ["lstm", "lstm_peephole", "gru"])
+@pytest.mark.parametrize("cell", CELLS)
 def test_the_fused_kernels_compute_the_torch_path_in_the_network(cell):
     from seqtrojan.agent import fast_lstm
 

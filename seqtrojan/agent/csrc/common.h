@@ -91,3 +91,9 @@ void gru_bwd_cat(at::Tensor S, at::Tensor M, at::Tensor Wc, at::Tensor XH, int64
                  c10::optional<at::Tensor> dX, at::Tensor dWparts, at::Tensor dh0);
 void gru_stack_step(at::Tensor X, at::Tensor M, std::vector<at::Tensor> hs, std::vector<at::Tensor> Wcs,
                     std::vector<at::Tensor> hs_out, int64_t nchunks);
+
+// ---- band attention of the windowed Transformer (band_attention.cpp), bound in the same module
+void band_attention_fwd(const at::Tensor& q, const at::Tensor& kv, const at::Tensor& allowed, const at::Tensor& bias,
+                        at::Tensor& out, at::Tensor& probs, double scale);
+void band_attention_bwd(const at::Tensor& grad, const at::Tensor& q, const at::Tensor& kv, const at::Tensor& probs,
+                        at::Tensor& dq, at::Tensor& dkv, at::Tensor& dscores, double scale);

@@ -414,4 +414,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("gru_stack_step", &gru_stack_step, "one no-grad step of a masked GRU stack (all layers)");
   m.def("gru_fwd_cat", &gru_fwd_cat, "masked GRU layer forward, input projection fused per step");
   m.def("gru_bwd_cat", &gru_bwd_cat, "masked GRU layer BPTT, dx fused per step");
+  m.def("band_attention_fwd", &band_attention_fwd, "the windowed Transformer's band attention, forward");
+  m.def("band_attention_bwd", &band_attention_bwd, "the windowed Transformer's band attention, backward");
 }
