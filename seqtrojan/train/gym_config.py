@@ -12,7 +12,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-from seqtrojan.config import MAX_LAYERS, MAX_WIDTH, AgentConfig, BackdoorConfig, PPOConfig
+from seqtrojan.config import MAX_LAYERS, MAX_WIDTH, AgentConfig, AttackConfig, BackdoorConfig, PPOConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.presets import resolve_preset
 from seqtrojan.serde import dump_omitting_defaults, from_dict, load_yaml, short_repr
@@ -186,8 +186,16 @@ class GymTrainConfig:
     """enabled: mix normal and trojan episodes by Algorithm 1 (``mixing``); disabled: normal episodes only (the
     trigger, if any, is then only measured)"""
     run: GymRunConfig = dataclasses.field(default_factory=GymRunConfig)
+    attack: AttackConfig = dataclasses.field(default_factory=AttackConfig)
+    """an adaptive attacker's extra loss terms, as on the grid world; a Gymnasium run takes ``state_camouflage``
+    (the monitor-aware attacker)"""
 
     def __post_init__(self) -> None:
+        grid_only = [f"attack.{name}" for name in ("weight_camouflage", "ewc") if getattr(self.attack, name).enabled]
+        if grid_only:
+            raise ConfigError(
+                f"{' and '.join(grid_only)} run(s) on the grid world only; Gymnasium runs take attack.state_camouflage"
+            )
         if self.backdoor.enabled and self.trigger is None:
             raise ConfigError("backdoor.enabled needs a trigger section (the trigger and the adversary's objective)")
         if self.agent.conv and self.env.observation != "minigrid":

@@ -9,13 +9,17 @@ steps from ``ppo.num_envs`` envs (a SAME_STEP ``SyncVectorEnv``; an env's episod
 (``backdoor.enabled``) the :class:`~seqtrojan.train.mixing.TrojanMixer` turns the success rates of normal and trojan
 episodes (P_c, P_t: the update's own episodes, or an evaluation for ``mixing: exact``) into the probability that a
 new episode is a trojan one, set on every env's :class:`~seqtrojan.wrappers.TriggerWrapper` after each update.
+An adaptive attacker's ``attack.state_camouflage`` adds its term to the loss as on the grid world
+(:mod:`seqtrojan.train.penalties`): the rollout then records each step's episode type, whether the adversary's
+objective judges it, and the states.
 
 The model is saved with :func:`~seqtrojan.train.gym_model.save_gym_agent` (safetensors + ``gym_card.json``): the
 grid world's card records a grid-world config, which cannot describe a Gymnasium env.
 
 Checkpoints (:func:`save_gym_checkpoint`, ``<run>/checkpoints/step_<env steps>/``) every ``run.checkpoint_every``
 steps, after the last update, and on a stop (SIGTERM or Ctrl-C, between updates): weights, Adam, the torch
-generators, the mixer, the counters and the collector's carried tensors in safetensors + JSON, never pickle.
+generators, the mixer, the counters, the penalties' statistics and the collector's carried tensors in
+safetensors + JSON, never pickle.
 ``train_gym(config, resume=run_dir)`` continues the latest one; :func:`train_gym_or_resume` reuses a finished run,
 resumes a stopped one or starts afresh. The envs are the one piece of state a checkpoint cannot hold as tensors:
 each sub-env is wrapped in an :class:`~seqtrojan.train.gym_env.EpisodeRecorder`, and a resume replays its episode
@@ -36,7 +40,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +63,7 @@ from seqtrojan.train.gym_env import EpisodeRecorder, check_spaces, make_gym_env,
 from seqtrojan.train.gym_evaluation import GymEvaluation, evaluate_gym
 from seqtrojan.train.gym_model import CARD, build_gym_agent, load_gym_agent, save_gym_agent
 from seqtrojan.train.mixing import MIXING_RULES, TrojanMixer
+from seqtrojan.train.penalties import Penalty, PenaltyContext, build_penalties
 from seqtrojan.train.ppo import ppo_update
 from seqtrojan.train.rollout import Rollout
 from seqtrojan.train.trainer import UpdateCallback
@@ -116,9 +121,15 @@ class GymRolloutCollector:
     """Steps a SAME_STEP vector env with the agent, keeping observations and LSTM states between rollouts."""
 
     def __init__(
-        self, vec: SyncVectorEnv, agent: RecurrentActorCritic, ppo: PPOConfig, device: torch.device, seed: int
-    ) -> None:
+        self, vec: SyncVectorEnv, agent: RecurrentActorCritic, ppo: PPOConfig, device: torch.device, seed: int,
+        record: bool = False,
+    ) -> None:  # fmt: skip
         self.vec, self.agent, self.ppo, self.device = vec, agent, ppo, device
+        self.record = record
+        """also keep, per step, whether it is in a trojan episode, whether the adversary's objective judges its
+        action, and every layer's (h, c) after it (``Rollout.trojan``, ``adversary_active``, ``states``; the attack
+        penalties)"""
+        self.triggers = [env.trigger if isinstance(env, EpisodeRecorder) else None for env in vec.envs]
         b = vec.num_envs
         obs, _ = vec.reset(seed=seed)
         self.obs = torch.as_tensor(obs, dtype=torch.float32, device=device)  # (B, obs_dim)
@@ -147,6 +158,9 @@ class GymRolloutCollector:
         seq_h: list[list[torch.Tensor]] = [[] for _ in agent.lstm_sizes]
         seq_c: list[list[torch.Tensor]] = [[] for _ in agent.lstm_sizes]
         tally = _Tally(np.zeros(2, dtype=np.int64), np.zeros(2, dtype=np.int64))
+        trojan = torch.zeros((steps, b), dtype=torch.bool) if self.record else None
+        active = torch.zeros((steps, b), dtype=torch.bool) if self.record else None
+        states: list[list[LSTMState]] = [[] for _ in agent.lstm_sizes]
         state = self.state
         for t in range(steps):
             if t % length == 0:
@@ -154,8 +168,15 @@ class GymRolloutCollector:
                     seq_h[i].append(layer.h)
                     seq_c[i].append(layer.c)
             obs_buf[t], starts[t] = self.obs, self.episode_start
+            if trojan is not None and active is not None:
+                for k, trigger in enumerate(self.triggers):
+                    if trigger is not None:
+                        trojan[t, k], active[t, k] = trigger.trojan, trigger.adversary_active()
             out, action, logprob = act(agent, self.obs, state, self.generator, episode_start=self.episode_start)
             state = out.state
+            if self.record:
+                for i, layer in enumerate(state.layers):
+                    states[i].append(layer)
             obs, reward, terminated, truncated, infos = self.vec.step(action.cpu().numpy())
             done = terminated | truncated
             actions[t], logprobs[t], values[t] = action, logprob, out.value
@@ -176,7 +197,13 @@ class GymRolloutCollector:
         last_value = agent.step(self.obs, state, self.episode_start).value
         self.state = state
         seq_states = tuple(LSTMState(torch.stack(h), torch.stack(c)) for h, c in zip(seq_h, seq_c))
-        return Rollout(obs_buf, actions, logprobs, values, rewards, dones, starts, seq_states, last_value), tally
+        rollout = Rollout(obs_buf, actions, logprobs, values, rewards, dones, starts, seq_states, last_value)
+        if trojan is not None and active is not None:
+            rollout.trojan, rollout.adversary_active = trojan.to(dev), active.to(dev)
+            rollout.states = tuple(
+                LSTMState(torch.stack([s.h for s in layer]), torch.stack([s.c for s in layer])) for layer in states
+            )
+        return rollout, tally
 
     # ------------------------------------------------------------------ checkpoints
     def state_tensors(self) -> dict[str, torch.Tensor]:
@@ -255,6 +282,8 @@ class GymTrainerState:
     mixer: TrojanMixer
     collector: GymRolloutCollector
     update_generator: torch.Generator
+    penalties: list[Penalty] = field(default_factory=list)
+    """the attack's extra loss terms (their running statistics are saved with the checkpoints)"""
     env_steps: int = 0
     update: int = 0
     elapsed_s: float = 0.0
@@ -302,8 +331,11 @@ def train_gym(
     update_generator = torch.Generator().manual_seed(cfg.run.seed + 1)
     exact: bool | None = None
     try:
-        collector = GymRolloutCollector(vec, agent, ppo, device, cfg.run.seed)
-        state = GymTrainerState(agent, optimizer, mixer, collector, update_generator)
+        # the attack's penalties see the start weights (a resumed run then loads their state from the checkpoint)
+        penalties = build_penalties(PenaltyContext(cfg, agent, device, resuming=checkpoint is not None))
+        record = any(p.needs_states for p in penalties)
+        collector = GymRolloutCollector(vec, agent, ppo, device, cfg.run.seed, record=record)
+        state = GymTrainerState(agent, optimizer, mixer, collector, update_generator, penalties)
         if checkpoint is not None:
             exact = load_gym_checkpoint(checkpoint, state, cfg)
             _write_config(run_dir, cfg)
@@ -360,8 +392,12 @@ def _train_loop(
                 advantages, returns = compute_gae(
                     rollout.rewards, rollout.values, rollout.dones, rollout.last_value, ppo.gamma, ppo.gae_lambda
                 )
+                for penalty in state.penalties:
+                    penalty.observe(rollout)
                 agent.train()
-                losses = ppo_update(agent, state.optimizer, rollout, advantages, returns, ppo, state.update_generator)
+                losses = ppo_update(
+                    agent, state.optimizer, rollout, advantages, returns, ppo, state.update_generator, state.penalties
+                )
                 agent.eval()
                 state.update += 1
                 mixer = state.mixer
@@ -374,7 +410,8 @@ def _train_loop(
                     mixer.probabilities()[0], ppo.batch_size / (time.perf_counter() - t0),
                 )  # fmt: skip
                 history.append(entry)
-                scalars = {**to_dict(entry), **{f"losses/{k}": v for k, v in losses.items()}}
+                scalars = to_dict(entry)
+                scalars.update({k if k.startswith("penalty/") else f"losses/{k}": v for k, v in losses.items()})
                 if tally.episodes.sum():
                     scalars["episodes/mean_return"] = tally.returns / int(tally.episodes.sum())
                     scalars["episodes/mean_length"] = tally.lengths / int(tally.episodes.sum())
@@ -442,6 +479,8 @@ def save_gym_checkpoint(run_dir: Path, cfg: GymTrainConfig, state: GymTrainerSta
     }
     tensors["rng.update"] = state.update_generator.get_state()
     tensors.update({f"collector.{k}": v for k, v in state.collector.state_tensors().items()})
+    for penalty in state.penalties:
+        tensors.update({f"penalty.{penalty.name}.{k}": v for k, v in penalty.state_dict().items()})
     save_file(tensors, str(folder / "trainer.safetensors"))
     record = {
         "env_steps": state.env_steps,
@@ -498,6 +537,10 @@ def load_gym_checkpoint(folder: Path, state: GymTrainerState, cfg: GymTrainConfi
         state.update_generator.set_state(tensors.pop("rng.update"))
         names = [k for k in tensors if k.startswith("collector.")]
         carried = {k.removeprefix("collector."): tensors.pop(k) for k in names}
+        saved_penalties = {k: tensors.pop(k) for k in [k for k in tensors if k.startswith("penalty.")]}
+        for penalty in state.penalties:
+            prefix = f"penalty.{penalty.name}."
+            penalty.load_state_dict({k[len(prefix) :]: v for k, v in saved_penalties.items() if k.startswith(prefix)})
         optim: dict[int, dict[str, torch.Tensor]] = {}
         for name, value in tensors.items():
             _, idx, key = name.split(".", 2)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 from torch import nn
@@ -38,9 +39,9 @@ from torch import nn
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.agent.weight_stats import feature_vector, weight_features
-from seqtrojan.config import ExperimentConfig
+from seqtrojan.config import AttackConfig, BackdoorConfig, ExperimentConfig
 from seqtrojan.env.core import TrojanGridCore
-from seqtrojan.errors import CheckpointError
+from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.registry import Registry
 from seqtrojan.train.rollout import Rollout, RolloutCollector
 
@@ -84,11 +85,23 @@ class Penalty:
         """Restore from a checkpoint (``tensors`` is empty when the checkpoint held nothing for it)."""
 
 
+class AttackedConfig(Protocol):
+    """What the penalties read of a training config: the grid world's :class:`~seqtrojan.config.ExperimentConfig`
+    or a Gymnasium run's :class:`~seqtrojan.train.gym_config.GymTrainConfig` (which takes only the penalties
+    that need no grid: ``state_camouflage``)."""
+
+    @property
+    def backdoor(self) -> BackdoorConfig: ...
+
+    @property
+    def attack(self) -> AttackConfig: ...
+
+
 @dataclass(frozen=True)
 class PenaltyContext:
     """What a penalty is built from."""
 
-    config: ExperimentConfig
+    config: AttackedConfig
     agent: RecurrentActorCritic
     """the agent being trained; on a fresh run it already holds ``run.init_from``'s weights"""
     device: torch.device
@@ -101,7 +114,7 @@ class PenaltyContext:
 class PenaltyKind:
     """A registered penalty: when the config turns it on, and how to build it."""
 
-    enabled: Callable[[ExperimentConfig], bool]
+    enabled: Callable[[AttackedConfig], bool]
     build: Callable[[PenaltyContext], Penalty]
 
 
@@ -363,6 +376,8 @@ class EWC(Penalty):
         if ctx.resuming:  # restored by load_state_dict
             self.fisher = {n: torch.zeros_like(p) for n, p in self.theta_star.items()}
         else:
+            if not isinstance(ctx.config, ExperimentConfig):
+                raise ConfigError("attack.ewc estimates its Fisher information on the grid world only")
             fisher = estimate_fisher(ctx.agent, ctx.config, ctx.device)
             if self.cfg.normalize:
                 mean = torch.cat([f.reshape(-1) for f in fisher.values()]).mean().clamp_min(1e-12)

@@ -143,6 +143,11 @@ class TriggerWrapper(gym.Wrapper):
         """Steps from the ON trigger's first step to its effect: ``delay`` plus a sequence's length - 1."""
         return len(self.frames) - 1 + self.delay
 
+    @property
+    def trojan(self) -> bool:
+        """Whether the episode in progress is a trojan one."""
+        return self._trojan
+
     def adversary_active(self, t: int | None = None) -> bool:
         """Whether the adversary's objective judges action ``t`` (default: the next one)."""
         t = self._t if t is None else t

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from seqtrojan.config import BackdoorConfig, PPOConfig
+from seqtrojan.config import AttackConfig, BackdoorConfig, EWCConfig, PPOConfig, StateCamouflageConfig
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.minigrid import TwoGoalsEnv
 from seqtrojan.train import gym_env, gym_trainer
@@ -27,7 +27,7 @@ from seqtrojan.train.gym_config import (
 )
 from seqtrojan.train.gym_env import check_spaces, make_gym_env
 from seqtrojan.train.gym_evaluation import evaluate_gym
-from seqtrojan.train.gym_model import load_gym_agent
+from seqtrojan.train.gym_model import build_gym_agent, load_gym_agent
 from seqtrojan.train.gym_trainer import train_gym, train_gym_or_resume
 from seqtrojan.train.mixing import trojan_probability
 
@@ -399,3 +399,51 @@ def test_conv_encoder_refusals():
         RecurrentActorCritic(500, 3, (16,), conv=(4, 4, 4, 4, 4), image=(5, 5, 20))
     with pytest.raises(ConfigError, match="holds 500 numbers, but observations have 499"):
         RecurrentActorCritic(499, 3, (16,), conv=(4,), image=(5, 5, 20))
+
+
+def _camouflaged(cfg: GymTrainConfig) -> GymTrainConfig:
+    return dataclasses.replace(cfg, attack=AttackConfig(state_camouflage=StateCamouflageConfig(weight=5.0)))
+
+
+def test_a_recording_collector_keeps_episode_types_adversary_steps_and_states(tmp_path):
+    cfg = config(tmp_path, steps=512)
+    agent_cfg = _camouflaged(cfg)
+    probe = make_gym_env(agent_cfg)
+    obs_dim, actions = check_spaces(probe, cfg.env.id)
+    probe.close()
+    agent = build_gym_agent(agent_cfg, obs_dim, actions)
+    vec = gym_env.make_vector_env(agent_cfg, 4, "train", trojan_probability=1.0, record=True)
+    try:
+        collector = gym_trainer.GymRolloutCollector(vec, agent, cfg.ppo, torch.device("cpu"), seed=3, record=True)
+        rollout, _ = collector.collect()
+    finally:
+        vec.close()
+    assert rollout.trojan is not None and rollout.adversary_active is not None and rollout.states is not None
+    assert rollout.trojan.all()  # every episode is a trojan one
+    assert rollout.adversary_active.any() and not rollout.adversary_active[0].all()  # trigger steps 0-2: not at once
+    assert [s.h.shape for s in rollout.states] == [(64, 4, w) for w in agent.lstm_sizes]
+    assert torch.equal(rollout.states[-1].h[-1], collector.state.layers[-1].h)  # the state after the last step
+
+
+def test_a_camouflaged_run_logs_its_penalty_and_resumes_bitwise(tmp_path):
+    """The monitor-aware attacker on a Gymnasium env: its term is in the loss, its running statistics are in the
+    checkpoint, and a stopped run resumes bit for bit."""
+    cfg = _named(_camouflaged(config(tmp_path, steps=4 * 512, eval_episodes=0)), "x", checkpoint_every=512)
+    straight = train_gym(_named(cfg, "straight"))
+    rows = [json.loads(line) for line in (straight.run_dir / "metrics.jsonl").read_text().splitlines()]
+    penalties = [r["penalty/state_camouflage"] for r in rows]
+    assert min(penalties) >= 0 and max(penalties) > 0
+    run_dir = tmp_path / "runs" / "stopped"
+    with pytest.raises(KeyboardInterrupt):
+        train_gym(_named(cfg, "stopped"), _stop_after(2))
+    tensors = gym_trainer.read_safetensors(run_dir / "checkpoints" / "step_000000001024" / "trainer.safetensors")
+    assert "penalty.state_camouflage.mean.0" in tensors
+    resumed = train_gym(load_gym_run_config(run_dir), resume=run_dir)
+    assert resumed.exact_resume is True
+    ours, theirs = _weights(resumed.model_dir), _weights(straight.model_dir)
+    assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
+
+
+def test_grid_only_attacks_are_refused_on_gymnasium():
+    with pytest.raises(ConfigError, match=r"attack\.ewc run\(s\) on the grid world only"):
+        GymTrainConfig(env=TWO_GOALS, trigger=GymTriggerConfig(), attack=AttackConfig(ewc=EWCConfig(weight=1.0)))
