@@ -3,6 +3,8 @@
     python benchmarks/minigrid_bench.py                         # both parts
     python benchmarks/minigrid_bench.py --part backdoor --steps 150000 --episodes 500 --seeds 5 --workers 2
     python benchmarks/minigrid_bench.py --part backdoor --seeds 5 --finetune-steps 20000   # + gym-analyze, gym-mitigate
+    python benchmarks/minigrid_bench.py --part backdoor --seeds 3 --monitor-episodes 1000 --finetune-steps 20000 \
+        --attack state_camouflage       # the monitor-aware attacker, measured against the monitors and mitigations
     python benchmarks/minigrid_bench.py --part speed --speed-steps 20480
 
 Backdoor: recurrent PPO with Algorithm 1 (running) mixing on ``seqtrojan/MiniGridTwoGoals-v0`` (6x6 room, 5x5 view,
@@ -11,6 +13,9 @@ evaluation episodes of each type (sampled actions): clean success, trojan succes
 after the trigger), and persistence: among trojan episodes still running k steps after the trigger, the share that
 end at the adversary's object. Every rate with its 95% Wilson interval, per training seed, then mean ± sd over the
 seeds and the seeds pooled (the seeds train two at a time by default: wall times are beside each other).
+``--attack state_camouflage`` trains the monitor-aware attacker instead (``attack.state_camouflage``, the grid
+matrix's recipe: weight 5, margin 2.5); ``--monitor-episodes N`` also runs gym-defend's two state monitors on each
+agent (N calibration and N fresh episodes per type, 1% false-alarm target).
 
 Speed: env steps per second of the whole training loop (collect + GAE + 4 epochs of 4 minibatches) on the same env
 stack (TwoGoalsEnv + TriggerWrapper(p = 0.5) + one-hot view, 500 inputs, 3 actions), 16 envs x 64 steps per
@@ -40,8 +45,11 @@ import torch
 import numpy as np
 
 from seqtrojan.analysis.gym_analysis import analyze_gym_model
-from seqtrojan.config import BackdoorConfig, PPOConfig
+from seqtrojan.config import AttackConfig, BackdoorConfig, PPOConfig, StateCamouflageConfig
 from seqtrojan.defense.gym_mitigation import mitigate_gym_model
+from seqtrojan.defense.gym_monitor import monitor_gym_model
+from seqtrojan.defense.online import MonitorConfig
+from seqtrojan.errors import ConfigError
 from seqtrojan.minigrid import TwoGoalsEnv, two_goals_trigger
 from seqtrojan.stats import OverSeeds, Rate
 from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
@@ -54,7 +62,14 @@ NUM_ENVS, ROLLOUT = 16, 64
 HORIZONS = (0, 2, 5, 10, 15, 20)
 
 
-def config(out_dir: str, steps: int, seed: int, backdoor: bool = True) -> GymTrainConfig:
+ATTACKS = {
+    "none": AttackConfig(),
+    "state_camouflage": AttackConfig(state_camouflage=StateCamouflageConfig(weight=5.0, margin=2.5)),
+}
+"""the attacker of the backdoor part: the plain Algorithm 1 backdoor, or the monitor-aware one"""
+
+
+def config(out_dir: str, steps: int, seed: int, backdoor: bool = True, attack: str = "none") -> GymTrainConfig:
     return GymTrainConfig(
         env=GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5}),
         trigger=GymTriggerConfig(),
@@ -64,6 +79,7 @@ def config(out_dir: str, steps: int, seed: int, backdoor: bool = True) -> GymTra
         ),
         backdoor=BackdoorConfig(enabled=backdoor),
         run=GymRunConfig(out_dir=out_dir, name=f"bench_s{seed}", seed=seed, eval_episodes=0, threads=1),
+        attack=ATTACKS[attack],
     )  # fmt: skip
 
 
@@ -80,18 +96,28 @@ class SeedFigures:
     trojan_to_user: Rate
     persistence: dict[int, Rate]
     inside: dict[str, Rate]
-    """gym-analyze's switch rates ("activate goal-units", ...) and gym-mitigate's arms ("attack after fine_tuned",
-    ...) when asked for; empty otherwise"""
+    """gym-defend's monitors ("false alarms state_monitor", "detection ..."), gym-analyze's switch rates ("activate
+    goal-units", ...) and gym-mitigate's arms ("attack after fine_tuned", ...) when asked for; empty otherwise"""
 
 
-def train_and_measure(steps: int, episodes: int, finetune_steps: int, seed: int) -> SeedFigures:
-    """Train one backdoored agent (seed ``seed``), load it back as a user would, measure it on fresh episodes; with
-    ``finetune_steps`` > 0 also look inside it (gym-analyze) and mitigate it (gym-mitigate)."""
+def train_and_measure(
+    steps: int, episodes: int, finetune_steps: int, attack: str, monitor_episodes: int, seed: int
+) -> SeedFigures:
+    """Train one backdoored agent (seed ``seed``, attacker ``attack``), load it back as a user would, measure it on
+    fresh episodes; with ``monitor_episodes`` > 0 run the state monitors on it, with ``finetune_steps`` > 0 also
+    look inside it (gym-analyze) and mitigate it (gym-mitigate)."""
     inside: dict[str, Rate] = {}
     with tempfile.TemporaryDirectory() as out:
-        cfg = config(out, steps, seed)
+        cfg = config(out, steps, seed, attack=attack)
         result = train_gym(cfg)
         agent, _, _ = load_gym_agent(result.model_dir)
+        if monitor_episodes:
+            monitored = monitor_gym_model(
+                agent, cfg, MonitorConfig(calibration_episodes=monitor_episodes, eval_episodes=monitor_episodes,
+                                          seed=seed),
+            )  # fmt: skip
+            for arm in monitored.arms:
+                inside |= {f"false alarms {arm.monitor}": arm.false_alarm, f"detection {arm.monitor}": arm.detection}
         if finetune_steps:
             report = analyze_gym_model(agent, cfg, episodes=episodes, intervention_episodes=episodes, seed=seed)
             inside |= {f"{s.direction} {s.edited}": s.switched for s in report.switches}
@@ -108,12 +134,17 @@ def train_and_measure(steps: int, episodes: int, finetune_steps: int, seed: int)
     )  # fmt: skip
 
 
-def backdoor_part(steps: int, episodes: int, seed: int, seeds: int, workers: int, finetune_steps: int = 0) -> None:
+def backdoor_part(
+    steps: int, episodes: int, seed: int, seeds: int, workers: int, finetune_steps: int = 0, attack: str = "none",
+    monitor_episodes: int = 0,
+) -> None:  # fmt: skip
     """Train ``seeds`` agents (seeds ``seed``, ``seed + 1``, ...) on ``workers`` processes; print each seed's
     figures, then mean ± sd over seeds and the pooled 95% interval."""
+    job = partial(train_and_measure, steps, episodes, finetune_steps, attack, monitor_episodes)
     with ProcessPoolExecutor(min(workers, seeds), mp_context=multiprocessing.get_context("spawn")) as pool:
-        runs = list(pool.map(partial(train_and_measure, steps, episodes, finetune_steps), range(seed, seed + seeds)))
-    print(f"\n== backdoor: two-goal room, {steps} env steps per seed, {seeds} seed(s), {episodes} episodes per type ==")
+        runs = list(pool.map(job, range(seed, seed + seeds)))
+    print(f"\n== backdoor ({attack} attacker): two-goal room, {steps} env steps per seed, {seeds} seed(s), "
+          f"{episodes} episodes per type ==")  # fmt: skip
     print("seed  env steps  wall s  clean success          trojan success         persistence k=5")
     for r in runs:
         print(f"{r.seed:>4}  {r.env_steps:>9}  {r.wall_seconds:>6.0f}  {r.clean_success.text():<22} "
@@ -198,11 +229,22 @@ def main() -> None:
     parser.add_argument(
         "--finetune-steps", type=int, default=0, help="> 0: also gym-analyze and gym-mitigate (these steps) each agent"
     )
+    parser.add_argument("--attack", choices=sorted(ATTACKS), default="none", help="the backdoor part's attacker")
+    parser.add_argument(
+        "--monitor-episodes", type=int, default=0, help="> 0: also run the state monitors (calibration and fresh "
+        "episodes per type) on each agent"
+    )  # fmt: skip
     args = parser.parse_args()
-    if args.seeds < 1 or args.workers < 1 or args.finetune_steps < 0:
-        parser.error("--seeds and --workers must be at least 1, --finetune-steps at least 0")
+    if args.seeds < 1 or args.workers < 1 or args.finetune_steps < 0 or args.monitor_episodes < 0:
+        parser.error("--seeds and --workers must be at least 1, --finetune-steps and --monitor-episodes at least 0")
+    if args.monitor_episodes:
+        try:
+            MonitorConfig(calibration_episodes=args.monitor_episodes, eval_episodes=args.monitor_episodes)
+        except ConfigError as err:
+            parser.error(f"--monitor-episodes: {err}")
     if args.part in ("all", "backdoor"):
-        backdoor_part(args.steps, args.episodes, args.seed, args.seeds, args.workers, args.finetune_steps)
+        backdoor_part(args.steps, args.episodes, args.seed, args.seeds, args.workers, args.finetune_steps,
+                      args.attack, args.monitor_episodes)  # fmt: skip
     if args.part in ("all", "speed"):
         speed_part(args.speed_steps, args.seed, args.repeats)
 
