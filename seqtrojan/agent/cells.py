@@ -313,7 +313,8 @@ class WindowAttentionLayer(nn.Module):
     def step(self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor | None, fast: bool) -> LSTMState:
         batch, w, width = x.shape[0], self.window, self.slot_width
         e = self.input(x)
-        q, kv = self.qkv(self.norm_attention(e)).split((self.hidden_size, 2 * self.hidden_size), -1)
+        qkv = self.qkv(self.norm_attention(e))  # (B, 3W): [q | k | v]
+        q, kv = qkv.split((self.hidden_size, 2 * self.hidden_size), -1)
         # one buffer of all window slots; the next state is a view of its newest w - 1 (no second copy)
         slots = x.new_empty(batch, w, width)
         cache = state.c.reshape(batch, w - 1, width)
@@ -326,9 +327,11 @@ class WindowAttentionLayer(nn.Module):
         slots[:, -1, :-1] = kv
         slots[:, -1, -1] = 1.0
         heads, d, width_h = self.heads, self.hidden_size // self.heads, self.hidden_size
-        if fast:  # the kernel reads the slots in place (rows of 2W + 1: key, value, validity flag)
+        if fast:  # the kernel reads the cached slots in place (rows of 2W + 1: key, value, validity flag)
             allowed = (slots[..., -1] > 0).unsqueeze(1)  # (B, 1, w)
-            attended = band_attention(q.unsqueeze(1), slots, allowed, self.position_bias, 1 / math.sqrt(d))
+            attended = band_attention(
+                qkv.unsqueeze(1), slots[:, : w - 1], allowed, self.position_bias, 1 / math.sqrt(d)
+            )
             return LSTMState(self._finish(e, attended.squeeze(1)), slots.view(batch, w * width)[:, width:])
         keys = slots[..., :width_h].unflatten(-1, (heads, d)).transpose(1, 2)  # (B, heads, w, d), strided views
         values = slots[..., width_h : 2 * width_h].unflatten(-1, (heads, d)).transpose(1, 2)
@@ -345,23 +348,30 @@ class WindowAttentionLayer(nn.Module):
         steps, batch = x.shape[:2]
         w, width, slot = self.window, self.hidden_size, self.slot_width
         e = self.input(x.transpose(0, 1))  # (B, T, W)
-        q, kv = self.qkv(self.norm_attention(e)).split((width, 2 * width), -1)
+        qkv = self.qkv(self.norm_attention(e))  # (B, T, 3W): [q | k | v]
         prefix = state.c.reshape(batch, w - 1, slot) * keep[0].view(batch, 1, 1)  # emptied by an episode start
-        kv = torch.cat([prefix[..., :-1], kv], 1)  # (B, P, 2W), P = w - 1 + T
-        valid = torch.cat([prefix[..., -1] > 0, kv.new_ones(batch, steps, dtype=torch.bool)], 1)  # (B, P)
+        valid = torch.cat([prefix[..., -1] > 0, qkv.new_ones(batch, steps, dtype=torch.bool)], 1)  # (B, P)
         # episode of each position: the prefix is episode 0, and every episode start inside the chunk opens the next
         episode = torch.cat([keep.new_zeros(batch, w - 1), torch.cumsum(1 - keep.t(), 1)], 1)  # (B, P)
-        if fast:
+        kv = None
+        if fast:  # the kernel reads q, k and v where they lie: no (B, P, 2W) copy
             # slot j of query t is position t + j: readable if valid and of the query's episode
             window_episodes = episode.unfold(1, w, 1)  # (B, T, w) views
             allowed = valid.unfold(1, w, 1) & (window_episodes == window_episodes[..., -1:])
-            attended = band_attention(q, kv, allowed, self.position_bias, 1 / math.sqrt(width // self.heads))
+            attended = band_attention(qkv, prefix, allowed, self.position_bias, 1 / math.sqrt(width // self.heads))
         else:
-            attended = self._band_attention(q, kv, valid, episode)
+            kv = torch.cat([prefix[..., :-1], qkv[..., width:]], 1)  # (B, P, 2W), P = w - 1 + T
+            attended = self._band_attention(qkv[..., :width], kv, valid, episode)
         h_seq = self._finish(e, attended).transpose(0, 1)  # (T, B, W), a view of the batch-major result
         # the state after each step: the newest w - 1 slots, emptied where they precede an episode start
-        starts = range(1, steps + 1) if return_states else range(steps, steps + 1)
-        caches = self._caches(kv, valid, episode, starts)
+        if return_states:
+            kv = torch.cat([prefix[..., :-1], qkv[..., width:]], 1) if kv is None else kv
+            caches = self._caches(kv, valid, episode, range(1, steps + 1))
+        else:  # only the last one: from the prefix and the chunk's last w - 1 positions
+            last = min(steps, w - 1)
+            tail = torch.cat([prefix[..., :-1], qkv[:, steps - last :, width:]], 1)
+            keep_tail = [*range(w - 1), *range(w - 1 + steps - last, w - 1 + steps)]
+            caches = self._caches(tail, valid[:, keep_tail], episode[:, keep_tail], range(last, last + 1))
         final = LSTMState(h_seq[-1], caches[-1])
         return h_seq, final, LSTMState(h_seq, caches) if return_states else None
 

@@ -31,12 +31,13 @@ def _inputs(layer: WindowAttentionLayer, steps: int, batch: int, dtype: torch.dt
     return x, keep, LSTMState(torch.zeros(batch, layer.hidden_size, dtype=dtype), cache.flatten(1))
 
 
+@pytest.mark.parametrize("steps", [9, 2])  # a chunk longer and one shorter than the cache
 @pytest.mark.parametrize("heads", [1, 2])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_unroll_and_gradients_equal_the_torch_path(heads, dtype):
+def test_unroll_and_gradients_equal_the_torch_path(heads, dtype, steps):
     torch.manual_seed(heads)
     layer = _layer(heads, dtype)
-    x, keep, start = _inputs(layer, 9, 6, dtype)
+    x, keep, start = _inputs(layer, steps, 6, dtype)
     results = []
     for fast in (False, True):
         layer.zero_grad()
@@ -50,6 +51,9 @@ def test_unroll_and_gradients_equal_the_torch_path(heads, dtype):
     assert layer.position_bias.grad.abs().sum() > 0
     for a, b in zip(g_a, g_b):
         torch.testing.assert_close(a, b, **tol)
+    with torch.no_grad():  # without every step's state, the final cache comes from the chunk's last positions
+        _, final, _ = layer.unroll(x, start, keep, False, True)
+    torch.testing.assert_close(final.c, c_a[-1], **tol)
 
 
 @pytest.mark.parametrize("heads", [1, 2])
@@ -68,15 +72,16 @@ def test_a_step_reads_the_cache_in_place_and_equals_the_torch_step(heads):
 def test_band_attention_passes_gradcheck_in_float64():
     torch.manual_seed(0)
     batch, steps, heads, d, window = 2, 5, 2, 3, 3
-    q = torch.randn(batch, steps, heads * d, dtype=torch.float64, requires_grad=True)
-    kv = torch.randn(batch, steps + window - 1, 2 * heads * d + 1, dtype=torch.float64, requires_grad=True)
+    qkv = torch.randn(batch, steps, 3 * heads * d, dtype=torch.float64, requires_grad=True)
+    # the cached positions with a validity column after the keys and values, as the layer's cache holds them
+    prefix = torch.randn(batch, window - 1, 2 * heads * d + 1, dtype=torch.float64, requires_grad=True)
     bias = torch.randn(heads, window, dtype=torch.float64, requires_grad=True)
     allowed = torch.rand(batch, steps, window) > 0.3
     allowed[..., -1] = True
-    assert torch.autograd.gradcheck(lambda a, b, c: band_attention(a, b, allowed, c, 0.7), (q, kv, bias))
+    assert torch.autograd.gradcheck(lambda a, b, c: band_attention(a, b, allowed, c, 0.7), (qkv, prefix, bias))
 
 
 def test_mismatched_shapes_are_refused_in_one_line():
-    q = torch.randn(2, 5, 4)
-    with pytest.raises(RuntimeError, match="kv does not match q and the window"):
-        band_attention(q, torch.randn(2, 5, 8), torch.ones(2, 5, 3, dtype=torch.bool), torch.zeros(1, 3), 1.0)
+    qkv = torch.randn(2, 5, 12)
+    with pytest.raises(RuntimeError, match="the prefix does not match qkv and the window"):
+        band_attention(qkv, torch.randn(2, 5, 8), torch.ones(2, 5, 3, dtype=torch.bool), torch.zeros(1, 3), 1.0)

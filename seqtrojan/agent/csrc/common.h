@@ -93,7 +93,8 @@ void gru_stack_step(at::Tensor X, at::Tensor M, std::vector<at::Tensor> hs, std:
                     std::vector<at::Tensor> hs_out, int64_t nchunks);
 
 // ---- band attention of the windowed Transformer (band_attention.cpp), bound in the same module
-void band_attention_fwd(const at::Tensor& q, const at::Tensor& kv, const at::Tensor& allowed, const at::Tensor& bias,
-                        at::Tensor& out, at::Tensor& probs, double scale);
-void band_attention_bwd(const at::Tensor& grad, const at::Tensor& q, const at::Tensor& kv, const at::Tensor& probs,
-                        at::Tensor& dq, at::Tensor& dkv, at::Tensor& dscores, double scale);
+void band_attention_fwd(const at::Tensor& qkv, const at::Tensor& prefix, const at::Tensor& allowed,
+                        const at::Tensor& bias, at::Tensor& out, at::Tensor& probs, double scale);
+void band_attention_bwd(const at::Tensor& grad, const at::Tensor& qkv, const at::Tensor& prefix,
+                        const at::Tensor& probs, at::Tensor& dqkv, at::Tensor& dprefix, at::Tensor& dscores,
+                        double scale);
