@@ -14,7 +14,8 @@ after the trigger), and persistence: among trojan episodes still running k steps
 end at the adversary's object. Every rate with its 95% Wilson interval, per training seed, then mean ± sd over the
 seeds and the seeds pooled (the seeds train two at a time by default: wall times are beside each other).
 ``--attack state_camouflage`` trains the monitor-aware attacker instead (``attack.state_camouflage``, the grid
-matrix's recipe: weight 5, margin 2.5); ``--monitor-episodes N`` also runs gym-defend's two state monitors on each
+matrix's recipe: weight 5, margin 2.5), ``--attack multivariate_camouflage`` adds the Mahalanobis term (weight 0.1)
+against the multivariate monitor; ``--monitor-episodes N`` also runs gym-defend's two state monitors on each
 agent (N calibration and N fresh episodes per type, 1% false-alarm target).
 
 Speed: env steps per second of the whole training loop (collect + GAE + 4 epochs of 4 minibatches) on the same env
@@ -65,8 +66,12 @@ HORIZONS = (0, 2, 5, 10, 15, 20)
 ATTACKS = {
     "none": AttackConfig(),
     "state_camouflage": AttackConfig(state_camouflage=StateCamouflageConfig(weight=5.0, margin=2.5)),
+    "multivariate_camouflage": AttackConfig(
+        state_camouflage=StateCamouflageConfig(weight=5.0, margin=2.5, mahalanobis_weight=0.1)
+    ),
 }
-"""the attacker of the backdoor part: the plain Algorithm 1 backdoor, or the monitor-aware one"""
+"""the attacker of the backdoor part: the plain Algorithm 1 backdoor, or the monitor-aware one against the per-unit
+monitor (the grid matrix's recipe) or against both monitors (plus the Mahalanobis term, weight 0.1)"""
 
 
 def config(out_dir: str, steps: int, seed: int, backdoor: bool = True, attack: str = "none") -> GymTrainConfig:
