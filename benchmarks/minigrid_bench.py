@@ -14,7 +14,7 @@ after the trigger), and persistence: among trojan episodes still running k steps
 end at the adversary's object. Every rate with its 95% Wilson interval, per training seed, then mean ± sd over the
 seeds and the seeds pooled (the seeds train two at a time by default: wall times are beside each other).
 ``--attack state_camouflage`` trains the monitor-aware attacker instead (``attack.state_camouflage``, the grid
-matrix's recipe: weight 5, margin 2.5), ``--attack multivariate_camouflage`` adds the Mahalanobis term (weight 0.1)
+matrix's recipe: weight 5, margin 2.5; ``state_camouflage_w1``: weight 1), ``--attack multivariate_camouflage`` adds the Mahalanobis term (weight 0.1)
 against the multivariate monitor; ``--monitor-episodes N`` also runs gym-defend's two state monitors on each
 agent (N calibration and N fresh episodes per type, 1% false-alarm target).
 
@@ -66,6 +66,7 @@ HORIZONS = (0, 2, 5, 10, 15, 20)
 ATTACKS = {
     "none": AttackConfig(),
     "state_camouflage": AttackConfig(state_camouflage=StateCamouflageConfig(weight=5.0, margin=2.5)),
+    "state_camouflage_w1": AttackConfig(state_camouflage=StateCamouflageConfig(weight=1.0, margin=2.5)),
     "multivariate_camouflage": AttackConfig(
         state_camouflage=StateCamouflageConfig(weight=5.0, margin=2.5, mahalanobis_weight=0.1)
     ),
