@@ -14,16 +14,9 @@ after the trigger), and persistence: among trojan episodes still running k steps
 end at the adversary's object. Every rate with its 95% Wilson interval, per training seed, then mean ± sd over the
 seeds and the seeds pooled (the seeds train two at a time by default: wall times are beside each other).
 ``--attack state_camouflage`` trains the monitor-aware attacker instead (``attack.state_camouflage``, the grid
-matrix's recipe: weight 5, margin 2.5; ``state_camouflage_w1``: weight 1), ``--attack multivariate_camouflage`` adds the Mahalanobis term (weight 0.1)
-against the multivariate monitor; ``--monitor-episodes N`` also runs gym-defend's two state monitors on each
-agent (N calibration and N fresh episodes per type, 1% false-alarm target).
-
-Speed: env steps per second of the whole training loop (collect + GAE + 4 epochs of 4 minibatches) on the same env
-stack (TwoGoalsEnv + TriggerWrapper(p = 0.5) + one-hot view, 500 inputs, 3 actions), 16 envs x 64 steps per
-rollout, one torch thread each: ours (LSTM 64 -> LSTM 32, SyncVectorEnv) and sb3-contrib's RecurrentPPO
-(MlpLstmPolicy, one shared LSTM of 64, no MLP layers; DummyVecEnv); the bare vector env with random actions is the
-ceiling. Run it alone on the machine for figures worth quoting. (Not named minigrid.py: run as a script, that name would
-shadow the minigrid package.)
+matrix's recipe: weight 5, margin 2.5; ``state_camouflage_w1``: weight 1), ``--attack multivariate_camouflage``
+adds the Mahalanobis term (weight 0.1) against the multivariate monitor; ``--monitor-episodes N`` also runs
+gym-defend's two state monitors on each agent (N calibration and N fresh episodes per type, 1% false-alarm target).
 """
 
 from __future__ import annotations
