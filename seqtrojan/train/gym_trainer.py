@@ -63,7 +63,13 @@ from seqtrojan.train.gym_env import EpisodeRecorder, check_spaces, make_gym_env,
 from seqtrojan.train.gym_evaluation import GymEvaluation, evaluate_gym
 from seqtrojan.train.gym_model import CARD, build_gym_agent, load_gym_agent, save_gym_agent
 from seqtrojan.train.mixing import MIXING_RULES, TrojanMixer
-from seqtrojan.train.penalties import Penalty, PenaltyContext, build_penalties
+from seqtrojan.train.penalties import (
+    Penalty,
+    PenaltyContext,
+    build_penalties,
+    penalty_tensors,
+    restore_penalties,
+)
 from seqtrojan.train.ppo import ppo_update
 from seqtrojan.train.rollout import Rollout
 from seqtrojan.train.trainer import UpdateCallback
@@ -479,8 +485,7 @@ def save_gym_checkpoint(run_dir: Path, cfg: GymTrainConfig, state: GymTrainerSta
     }
     tensors["rng.update"] = state.update_generator.get_state()
     tensors.update({f"collector.{k}": v for k, v in state.collector.state_tensors().items()})
-    for penalty in state.penalties:
-        tensors.update({f"penalty.{penalty.name}.{k}": v for k, v in penalty.state_dict().items()})
+    tensors.update(penalty_tensors(state.penalties))
     save_file(tensors, str(folder / "trainer.safetensors"))
     record = {
         "env_steps": state.env_steps,
@@ -537,10 +542,7 @@ def load_gym_checkpoint(folder: Path, state: GymTrainerState, cfg: GymTrainConfi
         state.update_generator.set_state(tensors.pop("rng.update"))
         names = [k for k in tensors if k.startswith("collector.")]
         carried = {k.removeprefix("collector."): tensors.pop(k) for k in names}
-        saved_penalties = {k: tensors.pop(k) for k in [k for k in tensors if k.startswith("penalty.")]}
-        for penalty in state.penalties:
-            prefix = f"penalty.{penalty.name}."
-            penalty.load_state_dict({k[len(prefix) :]: v for k, v in saved_penalties.items() if k.startswith(prefix)})
+        restore_penalties(state.penalties, tensors)
         optim: dict[int, dict[str, torch.Tensor]] = {}
         for name, value in tensors.items():
             _, idx, key = name.split(".", 2)

@@ -135,6 +135,20 @@ def build_penalties(ctx: PenaltyContext) -> list[Penalty]:
     return out
 
 
+def penalty_tensors(penalties: list[Penalty]) -> dict[str, torch.Tensor]:
+    """Every penalty's state as checkpoint tensors, ``penalty.<name>.<key>``."""
+    return {f"penalty.{p.name}.{k}": v for p in penalties for k, v in p.state_dict().items()}
+
+
+def restore_penalties(penalties: list[Penalty], tensors: dict[str, torch.Tensor]) -> None:
+    """Take the ``penalty.*`` tensors out of a checkpoint's ``tensors`` and give each penalty its own (an empty dict
+    to one the checkpoint holds nothing for)."""
+    saved = {name: tensors.pop(name) for name in [n for n in tensors if n.startswith("penalty.")]}
+    for penalty in penalties:
+        prefix = f"penalty.{penalty.name}."
+        penalty.load_state_dict({k[len(prefix) :]: v for k, v in saved.items() if k.startswith(prefix)})
+
+
 def _zero(device: torch.device) -> torch.Tensor:
     return torch.zeros((), device=device)
 

@@ -40,7 +40,13 @@ from seqtrojan.train.curriculum import Curriculum, EpisodeCounts
 from seqtrojan.train.gae import compute_gae
 from seqtrojan.train.logger import RunLogger, make_progress
 from seqtrojan.train.mixing import MIXING_RULES, TrojanMixer
-from seqtrojan.train.penalties import Penalty, PenaltyContext, build_penalties
+from seqtrojan.train.penalties import (
+    Penalty,
+    PenaltyContext,
+    build_penalties,
+    penalty_tensors,
+    restore_penalties,
+)
 from seqtrojan.train.ppo import ppo_update
 from seqtrojan.train.rollout import EpisodeStats, RolloutCollector
 from seqtrojan.train.stopping import StopRule
@@ -451,8 +457,7 @@ def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -
     tensors, groups = _optimizer_tensors(state.optimizer)
     tensors["rng.collector"] = state.collector.generator.get_state()
     tensors["rng.update"] = state.update_generator.get_state()
-    for penalty in state.penalties:
-        tensors.update({f"penalty.{penalty.name}.{k}": v for k, v in penalty.state_dict().items()})
+    tensors.update(penalty_tensors(state.penalties))
     save_file(tensors, str(folder / "trainer.safetensors"))
     record = {
         "env_steps": state.global_step,
@@ -486,10 +491,7 @@ def load_checkpoint(run_dir: Path, state: TrainerState) -> None:
     tensors = read_safetensors(folder / "trainer.safetensors")
     state.collector.generator.set_state(tensors.pop("rng.collector"))
     state.update_generator.set_state(tensors.pop("rng.update"))
-    penalty_tensors = {name: tensors.pop(name) for name in [n for n in tensors if n.startswith("penalty.")]}
-    for penalty in state.penalties:
-        prefix = f"penalty.{penalty.name}."
-        penalty.load_state_dict({k[len(prefix) :]: v for k, v in penalty_tensors.items() if k.startswith(prefix)})
+    restore_penalties(state.penalties, tensors)
     _load_optimizer(state.optimizer, tensors, record["optimizer_param_groups"])
     state.curriculum.load_state_dict(record["curriculum"])
     state.mixer.load_state_dict(record["mixing"])
