@@ -407,11 +407,15 @@ class StudyArgs:
     seeds: int | None = None
     """training seeds (default: the scale file's)"""
     device: str | None = None
+    """torch device of the trainings and measurements: cpu, cuda, cuda:1 (default: the scale file's, cpu)"""
     backend: Literal["serial", "pool", "ray"] | None = None
     """job backend of the trainings (default: the scale file's jobs.backend, pool)"""
     workers: int | None = None
+    """jobs run at once by the pool or a local Ray instance (default: the scale file's jobs.workers)"""
     ray_address: str | None = None
+    """the Ray cluster to run on with --backend ray, e.g. 10.0.0.5:6379 or 'auto' (default: a local Ray instance)"""
     threads: int | None = None
+    """torch threads per job (default: the scale file's jobs.threads, or the cores shared out among the workers)"""
 
 
 @dataclasses.dataclass

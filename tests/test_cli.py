@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
+
+import pytest
 
 from seqtrojan.cli import main
 from tests.conftest import ROOT
@@ -134,7 +137,12 @@ def _options_and_help(help_text: str) -> dict[str, str]:
             while i + 1 < len(lines) and (names[-1].endswith(",") or lines[i + 1].startswith("--")):
                 i += 1
                 names.append(lines[i])
-            options[" ".join(names)] = lines[i + 1] if i + 1 < len(lines) else ""
+            same_line = re.split(r"\s{2,}", names[-1], maxsplit=1)  # a short option's help starts on its own line
+            if len(same_line) == 2:
+                names[-1] = same_line[0]
+                options[" ".join(names)] = same_line[1]
+            else:
+                options[" ".join(names)] = lines[i + 1] if i + 1 < len(lines) else ""
         i += 1
     return options
 
@@ -172,3 +180,16 @@ def test_train_gym_trains_a_minigrid_preset_and_needs_a_config(tmp_path, capsys)
     assert "trojan episodes: success" in out and (tmp_path / "tiny" / "model" / "gym_card.json").exists()
     assert main(["train-gym"]) == 2
     assert "needs --config PRESET|FILE (shipped: minigrid_memory, minigrid_two_goals)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["matrix", "cells"])
+def test_the_studies_explain_every_option(command):
+    out = subprocess.run(
+        [sys.executable, "-m", "seqtrojan.cli", command, "--help"], capture_output=True, text=True, cwd=ROOT,
+        env={**os.environ, "COLUMNS": "80", "NO_COLOR": "1"}, timeout=120,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    options = _options_and_help(out.stdout)
+    assert any(name.startswith("--workers ") for name in options)  # the parse found the options
+    bare = [name for name, text in options.items() if not text or text.startswith("(default")]
+    assert not bare, f"options without help text: {bare}"
