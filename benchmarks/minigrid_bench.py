@@ -6,6 +6,7 @@
     python benchmarks/minigrid_bench.py --part backdoor --seeds 3 --monitor-episodes 1000 --finetune-steps 20000 \
         --attack state_camouflage       # the monitor-aware attacker, measured against the monitors and mitigations
     python benchmarks/minigrid_bench.py --part speed --speed-steps 20480
+    python benchmarks/minigrid_bench.py --part speed --minigrid-view   # MiniGrid's own (slower) view computation
 
 Backdoor: recurrent PPO with Algorithm 1 (running) mixing on ``seqtrojan/MiniGridTwoGoals-v0`` (6x6 room, 5x5 view,
 green goal vs red ball; trigger: two purple keys in the view's far row for one step at step 0-2), then fresh
@@ -45,6 +46,7 @@ from seqtrojan.defense.gym_monitor import monitor_gym_model
 from seqtrojan.defense.online import MonitorConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.minigrid import TwoGoalsEnv, two_goals_trigger
+from seqtrojan.minigrid.fast_obs import use_fast_observation
 from seqtrojan.stats import OverSeeds, Rate
 from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
 from seqtrojan.train.gym_evaluation import evaluate_gym
@@ -68,9 +70,11 @@ ATTACKS = {
 monitor (the grid matrix's recipe) or against both monitors (plus the Mahalanobis term, weight 0.1)"""
 
 
-def config(out_dir: str, steps: int, seed: int, backdoor: bool = True, attack: str = "none") -> GymTrainConfig:
+def config(
+    out_dir: str, steps: int, seed: int, backdoor: bool = True, attack: str = "none", fast_view: bool = True
+) -> GymTrainConfig:
     return GymTrainConfig(
-        env=GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5}),
+        env=GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5}, fast_view=fast_view),
         trigger=GymTriggerConfig(),
         ppo=PPOConfig(
             total_steps=steps, num_envs=NUM_ENVS, rollout_steps=ROLLOUT, bptt_length=16, num_minibatches=4,
@@ -166,21 +170,25 @@ def backdoor_part(
         print(f"{name:<46} {spread:<22} {pooled.text()}  n={pooled.n}")
 
 
-def ours_speed(steps: int, seed: int) -> float:
+def ours_speed(steps: int, seed: int, fast_view: bool) -> float:
     with tempfile.TemporaryDirectory() as out:
-        result = train_gym(config(out, steps, seed))
+        result = train_gym(config(out, steps, seed, fast_view=fast_view))
     return result.env_steps / result.wall_seconds
 
 
-def make_env():
-    return MiniGridOneHot(two_goals_trigger(TwoGoalsEnv(size=6, agent_view_size=5), trojan_probability=0.5))
+def make_env(fast_view: bool) -> MiniGridOneHot:
+    """The env stack both trainers step: the two-goal room, its trigger, the one-hot view."""
+    room = TwoGoalsEnv(size=6, agent_view_size=5)
+    if fast_view:
+        use_fast_observation(room)
+    return MiniGridOneHot(two_goals_trigger(room, trojan_probability=0.5))
 
 
-def sb3_speed(steps: int, seed: int) -> float:
+def sb3_speed(steps: int, seed: int, fast_view: bool) -> float:
     from sb3_contrib import RecurrentPPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    vec = DummyVecEnv([make_env for _ in range(NUM_ENVS)])
+    vec = DummyVecEnv([partial(make_env, fast_view) for _ in range(NUM_ENVS)])
     model = RecurrentPPO(
         "MlpLstmPolicy", vec, n_steps=ROLLOUT, batch_size=NUM_ENVS * ROLLOUT // 4, n_epochs=4, learning_rate=1e-3,
         ent_coef=0.01, seed=seed, device="cpu",
@@ -192,8 +200,8 @@ def sb3_speed(steps: int, seed: int) -> float:
     return model.num_timesteps / (time.perf_counter() - start)
 
 
-def env_speed(steps: int, seed: int) -> float:
-    vec = trigger_vector_env(make_env, NUM_ENVS)
+def env_speed(steps: int, seed: int, fast_view: bool) -> float:
+    vec = trigger_vector_env(partial(make_env, fast_view), NUM_ENVS)
     vec.reset(seed=seed)
     rng = np.random.default_rng(seed)
     start = time.perf_counter()
@@ -203,15 +211,17 @@ def env_speed(steps: int, seed: int) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def speed_part(steps: int, seed: int, repeats: int) -> None:
+def speed_part(steps: int, seed: int, repeats: int, fast_view: bool) -> None:
     torch.set_num_threads(1)
     rows = {"vector env alone (random actions)": env_speed, "seqtrojan train_gym": ours_speed,
             "sb3-contrib RecurrentPPO": sb3_speed}  # fmt: skip
+    view = "the fast view" if fast_view else "MiniGrid's own gen_obs"
     print(
-        f"\n== speed: env steps/s of the whole training loop, {steps} steps, {NUM_ENVS} envs x {ROLLOUT}, 1 thread =="
+        f"\n== speed: env steps/s of the whole training loop, {steps} steps, {NUM_ENVS} envs x {ROLLOUT}, 1 thread, "
+        f"{view} =="
     )
     for name, fn in rows.items():
-        rates = [fn(steps, seed + r) for r in range(repeats)]
+        rates = [fn(steps, seed + r, fast_view) for r in range(repeats)]
         print(f"{name:<36} {statistics.median(rates):8.0f}   (runs: {', '.join(f'{r:.0f}' for r in rates)})")
 
 
@@ -233,6 +243,10 @@ def main() -> None:
         "--monitor-episodes", type=int, default=0, help="> 0: also run the state monitors (calibration and fresh "
         "episodes per type) on each agent"
     )  # fmt: skip
+    parser.add_argument(
+        "--minigrid-view", action="store_true", help="speed part: every env computes its view with MiniGrid's own "
+        "gen_obs instead of seqtrojan.minigrid.fast_obs (the same observations)"
+    )  # fmt: skip
     args = parser.parse_args()
     if args.seeds < 1 or args.workers < 1 or args.finetune_steps < 0 or args.monitor_episodes < 0:
         parser.error("--seeds and --workers must be at least 1, --finetune-steps and --monitor-episodes at least 0")
@@ -245,7 +259,7 @@ def main() -> None:
         backdoor_part(args.steps, args.episodes, args.seed, args.seeds, args.workers, args.finetune_steps,
                       args.attack, args.monitor_episodes)  # fmt: skip
     if args.part in ("all", "speed"):
-        speed_part(args.speed_steps, args.seed, args.repeats)
+        speed_part(args.speed_steps, args.seed, args.repeats, fast_view=not args.minigrid_view)
 
 
 if __name__ == "__main__":

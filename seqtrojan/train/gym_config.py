@@ -31,10 +31,22 @@ class GymEnvConfig:
     observation: Literal["minigrid", "flatten"] = "minigrid"
     """minigrid: MiniGrid's view one-hot encoded per channel (:class:`~seqtrojan.wrappers.MiniGridOneHot`);
     flatten: any observation flattened to float32 (:class:`~seqtrojan.wrappers.FlattenFloat`)"""
+    num_actions: int | None = None
+    """keep only the env's first N discrete actions (:class:`~seqtrojan.wrappers.FirstActions`; MiniGrid's first
+    three are turn left, turn right, forward); None: all"""
+    fast_view: bool = True
+    """a MiniGrid env computes its partial view with :mod:`seqtrojan.minigrid.fast_obs` (the same observation as
+    MiniGrid's ``gen_obs``, several times faster); false: MiniGrid's own method"""
 
     def __post_init__(self) -> None:
         if not isinstance(self.id, str) or not self.id:
             raise ConfigError(f"env.id must be a Gymnasium id, got {short_repr(self.id)}")
+        if self.num_actions is not None and (
+            isinstance(self.num_actions, bool) or not isinstance(self.num_actions, int) or self.num_actions < 1
+        ):
+            raise ConfigError(f"env.num_actions must be a positive integer or null, got {short_repr(self.num_actions)}")
+        if not isinstance(self.fast_view, bool):
+            raise ConfigError(f"env.fast_view must be true or false, got {short_repr(self.fast_view)}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,12 +14,14 @@ from minigrid.minigrid_env import MiniGridEnv
 
 import seqtrojan.minigrid.objectives  # noqa: F401  (registers the MiniGrid objectives)
 from seqtrojan.errors import CheckpointError, ConfigError
+from seqtrojan.minigrid.fast_obs import use_fast_observation
 from seqtrojan.minigrid.tasks import MiniGridInfo
 from seqtrojan.serde import short_repr
 from seqtrojan.train.gym_config import GymTrainConfig, GymTriggerConfig
 from seqtrojan.wrappers import (
     ADVERSARY_OBJECTIVES,
     BoxPatch,
+    FirstActions,
     FlattenFloat,
     MiniGridOneHot,
     MiniGridPatch,
@@ -57,12 +59,18 @@ def build_trigger(env: gym.Env, trigger: GymTriggerConfig, phase: str, trojan_pr
 
 
 def make_gym_env(config: GymTrainConfig, phase: str = "train", trojan_probability: float = 0.0) -> gym.Env:
-    """One env of the run: ``gymnasium.make(env.id, **env.kwargs)``, MiniGrid's info (``reached``) for a MiniGrid
-    env, the config's trigger wrapper (when it has a trigger section), then the flat float observation."""
+    """One env of the run: ``gymnasium.make(env.id, **env.kwargs)`` (a MiniGrid env with the fast view unless
+    ``env.fast_view`` is false; only its first ``env.num_actions`` actions when set), MiniGrid's info
+    (``reached``) for a MiniGrid env, the config's trigger wrapper (when it has a trigger section), then the flat
+    float observation."""
     try:
         env = gym.make(config.env.id, **config.env.kwargs)
     except gym.error.Error as err:
         raise ConfigError(f"env.id={config.env.id!r} cannot be made: {err}") from None
+    if config.env.fast_view:
+        use_fast_observation(env)
+    if config.env.num_actions is not None:
+        env = FirstActions(env, config.env.num_actions)
     if isinstance(env.unwrapped, MiniGridEnv) and find_trigger(env) is None:
         env = MiniGridInfo(env)
     if config.trigger is not None:

@@ -5,6 +5,7 @@ env = TriggerWrapper(gym.make("MiniGrid-MemoryS7-v0"), MiniGridPatch(cells=[(0, 
 
 from __future__ import annotations
 
+from seqtrojan.wrappers.actions import FirstActions
 from seqtrojan.wrappers.objectives import ADVERSARY_OBJECTIVES, Objective, same_as_env
 from seqtrojan.wrappers.observations import FlattenFloat, MiniGridOneHot
 from seqtrojan.wrappers.patches import BoxPatch, FunctionPatch, MiniGridPatch, Patch
@@ -21,6 +22,7 @@ __all__ = [
     "ADVERSARY_OBJECTIVES",
     "BoxPatch",
     "FinishedEpisode",
+    "FirstActions",
     "FlattenFloat",
     "FunctionPatch",
     "MiniGridOneHot",

@@ -24,7 +24,8 @@ from seqtrojan.serde import short_repr
 CHANNELS = (len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX))
 """one-hot widths of MiniGrid's three codes: object, colour, state"""
 CELL_BITS = sum(CHANNELS)
-_OFFSETS = np.array([0, CHANNELS[0], CHANNELS[0] + CHANNELS[1]], dtype=np.int64)
+_OFFSETS = np.array([0, CHANNELS[0], CHANNELS[0] + CHANNELS[1]], dtype=np.intp)
+_LIMITS = np.array(CHANNELS, dtype=np.uint8)
 
 
 class MiniGridOneHot(gym.ObservationWrapper):
@@ -45,13 +46,18 @@ class MiniGridOneHot(gym.ObservationWrapper):
         self.view = space.shape[:2]
         size = self.view[0] * self.view[1] * CELL_BITS
         self.observation_space = spaces.Box(0.0, 1.0, (size,), np.float32)
+        cells = self.view[0] * self.view[1]
+        self._first_bits = np.arange(cells, dtype=np.intp)[:, None] * CELL_BITS + _OFFSETS  # (cells, 3)
 
     def observation(self, observation: Any) -> np.ndarray:
         image = np.asarray(observation[self.key] if self.key is not None else observation)
-        codes = image.transpose(1, 0, 2).astype(np.int64) + _OFFSETS  # (rows, cols, 3): image is stored [col, row]
-        out = np.zeros((*codes.shape[:2], CELL_BITS), dtype=np.float32)
-        np.put_along_axis(out, codes, 1.0, axis=2)
-        return out.reshape(-1)  # (V * V * 20,)
+        negative = image.dtype.kind != "u" and (image < 0).any()
+        if image.shape != (*self.view, 3) or negative or (image >= _LIMITS).any():
+            raise ShapeError(f"MiniGridOneHot: a view of shape {image.shape} or a code beyond {list(CHANNELS)}")
+        codes = image.transpose(1, 0, 2).reshape(-1, 3)  # rows first: the image is stored [col, row]
+        out = np.zeros(self.observation_space.shape, dtype=np.float32)
+        out[(codes + self._first_bits).reshape(-1)] = 1.0
+        return out  # (V * V * 20,)
 
 
 class FlattenFloat(gym.ObservationWrapper):

@@ -117,6 +117,13 @@ def test_config_errors():
     cfg = GymTrainConfig(env=GymEnvConfig("seqtrojan/MiniGridTwoGoals-Trojan-v0"), trigger=GymTriggerConfig())
     with pytest.raises(ConfigError, match="already has a trigger wrapper"):
         make_gym_env(cfg)
+    for bad in (0, True, 2.5):
+        with pytest.raises(ConfigError, match=r"env\.num_actions must be a positive integer or null"):
+            GymEnvConfig("MiniGrid-MemoryS7-v0", num_actions=bad)
+    with pytest.raises(ConfigError, match=r"env\.num_actions=9 must be 1 to the env's 7 actions"):
+        make_gym_env(GymTrainConfig(env=GymEnvConfig("MiniGrid-MemoryS7-v0", num_actions=9)))
+    with pytest.raises(ConfigError, match=r"env\.fast_view must be true or false, got 'yes'"):
+        GymEnvConfig("MiniGrid-MemoryS7-v0", fast_view="yes")
 
 
 @pytest.mark.parametrize(
