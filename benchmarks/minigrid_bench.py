@@ -6,6 +6,7 @@
     python benchmarks/minigrid_bench.py --part backdoor --seeds 3 --monitor-episodes 1000 --finetune-steps 20000 \
         --attack state_camouflage       # the monitor-aware attacker, measured against the monitors and mitigations
     python benchmarks/minigrid_bench.py --part speed --speed-steps 20480
+    python benchmarks/minigrid_bench.py --part backdoor --task memory --steps 3000000 --seeds 3 --out runs/memory
     python benchmarks/minigrid_bench.py --part speed --minigrid-view   # MiniGrid's own (slower) view computation
 
 Backdoor: recurrent PPO with Algorithm 1 (running) mixing on ``seqtrojan/MiniGridTwoGoals-v0`` (6x6 room, 5x5 view,
@@ -28,7 +29,7 @@ import statistics
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 
@@ -48,7 +49,7 @@ from seqtrojan.errors import ConfigError
 from seqtrojan.minigrid import TwoGoalsEnv, two_goals_trigger
 from seqtrojan.minigrid.fast_obs import use_fast_observation
 from seqtrojan.stats import OverSeeds, Rate
-from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
+from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig, load_gym_config
 from seqtrojan.train.gym_evaluation import evaluate_gym
 from seqtrojan.train.gym_model import load_gym_agent
 from seqtrojan.train.gym_trainer import train_gym
@@ -70,9 +71,22 @@ ATTACKS = {
 monitor (the grid matrix's recipe) or against both monitors (plus the Mahalanobis term, weight 0.1)"""
 
 
+TASKS = ("two_goals", "memory")
+"""the backdoor part's tasks: the two-goal room (this script's own settings) or MiniGrid's Memory task (the
+``minigrid_memory`` preset)"""
+
+
 def config(
-    out_dir: str, steps: int, seed: int, backdoor: bool = True, attack: str = "none", fast_view: bool = True
-) -> GymTrainConfig:
+    out_dir: str, steps: int, seed: int, backdoor: bool = True, attack: str = "none", fast_view: bool = True,
+    task: str = "two_goals",
+) -> GymTrainConfig:  # fmt: skip
+    if task == "memory":
+        preset = load_gym_config("minigrid_memory")
+        return replace(
+            preset, ppo=replace(preset.ppo, total_steps=steps), backdoor=replace(preset.backdoor, enabled=backdoor),
+            run=replace(preset.run, out_dir=out_dir, name=f"bench_s{seed}", seed=seed, eval_episodes=0, threads=1),
+            attack=ATTACKS[attack],
+        )  # fmt: skip
     return GymTrainConfig(
         env=GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5}, fast_view=fast_view),
         trigger=GymTriggerConfig(),
@@ -104,14 +118,23 @@ class SeedFigures:
 
 
 def train_and_measure(
-    steps: int, episodes: int, finetune_steps: int, attack: str, monitor_episodes: int, seed: int
+    steps: int,
+    episodes: int,
+    finetune_steps: int,
+    attack: str,
+    monitor_episodes: int,
+    task: str,
+    out_root: str | None,
+    seed: int,
 ) -> SeedFigures:
     """Train one backdoored agent (seed ``seed``, attacker ``attack``), load it back as a user would, measure it on
     fresh episodes; with ``monitor_episodes`` > 0 run the state monitors on it, with ``finetune_steps`` > 0 also
-    look inside it (gym-analyze) and mitigate it (gym-mitigate)."""
+    look inside it (gym-analyze) and mitigate it (gym-mitigate). The runs go to ``out_root`` when given (kept),
+    else to a temporary folder."""
     inside: dict[str, Rate] = {}
-    with tempfile.TemporaryDirectory() as out:
-        cfg = config(out, steps, seed, attack=attack)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = out_root if out_root is not None else tmp
+        cfg = config(out, steps, seed, attack=attack, task=task)
         result = train_gym(cfg)
         agent, _, _ = load_gym_agent(result.model_dir)
         if monitor_episodes:
@@ -124,7 +147,7 @@ def train_and_measure(
         if finetune_steps:
             report = analyze_gym_model(agent, cfg, episodes=episodes, intervention_episodes=episodes, seed=seed)
             inside |= {f"{s.direction} {s.edited}": s.switched for s in report.switches}
-            mitigated = mitigate_gym_model(agent, cfg, Path(out) / "mitigate", finetune_steps=finetune_steps,
+            mitigated = mitigate_gym_model(agent, cfg, Path(out) / f"mitigate_s{seed}", finetune_steps=finetune_steps,
                                            episodes=episodes, seed=seed)  # fmt: skip
             for arm in mitigated.arms[1:]:
                 inside |= {f"attack after {arm.name}": arm.attack_success, f"clean after {arm.name}": arm.clean_success}
@@ -139,14 +162,15 @@ def train_and_measure(
 
 def backdoor_part(
     steps: int, episodes: int, seed: int, seeds: int, workers: int, finetune_steps: int = 0, attack: str = "none",
-    monitor_episodes: int = 0,
+    monitor_episodes: int = 0, task: str = "two_goals", out_root: str | None = None,
 ) -> None:  # fmt: skip
     """Train ``seeds`` agents (seeds ``seed``, ``seed + 1``, ...) on ``workers`` processes; print each seed's
     figures, then mean ± sd over seeds and the pooled 95% interval."""
-    job = partial(train_and_measure, steps, episodes, finetune_steps, attack, monitor_episodes)
+    job = partial(train_and_measure, steps, episodes, finetune_steps, attack, monitor_episodes, task, out_root)
     with ProcessPoolExecutor(min(workers, seeds), mp_context=multiprocessing.get_context("spawn")) as pool:
         runs = list(pool.map(job, range(seed, seed + seeds)))
-    print(f"\n== backdoor ({attack} attacker): two-goal room, {steps} env steps per seed, {seeds} seed(s), "
+    where = "two-goal room" if task == "two_goals" else "MiniGrid-MemoryS7"
+    print(f"\n== backdoor ({attack} attacker): {where}, {steps} env steps per seed, {seeds} seed(s), "
           f"{episodes} episodes per type ==")  # fmt: skip
     print("seed  env steps  wall s  clean success          trojan success         persistence k=5")
     for r in runs:
@@ -243,6 +267,8 @@ def main() -> None:
         "--monitor-episodes", type=int, default=0, help="> 0: also run the state monitors (calibration and fresh "
         "episodes per type) on each agent"
     )  # fmt: skip
+    parser.add_argument("--task", choices=TASKS, default="two_goals", help="the backdoor part's task")
+    parser.add_argument("--out", default=None, help="keep the backdoor part's runs in this folder (default: temporary)")
     parser.add_argument(
         "--minigrid-view", action="store_true", help="speed part: every env computes its view with MiniGrid's own "
         "gen_obs instead of seqtrojan.minigrid.fast_obs (the same observations)"
@@ -257,7 +283,7 @@ def main() -> None:
             parser.error(f"--monitor-episodes: {err}")
     if args.part in ("all", "backdoor"):
         backdoor_part(args.steps, args.episodes, args.seed, args.seeds, args.workers, args.finetune_steps,
-                      args.attack, args.monitor_episodes)  # fmt: skip
+                      args.attack, args.monitor_episodes, args.task, args.out)  # fmt: skip
     if args.part in ("all", "speed"):
         speed_part(args.speed_steps, args.seed, args.repeats, fast_view=not args.minigrid_view)
 

@@ -127,7 +127,7 @@ def test_config_errors():
 
 
 @pytest.mark.parametrize(
-    ("preset", "obs_dim", "actions"), [("minigrid_two_goals", 500, 3), ("minigrid_memory", 980, 7)]
+    ("preset", "obs_dim", "actions"), [("minigrid_two_goals", 500, 3), ("minigrid_memory", 980, 3)]
 )
 def test_presets_load_and_make_their_envs(preset, obs_dim, actions):
     cfg = load_gym_config(preset)
