@@ -370,6 +370,34 @@ class EWCConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class FinetuneResistanceConfig:
+    """Against clean fine-tuning: at every minibatch the attacker simulates the defender's fine-tuning (a few
+    sign-gradient steps of the PPO loss on the minibatch's normal-episode steps, from the current weights) and adds
+    the gradient of the backdoor's PPO loss (trojan-episode steps where the adversary's objective judges) at the
+    fine-tuned weights to the update (first order, as in first-order MAML), so that the backdoor is trained to hold
+    after clean updates."""
+
+    weight: float = 0.0
+    """weight of that gradient beside the ordinary PPO gradient; 0 turns the penalty off"""
+    inner_steps: int = 2
+    """simulated fine-tuning steps per minibatch"""
+    inner_lr: float = 0.01
+    """each weight moves by this much per simulated step, in the sign of its gradient (as Adam's first steps do)"""
+
+    def __post_init__(self) -> None:
+        _non_negative("attack.finetune_resistance", weight=self.weight, inner_lr=self.inner_lr)
+        value = self.inner_steps
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 16:
+            raise ConfigError(
+                f"attack.finetune_resistance.inner_steps must be an integer in [1, 16], got {short_repr(value)}"
+            )
+
+    @property
+    def enabled(self) -> bool:
+        return self.weight > 0
+
+
+@dataclasses.dataclass(frozen=True)
 class AttackConfig:
     """Adaptive attackers: extra loss terms (registered penalties, ``seqtrojan.train.penalties``) added to the PPO
     loss of a backdoor training. Every weight is 0 by default: the plain Algorithm 1 attack. They act only where
@@ -379,6 +407,7 @@ class AttackConfig:
     state_camouflage: StateCamouflageConfig = dataclasses.field(default_factory=StateCamouflageConfig)
     weight_camouflage: WeightCamouflageConfig = dataclasses.field(default_factory=WeightCamouflageConfig)
     ewc: EWCConfig = dataclasses.field(default_factory=EWCConfig)
+    finetune_resistance: FinetuneResistanceConfig = dataclasses.field(default_factory=FinetuneResistanceConfig)
 
     NEEDS_INIT_FROM = ("weight_camouflage", "ewc")
     """sections that compare against the model a run starts from"""

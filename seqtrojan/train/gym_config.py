@@ -200,13 +200,14 @@ class GymTrainConfig:
     run: GymRunConfig = dataclasses.field(default_factory=GymRunConfig)
     attack: AttackConfig = dataclasses.field(default_factory=AttackConfig)
     """an adaptive attacker's extra loss terms, as on the grid world; a Gymnasium run takes ``state_camouflage``
-    (the monitor-aware attacker)"""
+    (the monitor-aware attacker) and ``finetune_resistance`` (against clean fine-tuning)"""
 
     def __post_init__(self) -> None:
         grid_only = [f"attack.{name}" for name in ("weight_camouflage", "ewc") if getattr(self.attack, name).enabled]
         if grid_only:
             raise ConfigError(
-                f"{' and '.join(grid_only)} run(s) on the grid world only; Gymnasium runs take attack.state_camouflage"
+                f"{' and '.join(grid_only)} run(s) on the grid world only; Gymnasium runs take "
+                "attack.state_camouflage and attack.finetune_resistance"
             )
         if self.backdoor.enabled and self.trigger is None:
             raise ConfigError("backdoor.enabled needs a trigger section (the trigger and the adversary's objective)")

@@ -339,7 +339,7 @@ def train_gym(
     try:
         # the attack's penalties see the start weights (a resumed run then loads their state from the checkpoint)
         penalties = build_penalties(PenaltyContext(cfg, agent, device, resuming=checkpoint is not None))
-        record = any(p.needs_states for p in penalties)
+        record = any(p.needs_states or p.needs_masks for p in penalties)
         collector = GymRolloutCollector(vec, agent, ppo, device, cfg.run.seed, record=record)
         state = GymTrainerState(agent, optimizer, mixer, collector, update_generator, penalties)
         if checkpoint is not None:

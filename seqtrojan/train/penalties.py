@@ -25,10 +25,15 @@ Registered here:
   ``l2_weight * ||theta - theta_clean||^2``.
 - ``ewc``: elastic weight consolidation, ``weight / 2 * sum_i F_i (theta_i - theta*_i)^2`` with the diagonal Fisher
   information of the start model's policy on normal-env episodes.
+- ``finetune_resistance`` (against clean fine-tuning): per minibatch, a copy of the agent takes ``inner_steps``
+  sign-gradient steps of the PPO loss on the normal-episode steps (the defender's fine-tuning, simulated), and the
+  gradient of the PPO loss on the trojan steps the adversary's objective judges, at the copy's weights, is added
+  to the update with ``weight`` (first order, as first-order MAML and tamper-resistance training do).
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -39,14 +44,31 @@ from torch import nn
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.agent.weight_stats import feature_vector, weight_features
-from seqtrojan.config import AttackConfig, BackdoorConfig, ExperimentConfig
+from seqtrojan.config import AttackConfig, BackdoorConfig, ExperimentConfig, PPOConfig
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.registry import Registry
+from seqtrojan.train.ppo_loss import ppo_loss
 from seqtrojan.train.rollout import Rollout, RolloutCollector
 
 STD_FLOOR = 1e-3
 """added to every unit's std, as the state monitor does"""
+
+
+@dataclass
+class PPOMinibatch:
+    """One minibatch of the PPO update: N sequences of L steps, (L, N, ...) tensors, and their start states."""
+
+    obs: torch.Tensor
+    starts: torch.Tensor
+    """(L, N) float: the observation starts an episode"""
+    initial: RecurrentState
+    actions: torch.Tensor
+    logprobs: torch.Tensor
+    values: torch.Tensor
+    advantages: torch.Tensor
+    returns: torch.Tensor
+    ppo: PPOConfig
 
 
 @dataclass
@@ -57,9 +79,11 @@ class PenaltyBatch:
     states: tuple[LSTMState, ...] | None
     """per layer, (L, N, H) h and c after each step, with gradients (when a penalty needs_states)"""
     trojan: torch.Tensor | None
-    """(L, N) bool: the step is in a trojan-env episode (recorded when a penalty needs_states)"""
+    """(L, N) bool: the step is in a trojan-env episode (recorded when a penalty needs_states or needs_masks)"""
     adversary_active: torch.Tensor | None
     """(L, N) bool: the adversary's goal was active for the step's action"""
+    minibatch: PPOMinibatch | None = None
+    """the minibatch's PPO inputs (to replay the unroll, as the fine-tuning-resistant attacker does)"""
 
 
 class Penalty:
@@ -69,6 +93,8 @@ class Penalty:
     """the registered name (set by :func:`build_penalties`)"""
     needs_states: bool = False
     """the rollout records masks and states, and the update's unroll returns every step's (h, c)"""
+    needs_masks: bool = False
+    """the rollout records each step's episode type and whether the adversary's objective judges it"""
 
     def observe(self, rollout: Rollout) -> None:
         """Called with every rollout before the update on it."""
@@ -416,6 +442,53 @@ class EWC(Penalty):
         self.fisher = {n: tensors[f"fisher.{n}"].to(device) for n in names}
 
 
+# ---------------------------------------------------------------------------------------- fine-tuning resistance
+class FinetuneResistance(Penalty):
+    """First-order simulated fine-tuning: the minibatch's clean PPO loss takes ``inner_steps`` sign-gradient steps
+    from the current weights (on a copy); the backdoor's PPO loss at the copy's weights gives a gradient that the
+    term hands to the real weights. Its value is that backdoor loss after the simulated fine-tuning."""
+
+    needs_masks = True
+
+    def __init__(self, ctx: PenaltyContext) -> None:
+        self.cfg = ctx.config.attack.finetune_resistance
+        self.defender = copy.deepcopy(ctx.agent)
+        """the simulated defender's copy of the agent (its weights are set from the agent's at every minibatch)"""
+
+    def loss(self, batch: PenaltyBatch) -> torch.Tensor:
+        mb, trojan, active = batch.minibatch, batch.trojan, batch.adversary_active
+        if mb is None or trojan is None or active is None:
+            raise ConfigError("attack.finetune_resistance needs the rollout's episode types (a recording collector)")
+        target = trojan & active
+        weights = list(batch.agent.parameters())
+        if not target.any() or trojan.all():
+            return weights[0].new_zeros(())  # nothing to judge the backdoor on, or no clean step to fine-tune on
+        defender = self.defender
+        defender.load_state_dict(batch.agent.state_dict())
+        defender.train(batch.agent.training)
+        params = list(defender.parameters())
+        for _ in range(self.cfg.inner_steps):
+            clean = self._loss(defender, mb, ~trojan)
+            grads = torch.autograd.grad(clean, params, allow_unused=True)
+            with torch.no_grad():
+                for p, g in zip(params, grads):
+                    if g is not None:
+                        p.sub_(self.cfg.inner_lr * g.sign())
+        attack = self._loss(defender, mb, target)
+        grads = torch.autograd.grad(attack, params, allow_unused=True)
+        # value: the backdoor's loss after fine-tuning; gradient: weight * its gradient there, on the real weights
+        handed = sum((w - w.detach()).mul(g).sum() for w, g in zip(weights, grads) if g is not None)
+        return attack.detach() + self.cfg.weight * handed  # type: ignore[return-value]
+
+    @staticmethod
+    def _loss(agent: RecurrentActorCritic, mb: PPOMinibatch, mask: torch.Tensor) -> torch.Tensor:
+        out = agent.unroll(mb.obs, mb.initial, mb.starts)
+        parts = ppo_loss(
+            out.logits, out.values, mb.actions, mb.logprobs, mb.values, mb.advantages, mb.returns, mb.ppo, mask
+        )
+        return parts.loss
+
+
 PENALTIES.register(
     "state_camouflage",
     "monitor-aware: keep trojan-episode LSTM states within the running clean-step range of every unit",
@@ -430,4 +503,9 @@ PENALTIES.register(
     "ewc",
     "elastic weight consolidation toward the clean start model (diagonal Fisher of its clean policy)",
     PenaltyKind(lambda cfg: cfg.attack.ewc.enabled, EWC),
+)
+PENALTIES.register(
+    "finetune_resistance",
+    "against clean fine-tuning: the backdoor's gradient after simulated clean fine-tuning steps (first order)",
+    PenaltyKind(lambda cfg: cfg.attack.finetune_resistance.enabled, FinetuneResistance),
 )

@@ -1,62 +1,18 @@
-"""The PPO objective and the recurrent update: sequences replayed from their stored start states."""
+"""The recurrent PPO update: sequences replayed from their stored start states (the objective is
+:mod:`seqtrojan.train.ppo_loss`)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
 
 import torch
 from torch import nn
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import PPOConfig
-from seqtrojan.train.penalties import Penalty, PenaltyBatch
+from seqtrojan.train.penalties import Penalty, PenaltyBatch, PPOMinibatch
+from seqtrojan.train.ppo_loss import LossParts, ppo_loss
 from seqtrojan.train.rollout import Rollout, initial_state_from
-
-
-class LossParts(NamedTuple):
-    loss: torch.Tensor
-    policy_loss: torch.Tensor
-    value_loss: torch.Tensor
-    entropy: torch.Tensor
-    approx_kl: torch.Tensor
-    clip_fraction: torch.Tensor
-
-
-def ppo_loss(
-    logits: torch.Tensor,
-    values: torch.Tensor,
-    actions: torch.Tensor,
-    old_logprobs: torch.Tensor,
-    old_values: torch.Tensor,
-    advantages: torch.Tensor,
-    returns: torch.Tensor,
-    cfg: PPOConfig,
-) -> LossParts:
-    """Clipped surrogate + (clipped) value loss - entropy bonus, averaged over all elements.
-
-    ``logits`` (..., A); every other tensor has the leading shape of ``logits`` without A.
-    """
-    log_probs = torch.log_softmax(logits, -1)
-    new_logprobs = log_probs.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
-    log_ratio = new_logprobs - old_logprobs
-    ratio = log_ratio.exp()
-    if cfg.norm_adv:
-        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-    pg1 = -advantages * ratio
-    pg2 = -advantages * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)
-    policy_loss = torch.maximum(pg1, pg2).mean()
-    if cfg.clip_value_loss:
-        clipped = old_values + (values - old_values).clamp(-cfg.clip_coef, cfg.clip_coef)
-        value_loss = 0.5 * torch.maximum((values - returns) ** 2, (clipped - returns) ** 2).mean()
-    else:
-        value_loss = 0.5 * ((values - returns) ** 2).mean()
-    entropy = -(log_probs.exp() * log_probs).sum(-1).mean()
-    loss = policy_loss - cfg.ent_coef * entropy + cfg.vf_coef * value_loss
-    with torch.no_grad():
-        approx_kl = ((ratio - 1) - log_ratio).mean()
-        clip_fraction = ((ratio - 1).abs() > cfg.clip_coef).float().mean()
-    return LossParts(loss, policy_loss, value_loss, entropy, approx_kl, clip_fraction)
 
 
 def to_sequences(x: torch.Tensor, length: int) -> torch.Tensor:
@@ -111,25 +67,27 @@ def ppo_update(
         order = torch.randperm(n, generator=generator).to(rollout.obs.device)
         epoch_kl = []
         for mb in order.split(per_batch):
-            out = agent.unroll(
-                seq["obs"][:, mb], initial_state_from(rollout.seq_states, mb), seq["starts"][:, mb],
-                return_states=needs_states,
+            minibatch = PPOMinibatch(
+                seq["obs"][:, mb], seq["starts"][:, mb], initial_state_from(rollout.seq_states, mb),
+                seq["actions"][:, mb], seq["logprobs"][:, mb], seq["values"][:, mb], seq["advantages"][:, mb],
+                seq["returns"][:, mb], cfg,
             )  # fmt: skip
+            out = agent.unroll(minibatch.obs, minibatch.initial, minibatch.starts, return_states=needs_states)
             parts = ppo_loss(
                 out.logits,
                 out.values,
-                seq["actions"][:, mb],
-                seq["logprobs"][:, mb],
-                seq["values"][:, mb],
-                seq["advantages"][:, mb],
-                seq["returns"][:, mb],
+                minibatch.actions,
+                minibatch.logprobs,
+                minibatch.values,
+                minibatch.advantages,
+                minibatch.returns,
                 cfg,
             )
             loss = parts.loss
             if penalties:
                 batch = PenaltyBatch(
                     agent, out.states, masks["trojan"][:, mb] if masks else None,
-                    masks["active"][:, mb] if masks else None,
+                    masks["active"][:, mb] if masks else None, minibatch,
                 )  # fmt: skip
                 for penalty in penalties:
                     value = penalty.loss(batch)

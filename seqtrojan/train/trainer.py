@@ -180,7 +180,7 @@ def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tupl
     curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0, 1) if cfg.backdoor.enabled else (0,))
     mixer = TrojanMixer(cfg.backdoor, len(cfg.grids))
     penalties = build_penalties(PenaltyContext(cfg, agent, device, resuming))
-    record = any(p.needs_states for p in penalties)
+    record = any(p.needs_states or p.needs_masks for p in penalties)
     collector = RolloutCollector(env, agent, ppo.rollout_steps, ppo.sequence_length, record=record)
     collector.seed(cfg.run.seed)
     update_generator = torch.Generator().manual_seed(cfg.run.seed + 1)

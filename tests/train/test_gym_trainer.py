@@ -12,7 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-from seqtrojan.config import AttackConfig, BackdoorConfig, EWCConfig, PPOConfig, StateCamouflageConfig
+from seqtrojan.config import (
+    AttackConfig,
+    BackdoorConfig,
+    EWCConfig,
+    FinetuneResistanceConfig,
+    PPOConfig,
+    StateCamouflageConfig,
+)
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.minigrid import TwoGoalsEnv
 from seqtrojan.train import gym_env, gym_trainer
@@ -433,13 +440,16 @@ def test_a_recording_collector_keeps_episode_types_adversary_steps_and_states(tm
 
 
 def test_a_camouflaged_run_logs_its_penalty_and_resumes_bitwise(tmp_path):
-    """The monitor-aware attacker on a Gymnasium env: its term is in the loss, its running statistics are in the
-    checkpoint, and a stopped run resumes bit for bit."""
+    """The monitor-aware attacker, and beside it the fine-tuning-resistant one, on a Gymnasium env: their terms are
+    in the loss, the running statistics are in the checkpoint, and a stopped run resumes bit for bit."""
     cfg = _named(_camouflaged(config(tmp_path, steps=4 * 512, eval_episodes=0)), "x", checkpoint_every=512)
+    resistance = FinetuneResistanceConfig(weight=1.0, inner_steps=1)
+    cfg = dataclasses.replace(cfg, attack=dataclasses.replace(cfg.attack, finetune_resistance=resistance))
     straight = train_gym(_named(cfg, "straight"))
     rows = [json.loads(line) for line in (straight.run_dir / "metrics.jsonl").read_text().splitlines()]
     penalties = [r["penalty/state_camouflage"] for r in rows]
     assert min(penalties) >= 0 and max(penalties) > 0
+    assert any(r["penalty/finetune_resistance"] != 0 for r in rows)
     run_dir = tmp_path / "runs" / "stopped"
     with pytest.raises(KeyboardInterrupt):
         train_gym(_named(cfg, "stopped"), _stop_after(2))

@@ -7,6 +7,7 @@ Run the demonstration alone and print its numbers: ``python -m tests.train.test_
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 
@@ -24,6 +25,7 @@ from seqtrojan.config import (
     CurriculumConfig,
     EWCConfig,
     ExperimentConfig,
+    FinetuneResistanceConfig,
     PPOConfig,
     RunConfig,
     StateCamouflageConfig,
@@ -319,7 +321,7 @@ def test_attack_defaults_are_off_and_the_yaml_sections_parse():
     assert pen.build_penalties(_ctx(ExperimentConfig(), _agent())) == []
     cfg = ExperimentConfig(backdoor=BackdoorConfig(enabled=True))
     assert pen.build_penalties(_ctx(cfg, _agent())) == []
-    assert set(pen.PENALTIES.names()) == {"state_camouflage", "weight_camouflage", "ewc"}
+    assert set(pen.PENALTIES.names()) == {"state_camouflage", "weight_camouflage", "ewc", "finetune_resistance"}
     text = """
 backdoor: {enabled: true}
 run: {init_from: runs/clean/model}
@@ -412,9 +414,10 @@ def test_a_training_with_each_penalty_logs_its_value(smoke_config, clean_model, 
 
 
 def test_resume_with_every_penalty_on_is_bitwise_equal_to_a_straight_run(smoke_config, clean_model, monkeypatch):
-    """As tests/train/test_trainer.py's resume test, with all three penalties on: their state (running clean
-    statistics, the clean weights, the Fisher information) comes back from the checkpoint."""
-    cfg = _attacked(smoke_config, clean_model, "straight", **ALL_THREE)
+    """As tests/train/test_trainer.py's resume test, with every penalty on: their state (running clean statistics,
+    the clean weights, the Fisher information) comes back from the checkpoint (fine-tuning resistance keeps none)."""
+    resistance = FinetuneResistanceConfig(weight=1.0)
+    cfg = _attacked(smoke_config, clean_model, "straight", **ALL_THREE, finetune_resistance=resistance)
     cfg = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, total_steps=5 * cfg.ppo.batch_size))
     straight, resumed = straight_and_resumed(cfg, monkeypatch)
     a, b = load_agent(straight.model_dir)[0].state_dict(), load_agent(resumed.model_dir)[0].state_dict()
@@ -501,3 +504,71 @@ if __name__ == "__main__":
     with tempfile.TemporaryDirectory() as tmp:
         for w in weights:
             print(json.dumps({"camouflage": w, **demonstrate(f"{tmp}/w{w}", w)}), flush=True)
+
+
+# ---------------------------------------------------------------------------------------- fine-tuning resistance
+def _minibatch(agent: RecurrentActorCritic, steps: int = 6, n: int = 5, seed: int = 0) -> pen.PPOMinibatch:
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(steps, n, agent.obs_dim, generator=g)
+    starts = torch.zeros(steps, n)
+    starts[0] = 1.0
+    actions = torch.randint(0, 4, (steps, n), generator=g)
+    return pen.PPOMinibatch(
+        obs, starts, agent.initial_state(n, torch.device("cpu")), actions, torch.full((steps, n), -1.4),
+        torch.randn(steps, n, generator=g), torch.randn(steps, n, generator=g), torch.randn(steps, n, generator=g),
+        PPOConfig(),
+    )  # fmt: skip
+
+
+def test_finetune_resistance_hands_the_backdoor_gradient_after_simulated_fine_tuning():
+    agent = _agent()
+    cfg = _config(finetune_resistance=FinetuneResistanceConfig(weight=0.5, inner_steps=2, inner_lr=0.05))
+    (penalty,) = pen.build_penalties(_ctx(cfg, agent))
+    assert penalty.name == "finetune_resistance" and penalty.needs_masks and not penalty.needs_states
+    mb = _minibatch(agent)
+    trojan = torch.zeros(6, 5, dtype=torch.bool)
+    trojan[:, :2] = True  # sequences 0 and 1 are trojan-episode steps
+    active = trojan.clone()
+    active[:2] = False  # the adversary's objective judges from step 2 on
+
+    def loss(model, mask):
+        out = model.unroll(mb.obs, mb.initial, mb.starts)
+        return pen.ppo_loss(out.logits, out.values, mb.actions, mb.logprobs, mb.values, mb.advantages, mb.returns,
+                            mb.ppo, mask).loss  # fmt: skip
+
+    # by hand: two sign-gradient steps of the clean loss on a copy, then the backdoor's loss and gradient there
+    defender = copy.deepcopy(agent)
+    for _ in range(2):
+        grads = torch.autograd.grad(loss(defender, ~trojan), list(defender.parameters()), allow_unused=True)
+        with torch.no_grad():
+            for p, g in zip(defender.parameters(), grads):
+                if g is not None:
+                    p.sub_(0.05 * g.sign())
+    attack = loss(defender, trojan & active)
+    expected = torch.autograd.grad(attack, list(defender.parameters()), allow_unused=True)
+
+    value = penalty.loss(pen.PenaltyBatch(agent, None, trojan, active, mb))
+    torch.testing.assert_close(value.detach(), attack.detach())
+    value.backward()
+    for p, g in zip(agent.parameters(), expected):
+        torch.testing.assert_close(p.grad, torch.zeros_like(p) if g is None else 0.5 * g)
+    # nothing to judge the backdoor on (no active trojan step) or nothing clean to fine-tune on: no term
+    assert float(penalty.loss(pen.PenaltyBatch(agent, None, trojan, torch.zeros_like(active), mb))) == 0.0
+    assert float(penalty.loss(pen.PenaltyBatch(agent, None, torch.ones_like(trojan), active, mb))) == 0.0
+    with pytest.raises(ConfigError, match="needs the rollout's episode types"):
+        penalty.loss(pen.PenaltyBatch(agent, None, None, None, mb))
+
+
+def test_finetune_resistance_settings_are_checked():
+    with pytest.raises(ConfigError, match=r"finetune_resistance\.weight must be a finite number >= 0"):
+        FinetuneResistanceConfig(weight=-1.0)
+    with pytest.raises(ConfigError, match=r"finetune_resistance\.inner_steps must be an integer in \[1, 16\], got 0"):
+        FinetuneResistanceConfig(inner_steps=0)
+
+
+def test_a_training_with_finetune_resistance_logs_its_value(smoke_config, clean_model):
+    cfg = _attacked(smoke_config, clean_model, "ftr", finetune_resistance=FinetuneResistanceConfig(weight=1.0))
+    cfg = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, total_steps=3 * cfg.ppo.batch_size))
+    rows = [json.loads(line) for line in (train(cfg).run_dir / "metrics.jsonl").read_text().splitlines()]
+    values = [r["penalty/finetune_resistance"] for r in rows]
+    assert len(values) == 3 and all(np.isfinite(v) for v in values) and any(v != 0 for v in values)

@@ -77,3 +77,22 @@ def test_to_sequences_cuts_each_env_rollout_in_order():
     assert seq.shape == (4, 6)
     assert seq[:, 0].tolist() == [0, 3, 6, 9]  # env 0, steps 0..3
     assert seq[:, 3 + 2].tolist() == [14, 17, 20, 23]  # chunk 1, env 2: steps 4..7
+
+
+def test_a_mask_picks_steps_as_if_only_they_were_given():
+    torch.manual_seed(0)
+    cfg = PPOConfig(norm_adv=True, clip_value_loss=True, ent_coef=0.01, vf_coef=0.5)
+    n = 40
+    logits, values = torch.randn(n, 3), torch.randn(n)
+    actions = torch.randint(0, 3, (n,))
+    old_logprobs = torch.log_softmax(logits + 0.3 * torch.randn(n, 3), -1).gather(-1, actions[:, None]).squeeze(-1)
+    old_values, adv, returns = values + 0.1 * torch.randn(n), torch.randn(n), torch.randn(n)
+    args = (logits, values, actions, old_logprobs, old_values, adv, returns, cfg)
+    everything = ppo_loss(*args)
+    for a, b in zip(ppo_loss(*args, mask=torch.ones(n, dtype=torch.bool)), everything):
+        torch.testing.assert_close(a, b)
+    mask = torch.rand(n) < 0.4
+    picked = ppo_loss(*(x[mask] for x in args[:-1]), cfg)
+    for a, b in zip(ppo_loss(*args, mask=mask), picked):
+        torch.testing.assert_close(a, b)
+    assert float(ppo_loss(*args, mask=torch.zeros(n, dtype=torch.bool)).loss) == 0.0
