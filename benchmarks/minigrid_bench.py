@@ -18,7 +18,8 @@ end at the adversary's object. Every rate with its 95% Wilson interval, per trai
 seeds and the seeds pooled (the seeds train two at a time by default: wall times are beside each other).
 ``--attack state_camouflage`` trains the monitor-aware attacker instead (``attack.state_camouflage``, the grid
 matrix's recipe: weight 5, margin 2.5; ``state_camouflage_w1``: weight 1), ``--attack multivariate_camouflage``
-adds the Mahalanobis term (weight 0.1) against the multivariate monitor; ``--monitor-episodes N`` also runs
+adds the Mahalanobis term (weight 0.1) against the multivariate monitor, ``--attack finetune_resistance`` trains
+against clean fine-tuning (``attack.finetune_resistance``); ``--monitor-episodes N`` also runs
 gym-defend's two state monitors on each agent (N calibration and N fresh episodes per type, 1% false-alarm target).
 """
 
@@ -42,7 +43,13 @@ import torch
 import numpy as np
 
 from seqtrojan.analysis.gym_analysis import analyze_gym_model
-from seqtrojan.config import AttackConfig, BackdoorConfig, PPOConfig, StateCamouflageConfig
+from seqtrojan.config import (
+    AttackConfig,
+    BackdoorConfig,
+    FinetuneResistanceConfig,
+    PPOConfig,
+    StateCamouflageConfig,
+)
 from seqtrojan.defense.gym_mitigation import mitigate_gym_model
 from seqtrojan.defense.gym_monitor import monitor_gym_model
 from seqtrojan.defense.online import MonitorConfig
@@ -67,9 +74,13 @@ ATTACKS = {
     "multivariate_camouflage": AttackConfig(
         state_camouflage=StateCamouflageConfig(weight=5.0, margin=2.5, mahalanobis_weight=0.1)
     ),
+    "finetune_resistance": AttackConfig(
+        finetune_resistance=FinetuneResistanceConfig(weight=1.0, inner_steps=2, inner_lr=0.03)
+    ),
 }
-"""the attacker of the backdoor part: the plain Algorithm 1 backdoor, or the monitor-aware one against the per-unit
-monitor (the grid matrix's recipe) or against both monitors (plus the Mahalanobis term, weight 0.1)"""
+"""the attacker of the backdoor part: the plain Algorithm 1 backdoor, the monitor-aware one against the per-unit
+monitor (the grid matrix's recipe) or against both monitors (plus the Mahalanobis term, weight 0.1), or the one
+against clean fine-tuning (two simulated sign-gradient steps of 0.03 per minibatch, its gradient at weight 1)"""
 
 
 TASKS = ("two_goals", "memory")

@@ -68,7 +68,7 @@ def test_what_exists_is_registered():
         "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "state_camouflage",
         "from_clean", "weight_camouflage", "ewc",
     )  # fmt: skip
-    assert PENALTIES.names() == ("state_camouflage", "weight_camouflage", "ewc")
+    assert PENALTIES.names() == ("state_camouflage", "weight_camouflage", "ewc", "finetune_resistance")
     assert MIXING_RULES.names() == ("exact", "running", "fixed")
     assert TRIGGERS.get("patch") is TriggerConfig and TRIGGERS.get("on_off") is OffTriggerConfig
     assert TRIGGERS.names() == ("patch", "on_off", "delayed", "in_distribution_patch", "partial_patch", "sequence")
