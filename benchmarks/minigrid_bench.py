@@ -85,7 +85,8 @@ against clean fine-tuning (two simulated sign-gradient steps of 0.03 per minibat
 
 TASKS = ("two_goals", "memory")
 """the backdoor part's tasks: the two-goal room (this script's own settings) or MiniGrid's Memory task (the
-``minigrid_memory`` preset)"""
+``minigrid_memory_backdoor`` preset's settings: from scratch with running mixing, or with ``--clean-start-steps``
+the two stages of the ``minigrid_memory`` presets)"""
 
 
 def config(
@@ -93,12 +94,13 @@ def config(
     task: str = "two_goals",
 ) -> GymTrainConfig:  # fmt: skip
     if task == "memory":
-        preset = load_gym_config("minigrid_memory")
+        preset = load_gym_config("minigrid_memory_backdoor")  # the clean stage's settings but for the backdoor
+        backdoor_cfg = replace(preset.backdoor, enabled=backdoor, mixing="running")  # --clean-start-steps: fixed
+        run = replace(preset.run, out_dir=out_dir, name=f"bench_s{seed}", seed=seed, eval_episodes=0, threads=1,
+                      init_from=None)  # fmt: skip
         return replace(
-            preset, ppo=replace(preset.ppo, total_steps=steps), backdoor=replace(preset.backdoor, enabled=backdoor),
-            run=replace(preset.run, out_dir=out_dir, name=f"bench_s{seed}", seed=seed, eval_episodes=0, threads=1),
-            attack=ATTACKS[attack],
-        )  # fmt: skip
+            preset, ppo=replace(preset.ppo, total_steps=steps), backdoor=backdoor_cfg, run=run, attack=ATTACKS[attack]
+        )
     return GymTrainConfig(
         env=GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5}, fast_view=fast_view),
         trigger=GymTriggerConfig(),

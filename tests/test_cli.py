@@ -179,7 +179,10 @@ def test_train_gym_trains_a_minigrid_preset_and_needs_a_config(tmp_path, capsys)
     out = capsys.readouterr().out
     assert "trojan episodes: success" in out and (tmp_path / "tiny" / "model" / "gym_card.json").exists()
     assert main(["train-gym"]) == 2
-    assert "needs --config PRESET|FILE (shipped: minigrid_memory, minigrid_two_goals)" in capsys.readouterr().err
+    assert (
+        "needs --config PRESET|FILE (shipped: minigrid_memory, minigrid_memory_backdoor, minigrid_two_goals)"
+        in capsys.readouterr().err
+    )
 
 
 @pytest.mark.parametrize("command", ["matrix", "cells"])

@@ -4,7 +4,7 @@ Training presets (``seqtrojan train --config NAME``): ``smoke``, ``clean_7x7``, 
 ``trojan_s17_h30``. Reproduction scales (``seqtrojan reproduce --scale NAME``): ``reproduce_smoke``,
 ``reproduce_paper``, ``reproduce_headline``. Matrix scales (``seqtrojan matrix --scale NAME``): ``matrix_smoke``,
 ``matrix_paper``. Gymnasium runs (``seqtrojan train-gym --config NAME``): ``minigrid_two_goals``,
-``minigrid_memory``. Wherever a preset is asked for, a path to a YAML file works too.
+``minigrid_memory`` then ``minigrid_memory_backdoor``. Wherever a preset is asked for, a path to a YAML file works too.
 """
 
 from __future__ import annotations

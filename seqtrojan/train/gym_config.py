@@ -2,8 +2,8 @@
 
 The same shape as the grid world's :class:`~seqtrojan.config.ExperimentConfig` where the two agree (``ppo`` and
 ``backdoor`` are the same sections), with the env named by a Gymnasium id and the trigger described in its own
-section. Presets: ``seqtrojan/presets/minigrid_two_goals.yaml``, ``minigrid_memory.yaml``
-(:func:`load_gym_config`).
+section. Presets: ``seqtrojan/presets/minigrid_two_goals.yaml``, ``minigrid_memory.yaml`` and
+``minigrid_memory_backdoor.yaml`` (:func:`load_gym_config`).
 """
 
 from __future__ import annotations

@@ -670,7 +670,7 @@ def test_a_gym_import_is_checked_against_the_env_the_config_builds(sb3_minigrid,
 
     cfg, _, path = sb3_minigrid
     with pytest.raises(CheckpointError, match=r"reads 500 inputs and chooses among 3 actions, but the gym config's "
-                       r"env \(.*Memory.*\) gives 980 inputs and 7 actions"):  # fmt: skip
+                       r"env \(.*Memory.*\) gives 980 inputs and 3 actions"):  # fmt: skip
         import_gym_agent("sb3", path, tmp_path / "m", load_gym_config("minigrid_memory"))
     untriggered = GymTrainConfig(env=cfg.env)
     with pytest.raises(ConfigError, match=r"--label backdoored: backdoor\.enabled needs a trigger section"):

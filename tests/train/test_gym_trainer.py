@@ -134,15 +134,27 @@ def test_config_errors():
 
 
 @pytest.mark.parametrize(
-    ("preset", "obs_dim", "actions"), [("minigrid_two_goals", 500, 3), ("minigrid_memory", 980, 3)]
+    ("preset", "obs_dim", "actions", "backdoored"),
+    [
+        ("minigrid_two_goals", 500, 3, True),
+        ("minigrid_memory", 980, 3, False),
+        ("minigrid_memory_backdoor", 980, 3, True),
+    ],
 )
-def test_presets_load_and_make_their_envs(preset, obs_dim, actions):
+def test_presets_load_and_make_their_envs(preset, obs_dim, actions, backdoored):
     cfg = load_gym_config(preset)
-    assert cfg.backdoor.enabled and cfg.trigger is not None
+    assert cfg.backdoor.enabled == backdoored and cfg.trigger is not None
     env = make_gym_env(cfg, trojan_probability=1.0)
     assert check_spaces(env, cfg.env.id) == (obs_dim, actions)
     _, info = env.reset(seed=0)
     assert info["trojan"]
+
+
+def test_the_memory_presets_chain_their_two_stages():
+    clean, backdoor = load_gym_config("minigrid_memory"), load_gym_config("minigrid_memory_backdoor")
+    assert backdoor.run.init_from == f"{clean.run.out_dir}/{clean.run.name}/model"
+    assert backdoor.backdoor.mixing == "fixed" and dataclasses.replace(backdoor, backdoor=clean.backdoor, run=clean.run,
+        ppo=clean.ppo) == clean  # fmt: skip
 
 
 def random_success(episodes: int = 300) -> float:
