@@ -75,12 +75,16 @@ ATTACKS = {
         state_camouflage=StateCamouflageConfig(weight=5.0, margin=2.5, mahalanobis_weight=0.1)
     ),
     "finetune_resistance": AttackConfig(
+        finetune_resistance=FinetuneResistanceConfig(weight=1.0, inner_steps=2, inner_lr=0.003)
+    ),
+    "finetune_resistance_strong": AttackConfig(
         finetune_resistance=FinetuneResistanceConfig(weight=1.0, inner_steps=2, inner_lr=0.03)
     ),
 }
 """the attacker of the backdoor part: the plain Algorithm 1 backdoor, the monitor-aware one against the per-unit
 monitor (the grid matrix's recipe) or against both monitors (plus the Mahalanobis term, weight 0.1), or the one
-against clean fine-tuning (two simulated sign-gradient steps of 0.03 per minibatch, its gradient at weight 1)"""
+against clean fine-tuning (two simulated sign-gradient steps of 0.003 per minibatch, or of 0.03 for the strong
+one, its gradient at weight 1)"""
 
 
 TASKS = ("two_goals", "memory")
