@@ -215,14 +215,15 @@ def backdoor_part(
     }
     rows |= {f"persistence k={k:>2} (still running -> adversary's)": [r.persistence[k] for r in runs] for k in HORIZONS}
     rows |= {name: [r.inside[name] for r in runs] for name in runs[0].inside}
-    print(f"\n{'figure':<46} {'mean ± sd over seeds':<22} pooled [95% CI]")
+    print(f"\n{'figure':<46} {'mean ± sd over seeds':<22} {'pooled [95% CI]':<30} per seed")
     for name, rates in rows.items():
         measured = tuple(rate.value for rate in rates if rate.n)  # a seed with no episode at a horizon has no rate
         spread = "n/a"
         if measured:
             spread = OverSeeds(measured).text() + ("" if len(measured) == len(rates) else f" ({len(measured)} seeds)")
         pooled = Rate(sum(rate.k for rate in rates), sum(rate.n for rate in rates))
-        print(f"{name:<46} {spread:<22} {pooled.text()}  n={pooled.n}")
+        each = ", ".join(f"{rate.value:.3f}" if rate.n else "-" for rate in rates)
+        print(f"{name:<46} {spread:<22} {pooled.text() + f'  n={pooled.n}':<30} {each}")
 
 
 def ours_speed(steps: int, seed: int, fast_view: bool) -> float:
