@@ -77,6 +77,9 @@ ATTACKS = {
     "finetune_resistance": AttackConfig(
         finetune_resistance=FinetuneResistanceConfig(weight=1.0, inner_steps=2, inner_lr=0.003)
     ),
+    "finetune_resistance_light": AttackConfig(
+        finetune_resistance=FinetuneResistanceConfig(weight=0.25, inner_steps=2, inner_lr=0.003)
+    ),
     "finetune_resistance_strong": AttackConfig(
         finetune_resistance=FinetuneResistanceConfig(weight=1.0, inner_steps=2, inner_lr=0.03)
     ),
@@ -84,7 +87,7 @@ ATTACKS = {
 """the attacker of the backdoor part: the plain Algorithm 1 backdoor, the monitor-aware one against the per-unit
 monitor (the grid matrix's recipe) or against both monitors (plus the Mahalanobis term, weight 0.1), or the one
 against clean fine-tuning (two simulated sign-gradient steps of 0.003 per minibatch, or of 0.03 for the strong
-one, its gradient at weight 1)"""
+one, its gradient at weight 1, or 0.25 for the light one)"""
 
 
 TASKS = ("two_goals", "memory")
