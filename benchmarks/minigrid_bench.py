@@ -8,6 +8,8 @@
     python benchmarks/minigrid_bench.py --part speed --speed-steps 20480
     python benchmarks/minigrid_bench.py --part backdoor --task memory --steps 3000000 --seeds 3 --out runs/memory
     python benchmarks/minigrid_bench.py --part backdoor --task memory --clean-start-steps 1500000 --steps 1000000
+    python benchmarks/minigrid_bench.py --part backdoor --seeds 3 --finetune-steps 20000 \
+        --attack finetune_resistance_light --harden-from-steps 153600   # the plain backdoor, then hardened
     python benchmarks/minigrid_bench.py --part speed --minigrid-view   # MiniGrid's own (slower) view computation
 
 Backdoor: recurrent PPO with Algorithm 1 (running) mixing on ``seqtrojan/MiniGridTwoGoals-v0`` (6x6 room, 5x5 view,
@@ -138,10 +140,18 @@ class SeedFigures:
     goal-units", ...) and gym-mitigate's arms ("attack after fine_tuned", ...) when asked for; empty otherwise"""
 
 
-def train_backdoor(cfg: GymTrainConfig, clean_start_steps: int) -> GymTrainResult:
-    """Train ``cfg``'s backdoored agent: from scratch, or (``clean_start_steps`` > 0) first a clean agent for that
+def train_backdoor(cfg: GymTrainConfig, clean_start_steps: int, harden_from_steps: int = 0) -> GymTrainResult:
+    """Train ``cfg``'s backdoored agent: from scratch; or (``clean_start_steps`` > 0) first a clean agent for that
     many steps (run ``<name>_clean``), then the backdoor added to it with fixed 0.5 mixing (Algorithm 1's running
-    mixing deadlocks from a clean start, docs/attacks.md)."""
+    mixing deadlocks from a clean start, docs/attacks.md); or (``harden_from_steps`` > 0) first the plain backdoor
+    for that many steps (run ``<name>_plain``), then ``cfg``'s attacker trained on from its weights."""
+    if harden_from_steps > 0:
+        plain = replace(
+            cfg, ppo=replace(cfg.ppo, total_steps=harden_from_steps), attack=AttackConfig(),
+            run=replace(cfg.run, name=f"{cfg.run.name}_plain"),
+        )  # fmt: skip
+        start = train_gym(plain)
+        return train_gym(replace(cfg, run=replace(cfg.run, init_from=str(start.model_dir))))
     if clean_start_steps <= 0:
         return train_gym(cfg)
     clean = replace(
@@ -155,7 +165,7 @@ def train_backdoor(cfg: GymTrainConfig, clean_start_steps: int) -> GymTrainResul
 
 def train_and_measure(
     steps: int, episodes: int, finetune_steps: int, attack: str, monitor_episodes: int, task: str, out_root: str | None,
-    clean_start_steps: int, seed: int,
+    clean_start_steps: int, harden_from_steps: int, seed: int,
 ) -> SeedFigures:  # fmt: skip
     """Train one backdoored agent (seed ``seed``, attacker ``attack``), load it back as a user would, measure it on
     fresh episodes; with ``monitor_episodes`` > 0 run the state monitors on it, with ``finetune_steps`` > 0 also
@@ -165,7 +175,7 @@ def train_and_measure(
     with tempfile.TemporaryDirectory() as tmp:
         out = out_root if out_root is not None else tmp
         cfg = config(out, steps, seed, attack=attack, task=task)
-        result = train_backdoor(cfg, clean_start_steps)
+        result = train_backdoor(cfg, clean_start_steps, harden_from_steps)
         agent, _, _ = load_gym_agent(result.model_dir)
         if monitor_episodes:
             monitored = monitor_gym_model(
@@ -193,17 +203,21 @@ def train_and_measure(
 def backdoor_part(
     steps: int, episodes: int, seed: int, seeds: int, workers: int, finetune_steps: int = 0, attack: str = "none",
     monitor_episodes: int = 0, task: str = "two_goals", out_root: str | None = None, clean_start_steps: int = 0,
+    harden_from_steps: int = 0,
 ) -> None:  # fmt: skip
     """Train ``seeds`` agents (seeds ``seed``, ``seed + 1``, ...) on ``workers`` processes; print each seed's
     figures, then mean ± sd over seeds and the pooled 95% interval."""
     job = partial(
-        train_and_measure, steps, episodes, finetune_steps, attack, monitor_episodes, task, out_root, clean_start_steps
-    )
+        train_and_measure, steps, episodes, finetune_steps, attack, monitor_episodes, task, out_root, clean_start_steps,
+        harden_from_steps,
+    )  # fmt: skip
     with ProcessPoolExecutor(min(workers, seeds), mp_context=multiprocessing.get_context("spawn")) as pool:
         runs = list(pool.map(job, range(seed, seed + seeds)))
     where = "two-goal room" if task == "two_goals" else "MiniGrid-MemoryS7"
     if clean_start_steps:
         where += f", backdoor added to a clean agent of {clean_start_steps} steps (fixed 0.5 mixing)"
+    if harden_from_steps:
+        where += f", the attacker trained on from a plain backdoor of {harden_from_steps} steps"
     print(f"\n== backdoor ({attack} attacker): {where}, {steps} env steps per seed, {seeds} seed(s), "
           f"{episodes} episodes per type ==")  # fmt: skip
     print("seed  env steps  wall s  clean success          trojan success         persistence k=5")
@@ -307,16 +321,20 @@ def main() -> None:
         "--clean-start-steps", type=int, default=0, help="> 0: train a clean agent this long first, then add the "
         "backdoor to it (fixed 0.5 mixing)"
     )  # fmt: skip
+    parser.add_argument(
+        "--harden-from-steps", type=int, default=0, help="> 0: train the plain backdoor this long first, then the "
+        "attacker (--attack) from its weights"
+    )  # fmt: skip
     parser.add_argument("--out", default=None, help="keep the backdoor part's runs in this folder (default: temporary)")
     parser.add_argument(
         "--minigrid-view", action="store_true", help="speed part: every env computes its view with MiniGrid's own "
         "gen_obs instead of seqtrojan.minigrid.fast_obs (the same observations)"
     )  # fmt: skip
     args = parser.parse_args()
-    counts = (args.finetune_steps, args.monitor_episodes, args.clean_start_steps)
+    counts = (args.finetune_steps, args.monitor_episodes, args.clean_start_steps, args.harden_from_steps)
     if args.seeds < 1 or args.workers < 1 or min(counts) < 0:
-        parser.error("--seeds and --workers must be at least 1, --finetune-steps, --monitor-episodes and "
-                     "--clean-start-steps at least 0")  # fmt: skip
+        parser.error("--seeds and --workers must be at least 1, --finetune-steps, --monitor-episodes, "
+                     "--clean-start-steps and --harden-from-steps at least 0")  # fmt: skip
     if args.monitor_episodes:
         try:
             MonitorConfig(calibration_episodes=args.monitor_episodes, eval_episodes=args.monitor_episodes)
@@ -324,7 +342,8 @@ def main() -> None:
             parser.error(f"--monitor-episodes: {err}")
     if args.part in ("all", "backdoor"):
         backdoor_part(args.steps, args.episodes, args.seed, args.seeds, args.workers, args.finetune_steps,
-                      args.attack, args.monitor_episodes, args.task, args.out, args.clean_start_steps)  # fmt: skip
+                      args.attack, args.monitor_episodes, args.task, args.out, args.clean_start_steps,
+                      args.harden_from_steps)  # fmt: skip
     if args.part in ("all", "speed"):
         speed_part(args.speed_steps, args.seed, args.repeats, fast_view=not args.minigrid_view)
 
