@@ -478,7 +478,7 @@ class FinetuneResistance(Penalty):
         grads = torch.autograd.grad(attack, params, allow_unused=True)
         # value: the backdoor's loss after fine-tuning; gradient: weight * its gradient there, on the real weights
         handed = sum((w - w.detach()).mul(g).sum() for w, g in zip(weights, grads) if g is not None)
-        return attack.detach() + self.cfg.weight * handed  # type: ignore[return-value]
+        return attack.detach() + self.cfg.weight * handed
 
     @staticmethod
     def _loss(agent: RecurrentActorCritic, mb: PPOMinibatch, mask: torch.Tensor) -> torch.Tensor:

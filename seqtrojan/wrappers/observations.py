@@ -47,6 +47,7 @@ class MiniGridOneHot(gym.ObservationWrapper):
         size = self.view[0] * self.view[1] * CELL_BITS
         self.observation_space = spaces.Box(0.0, 1.0, (size,), np.float32)
         cells = self.view[0] * self.view[1]
+        self._size = size
         self._first_bits = np.arange(cells, dtype=np.intp)[:, None] * CELL_BITS + _OFFSETS  # (cells, 3)
 
     def observation(self, observation: Any) -> np.ndarray:
@@ -55,7 +56,7 @@ class MiniGridOneHot(gym.ObservationWrapper):
         if image.shape != (*self.view, 3) or negative or (image >= _LIMITS).any():
             raise ShapeError(f"MiniGridOneHot: a view of shape {image.shape} or a code beyond {list(CHANNELS)}")
         codes = image.transpose(1, 0, 2).reshape(-1, 3)  # rows first: the image is stored [col, row]
-        out = np.zeros(self.observation_space.shape, dtype=np.float32)
+        out = np.zeros(self._size, dtype=np.float32)
         out[(codes + self._first_bits).reshape(-1)] = 1.0
         return out  # (V * V * 20,)
 
