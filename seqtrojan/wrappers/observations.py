@@ -44,10 +44,9 @@ class MiniGridOneHot(gym.ObservationWrapper):
             raise ShapeError(f"MiniGridOneHot needs MiniGrid's (V, V, 3) view, got {short_repr(space)}")
         self.key = key
         self.view = space.shape[:2]
-        size = self.view[0] * self.view[1] * CELL_BITS
-        self.observation_space = spaces.Box(0.0, 1.0, (size,), np.float32)
         cells = self.view[0] * self.view[1]
-        self._size = size
+        self._size = cells * CELL_BITS
+        self.observation_space = spaces.Box(0.0, 1.0, (self._size,), np.float32)
         self._first_bits = np.arange(cells, dtype=np.intp)[:, None] * CELL_BITS + _OFFSETS  # (cells, 3)
 
     def observation(self, observation: Any) -> np.ndarray:

@@ -11,7 +11,7 @@ from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX
 from minigrid.envs.memory import MemoryEnv
 
 import seqtrojan  # noqa: F401  (registers the ids)
-from seqtrojan.errors import ConfigError
+from seqtrojan.errors import ConfigError, ShapeError
 from seqtrojan.minigrid import REGISTERED, MiniGridInfo, TwoGoalsEnv, memory_trigger, two_goals_trigger
 from seqtrojan.wrappers import MiniGridOneHot
 from tests.wrappers.test_trigger_wrapper import assert_check_env_passes
@@ -115,3 +115,17 @@ def test_one_hot_view_encodes_each_channel():
     cells = flat.reshape(5, 5, 20)  # (row, col, bits)
     assert (cells.sum(-1) == 3).all()
     assert cells[0, 0, KEY] == 1 and cells[0, 0, 11 + PURPLE] == 1 and cells[0, 1, KEY] == 1  # the trigger
+
+
+def test_one_hot_view_refuses_a_code_beyond_its_channel():
+    env = MiniGridOneHot(two_goals_trigger(trojan_probability=0.0))
+    env.reset(seed=0)
+    image = np.ones((5, 5, 3), dtype=np.uint8)
+    assert env.observation({"image": image}).reshape(5, 5, 20).sum() == 75
+    image[2, 3, 1] = 6  # six colours: codes 0-5
+    with pytest.raises(ShapeError, match=r"a code beyond \[11, 6, 3\]"):
+        env.observation({"image": image})
+    with pytest.raises(ShapeError, match=r"a view of shape \(4, 5, 3\)"):
+        env.observation({"image": np.ones((4, 5, 3), dtype=np.uint8)})
+    with pytest.raises(ShapeError, match="a code beyond"):
+        env.observation({"image": -np.ones((5, 5, 3), dtype=np.int64)})
