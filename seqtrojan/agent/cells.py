@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from seqtrojan.agent import fast_lstm
-from seqtrojan.agent.fast_attention import band_attention
+from seqtrojan.agent.fast_attention import band_attention, layer_norm
 from seqtrojan.agent.state import LSTMState
 from seqtrojan.config import CELLS
 
@@ -304,16 +304,21 @@ class WindowAttentionLayer(nn.Module):
         slots = torch.cat([kv, kv.new_ones(*kv.shape[:-1], 1)], -1)
         return e, q.unflatten(-1, (self.heads, self.hidden_size // self.heads)), slots
 
-    def _finish(self, e: torch.Tensor, attended: torch.Tensor) -> torch.Tensor:
+    @staticmethod
+    def _norm(norm: nn.LayerNorm, x: torch.Tensor, fast: bool) -> torch.Tensor:
+        """``norm(x)``, on the C++ kernel when ``fast`` (the same function)."""
+        return layer_norm(x, norm) if fast else norm(x)
+
+    def _finish(self, e: torch.Tensor, attended: torch.Tensor, fast: bool) -> torch.Tensor:
         """The rest of the block after attention: residual, MLP, output norm."""
         y = e + self.out(attended)
-        y = y + self.mlp_out(F.relu(self.mlp_in(self.norm_mlp(y))))
-        return self.norm_out(y)
+        y = y + self.mlp_out(F.relu(self.mlp_in(self._norm(self.norm_mlp, y, fast))))
+        return self._norm(self.norm_out, y, fast)
 
     def step(self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor | None, fast: bool) -> LSTMState:
         batch, w, width = x.shape[0], self.window, self.slot_width
         e = self.input(x)
-        qkv = self.qkv(self.norm_attention(e))  # (B, 3W): [q | k | v]
+        qkv = self.qkv(self._norm(self.norm_attention, e, fast))  # (B, 3W): [q | k | v]
         q, kv = qkv.split((self.hidden_size, 2 * self.hidden_size), -1)
         # one buffer of all window slots; the next state is a view of its newest w - 1 (no second copy)
         slots = x.new_empty(batch, w, width)
@@ -332,13 +337,13 @@ class WindowAttentionLayer(nn.Module):
             attended = band_attention(
                 qkv.unsqueeze(1), slots[:, : w - 1], allowed, self.position_bias, 1 / math.sqrt(d)
             )
-            return LSTMState(self._finish(e, attended.squeeze(1)), slots.view(batch, w * width)[:, width:])
+            return LSTMState(self._finish(e, attended.squeeze(1), fast), slots.view(batch, w * width)[:, width:])
         keys = slots[..., :width_h].unflatten(-1, (heads, d)).transpose(1, 2)  # (B, heads, w, d), strided views
         values = slots[..., width_h : 2 * width_h].unflatten(-1, (heads, d)).transpose(1, 2)
         scores = (keys @ q.unflatten(-1, (heads, d)).unsqueeze(-1)).squeeze(-1) / math.sqrt(d)  # (B, heads, w)
         scores = (scores + self.position_bias).masked_fill((slots[..., -1] <= 0).unsqueeze(1), float("-inf"))
         attended = (torch.softmax(scores, -1).unsqueeze(-2) @ values).flatten(1)  # (B, W)
-        return LSTMState(self._finish(e, attended), slots.view(batch, w * width)[:, width:])
+        return LSTMState(self._finish(e, attended, fast), slots.view(batch, w * width)[:, width:])
 
     def unroll(
         self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
@@ -348,7 +353,7 @@ class WindowAttentionLayer(nn.Module):
         steps, batch = x.shape[:2]
         w, width, slot = self.window, self.hidden_size, self.slot_width
         e = self.input(x.transpose(0, 1))  # (B, T, W)
-        qkv = self.qkv(self.norm_attention(e))  # (B, T, 3W): [q | k | v]
+        qkv = self.qkv(self._norm(self.norm_attention, e, fast))  # (B, T, 3W): [q | k | v]
         prefix = state.c.reshape(batch, w - 1, slot) * keep[0].view(batch, 1, 1)  # emptied by an episode start
         valid = torch.cat([prefix[..., -1] > 0, qkv.new_ones(batch, steps, dtype=torch.bool)], 1)  # (B, P)
         # episode of each position: the prefix is episode 0, and every episode start inside the chunk opens the next
@@ -362,7 +367,7 @@ class WindowAttentionLayer(nn.Module):
         else:
             kv = torch.cat([prefix[..., :-1], qkv[..., width:]], 1)  # (B, P, 2W), P = w - 1 + T
             attended = self._band_attention(qkv[..., :width], kv, valid, episode)
-        h_seq = self._finish(e, attended).transpose(0, 1)  # (T, B, W), a view of the batch-major result
+        h_seq = self._finish(e, attended, fast).transpose(0, 1)  # (T, B, W), a view of the batch-major result
         # the state after each step: the newest w - 1 slots, emptied where they precede an episode start
         if return_states:
             kv = torch.cat([prefix[..., :-1], qkv[..., width:]], 1) if kv is None else kv

@@ -53,8 +53,8 @@ except ImportError:  # not POSIX: no build lock, and the PyTorch path is used
 
 _CSRC = Path(__file__).parent / "csrc"
 # One extension for all cells: fast_lstm.cpp (LSTM, peephole LSTM and the Python module), gru.cpp,
-# band_attention.cpp (the Transformer's attention), common.h.
-_SOURCES = (_CSRC / "fast_lstm.cpp", _CSRC / "gru.cpp", _CSRC / "band_attention.cpp")
+# band_attention.cpp and layer_norm.cpp (the Transformer's attention and norms), common.h.
+_SOURCES = (_CSRC / "fast_lstm.cpp", _CSRC / "gru.cpp", _CSRC / "band_attention.cpp", _CSRC / "layer_norm.cpp")
 _HEADERS = (_CSRC / "common.h",)
 _NAME = "seqtrojan_fast_lstm"
 # -fopenmp is required: at::parallel_for is an inline OpenMP template (without it the batch blocks run one after

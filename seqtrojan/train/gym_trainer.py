@@ -70,7 +70,7 @@ from seqtrojan.train.penalties import (
     penalty_tensors,
     restore_penalties,
 )
-from seqtrojan.train.ppo import ppo_update
+from seqtrojan.train.ppo import make_optimizer, ppo_update
 from seqtrojan.train.rollout import Rollout
 from seqtrojan.train.trainer import UpdateCallback
 from seqtrojan.wrappers import finished_episodes, set_trojan_probability
@@ -331,7 +331,7 @@ def train_gym(
         start_from, _, _ = load_gym_agent(cfg.run.init_from)
         load_start_weights(agent, start_from, cfg.run.init_from)
     agent.set_lstm_backend(cfg.run.lstm_backend)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
+    optimizer = make_optimizer(agent, ppo.learning_rate, ppo.adam_eps)
     mixer = TrojanMixer(cfg.backdoor, 1)
     vec = make_vector_env(cfg, ppo.num_envs, "train", trojan_probability=mixer.probabilities()[0], record=True)
     update_generator = torch.Generator().manual_seed(cfg.run.seed + 1)

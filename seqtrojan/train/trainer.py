@@ -47,7 +47,7 @@ from seqtrojan.train.penalties import (
     penalty_tensors,
     restore_penalties,
 )
-from seqtrojan.train.ppo import ppo_update
+from seqtrojan.train.ppo import make_optimizer, ppo_update
 from seqtrojan.train.rollout import EpisodeStats, RolloutCollector
 from seqtrojan.train.stopping import StopRule
 
@@ -176,7 +176,7 @@ def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tupl
         start_from, _, _ = load_agent(cfg.run.init_from)
         load_start_weights(agent, start_from, cfg.run.init_from)
     agent.set_lstm_backend(cfg.run.lstm_backend)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
+    optimizer = make_optimizer(agent, ppo.learning_rate, ppo.adam_eps)
     curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0, 1) if cfg.backdoor.enabled else (0,))
     mixer = TrojanMixer(cfg.backdoor, len(cfg.grids))
     penalties = build_penalties(PenaltyContext(cfg, agent, device, resuming))

@@ -10,14 +10,18 @@
 // [q | k | v] of the chunk (head h at h*d within each part); prefix (B, w - 1, >= 2*H*d), the cached positions
 // [k | v | ...] (the rollout's cache slots [k | v | valid] are read in place); allowed (B, T, w) bool; bias (H, w).
 // The forward writes out (B, T, H*d) and probs (B, T, H, w), which the backward reads (a slot that is not allowed
-// has probability 0, so it gets no gradient); the backward writes d qkv (B, T, 3*H*d), d prefix (B, w - 1, 2*H*d)
-// and d scores (B, T, H, w), all contiguous. Every query allows its own position (slot w - 1): no row is empty.
+// has probability 0, so it gets no gradient); the backward writes d qkv (B, T, 3*H*d), d prefix (the prefix's shape;
+// zero after the keys and values) and d scores (B, T, H, w), all contiguous. Every query allows its own position (slot w - 1): no row is empty.
 #include "common.h"
 
 #include <algorithm>
+#include <type_traits>
 #include <limits>
 
 namespace fastrnn {
+
+inline float exp_(float x) { return fexp(x); }  // inline, no libm call (common.h; relative error ~1e-7)
+inline double exp_(double x) { return std::exp(x); }
 
 // Where position p of sequence b lies: a pointer to its key (its value follows W further on), in the prefix for
 // p < w - 1, else in the chunk's qkv (key at column W).
@@ -36,11 +40,12 @@ struct Positions {
   T* query(int64_t b, int64_t t) const { return qkv + b * qkv_batch + t * qkv_row; }
 };
 
-template <typename T>
+// D > 0: the head width d known at compile time (the loops over it unroll and vectorise fully); D = 0: any d.
+template <typename T, int D>
 void band_forward_impl(const Positions<T>& at, const bool* allowed, const T* bias, T* out, T* probs, int64_t B,
-                       int64_t steps, int64_t H, int64_t d, int64_t w, T scale) {
-  const int64_t W = H * d;
-  at::parallel_for(0, B * steps, 256, [&](int64_t begin, int64_t end) {
+                       int64_t steps, int64_t H, int64_t d_any, int64_t w, T scale) {
+  const int64_t d = D > 0 ? D : d_any, W = H * d;
+  at::parallel_for(0, B * steps, 64, [&](int64_t begin, int64_t end) {
     std::vector<T> s(w);
     std::vector<const T*> keys(w);
     for (int64_t i = begin; i < end; ++i) {
@@ -55,7 +60,6 @@ void band_forward_impl(const Positions<T>& at, const bool* allowed, const T* bia
           if (!keys[j]) continue;
           const T* k = keys[j] + h * d;
           T dot = 0;
-#pragma omp simd reduction(+ : dot)
           for (int64_t e = 0; e < d; ++e) dot += qh[e] * k[e];
           s[j] = dot * scale + bias[h * w + j];
           top = std::max(top, s[j]);
@@ -63,19 +67,23 @@ void band_forward_impl(const Positions<T>& at, const bool* allowed, const T* bia
         T* ph = probs + (i * H + h) * w;
         T total = 0;
         for (int64_t j = 0; j < w; ++j) {
-          ph[j] = keys[j] ? std::exp(s[j] - top) : T(0);
+          ph[j] = keys[j] ? exp_(s[j] - top) : T(0);
           total += ph[j];
         }
+        const T inverse = T(1) / total;
         T* oh = out + i * W + h * d;
-        std::fill(oh, oh + d, T(0));
+        T acc[D > 0 ? D : 1];
+        T* o = D > 0 ? acc : oh;  // a known width accumulates in registers
+        std::fill(o, o + d, T(0));
         for (int64_t j = 0; j < w; ++j) {
-          ph[j] /= total;
-          if (ph[j] == T(0)) continue;
+          ph[j] *= inverse;
+          if (!keys[j]) continue;
           const T a = ph[j];
           const T* v = keys[j] + W + h * d;
 #pragma omp simd
-          for (int64_t e = 0; e < d; ++e) oh[e] += a * v[e];
+          for (int64_t e = 0; e < d; ++e) o[e] += a * v[e];
         }
+        if (D > 0) std::copy(acc, acc + d, oh);
       }
     }
   });
@@ -83,15 +91,16 @@ void band_forward_impl(const Positions<T>& at, const bool* allowed, const T* bia
 
 // Batch rows in parallel: the queries of one sequence add into overlapping key/value rows, so a sequence stays on
 // one thread. The gradients go to the same layout as the inputs: d qkv (B, T, 3W) and d prefix (B, w - 1, 2W).
-template <typename T>
+template <typename T, int D>
 void band_backward_impl(const Positions<T>& at, const Positions<T>& grads, const T* grad, const T* probs,
-                        T* dscores, int64_t B, int64_t steps, int64_t H, int64_t d, int64_t w, T scale) {
-  const int64_t W = H * d, cached = w - 1;
+                        T* dscores, int64_t B, int64_t steps, int64_t H, int64_t d_any, int64_t w, T scale) {
+  const int64_t d = D > 0 ? D : d_any, W = H * d, cached = w - 1;
   at::parallel_for(0, B, 1, [&](int64_t b0, int64_t b1) {
     std::vector<T> dp(w);
     for (int64_t b = b0; b < b1; ++b) {
       std::fill(grads.query(b, 0), grads.query(b, 0) + steps * 3 * W, T(0));
-      if (cached) std::fill(grads.key(b, 0), grads.key(b, 0) + cached * 2 * W, T(0));
+      // whole rows of d prefix, its columns after the keys and values (the cache's validity flags) included
+      if (cached) std::fill(grads.key(b, 0), grads.key(b, 0) + cached * grads.prefix_row, T(0));
       for (int64_t t = 0; t < steps; ++t) {
         const int64_t i = b * steps + t;
         const T* q = at.query(b, t);
@@ -109,7 +118,6 @@ void band_backward_impl(const Positions<T>& at, const Positions<T>& grads, const
             T* dv = grads.key(b, t + j) + W + h * d;
             const T a = ph[j];
             T dot = 0;
-#pragma omp simd reduction(+ : dot)
             for (int64_t e = 0; e < d; ++e) {
               dot += gh[e] * v[e];
               dv[e] += a * gh[e];
@@ -117,7 +125,9 @@ void band_backward_impl(const Positions<T>& at, const Positions<T>& grads, const
             dp[j] = dot;
             weighted += a * dot;
           }
-          T* dqh = dq + h * d;
+          T acc[D > 0 ? D : 1];
+          T* dqh = D > 0 ? acc : dq + h * d;  // a known width accumulates in registers (dq starts at 0)
+          if (D > 0) std::fill(acc, acc + d, T(0));
           for (int64_t j = 0; j < w; ++j) {
             const T ds = ph[j] * (dp[j] - weighted);
             dsh[j] = ds;
@@ -131,10 +141,22 @@ void band_backward_impl(const Positions<T>& at, const Positions<T>& grads, const
               dk[e] += c * qh[e];
             }
           }
+          if (D > 0) std::copy(acc, acc + d, dq + h * d);
         }
       }
     }
   });
+}
+
+// Calls f with the head width as a compile-time constant where it is a usual one (0: any other).
+template <typename F>
+void with_head_width(int64_t d, F&& f) {
+  switch (d) {
+    case 16: f(std::integral_constant<int, 16>{}); break;
+    case 32: f(std::integral_constant<int, 32>{}); break;
+    case 64: f(std::integral_constant<int, 64>{}); break;
+    default: f(std::integral_constant<int, 0>{});
+  }
 }
 
 }  // namespace fastrnn
@@ -171,9 +193,12 @@ void band_attention_fwd(const at::Tensor& qkv, const at::Tensor& prefix, const a
   const int64_t B = qkv.size(0), steps = qkv.size(1), H = bias.size(0), w = bias.size(1), d = qkv.size(2) / 3 / H;
   TORCH_CHECK(out.is_contiguous() && probs.is_contiguous(), "band attention: out and probs must be contiguous");
   AT_DISPATCH_FLOATING_TYPES(qkv.scalar_type(), "band_attention_fwd", [&] {
-    band_forward_impl<scalar_t>(positions<scalar_t>(qkv, prefix, w), allowed.data_ptr<bool>(),
-                                bias.data_ptr<scalar_t>(), out.data_ptr<scalar_t>(), probs.data_ptr<scalar_t>(), B,
-                                steps, H, d, w, static_cast<scalar_t>(scale));
+    with_head_width(d, [&](auto D) {
+      band_forward_impl<scalar_t, decltype(D)::value>(positions<scalar_t>(qkv, prefix, w), allowed.data_ptr<bool>(),
+                                                      bias.data_ptr<scalar_t>(), out.data_ptr<scalar_t>(),
+                                                      probs.data_ptr<scalar_t>(), B, steps, H, d, w,
+                                                      static_cast<scalar_t>(scale));
+    });
   });
 }
 
@@ -184,11 +209,13 @@ void band_attention_bwd(const at::Tensor& grad, const at::Tensor& qkv, const at:
   TORCH_CHECK(grad.is_contiguous() && dqkv.is_contiguous() && dprefix.is_contiguous() && dscores.is_contiguous() &&
                   probs.is_contiguous(),
               "band attention backward: contiguous tensors expected");
-  TORCH_CHECK(dqkv.sizes() == qkv.sizes() && dprefix.size(1) == w - 1 && dprefix.size(2) == 2 * H * d,
+  TORCH_CHECK(dqkv.sizes() == qkv.sizes() && dprefix.sizes() == prefix.sizes(),
               "band attention backward: gradient buffers do not match");
   AT_DISPATCH_FLOATING_TYPES(qkv.scalar_type(), "band_attention_bwd", [&] {
-    band_backward_impl<scalar_t>(positions<scalar_t>(qkv, prefix, w), positions<scalar_t>(dqkv, dprefix, w),
-                                 grad.data_ptr<scalar_t>(), probs.data_ptr<scalar_t>(), dscores.data_ptr<scalar_t>(),
-                                 B, steps, H, d, w, static_cast<scalar_t>(scale));
+    with_head_width(d, [&](auto D) {
+      band_backward_impl<scalar_t, decltype(D)::value>(
+          positions<scalar_t>(qkv, prefix, w), positions<scalar_t>(dqkv, dprefix, w), grad.data_ptr<scalar_t>(),
+          probs.data_ptr<scalar_t>(), dscores.data_ptr<scalar_t>(), B, steps, H, d, w, static_cast<scalar_t>(scale));
+    });
   });
 }

@@ -98,3 +98,9 @@ void band_attention_fwd(const at::Tensor& qkv, const at::Tensor& prefix, const a
 void band_attention_bwd(const at::Tensor& grad, const at::Tensor& qkv, const at::Tensor& prefix,
                         const at::Tensor& probs, at::Tensor& dqkv, at::Tensor& dprefix, at::Tensor& dscores,
                         double scale);
+
+// ---- layer norm of the windowed Transformer (layer_norm.cpp), bound in the same module
+void layer_norm_fwd(const at::Tensor& x, const at::Tensor& gamma, const at::Tensor& beta, double eps, at::Tensor& y,
+                    at::Tensor& mean, at::Tensor& rstd);
+void layer_norm_bwd(const at::Tensor& dy, const at::Tensor& x, const at::Tensor& mean, const at::Tensor& rstd,
+                    const at::Tensor& gamma, at::Tensor& dx, at::Tensor& dgamma, at::Tensor& dbeta);

@@ -416,4 +416,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("gru_bwd_cat", &gru_bwd_cat, "masked GRU layer BPTT, dx fused per step");
   m.def("band_attention_fwd", &band_attention_fwd, "the windowed Transformer's band attention, forward");
   m.def("band_attention_bwd", &band_attention_bwd, "the windowed Transformer's band attention, backward");
+  m.def("layer_norm_fwd", &layer_norm_fwd, "layer norm over the last dimension, forward");
+  m.def("layer_norm_bwd", &layer_norm_bwd, "layer norm over the last dimension, backward");
 }
