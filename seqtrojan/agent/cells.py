@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from seqtrojan.agent import fast_lstm
-from seqtrojan.agent.fast_attention import band_attention, layer_norm
+from seqtrojan.agent.fast_attention import band_attention, layer_norm, window_step
 from seqtrojan.agent.state import LSTMState
 from seqtrojan.config import CELLS
 
@@ -317,8 +317,11 @@ class WindowAttentionLayer(nn.Module):
 
     def step(self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor | None, fast: bool) -> LSTMState:
         batch, w, width = x.shape[0], self.window, self.slot_width
+        if fast:  # the whole layer in one call of the C++ kernel (it reads the cache in place)
+            h, cache = window_step(self, x, x.new_ones(batch) if keep is None else keep, state.c)
+            return LSTMState(h, cache)
         e = self.input(x)
-        qkv = self.qkv(self._norm(self.norm_attention, e, fast))  # (B, 3W): [q | k | v]
+        qkv = self.qkv(self.norm_attention(e))  # (B, 3W): [q | k | v]
         q, kv = qkv.split((self.hidden_size, 2 * self.hidden_size), -1)
         # one buffer of all window slots; the next state is a view of its newest w - 1 (no second copy)
         slots = x.new_empty(batch, w, width)
@@ -332,18 +335,12 @@ class WindowAttentionLayer(nn.Module):
         slots[:, -1, :-1] = kv
         slots[:, -1, -1] = 1.0
         heads, d, width_h = self.heads, self.hidden_size // self.heads, self.hidden_size
-        if fast:  # the kernel reads the cached slots in place (rows of 2W + 1: key, value, validity flag)
-            allowed = (slots[..., -1] > 0).unsqueeze(1)  # (B, 1, w)
-            attended = band_attention(
-                qkv.unsqueeze(1), slots[:, : w - 1], allowed, self.position_bias, 1 / math.sqrt(d)
-            )
-            return LSTMState(self._finish(e, attended.squeeze(1), fast), slots.view(batch, w * width)[:, width:])
         keys = slots[..., :width_h].unflatten(-1, (heads, d)).transpose(1, 2)  # (B, heads, w, d), strided views
         values = slots[..., width_h : 2 * width_h].unflatten(-1, (heads, d)).transpose(1, 2)
         scores = (keys @ q.unflatten(-1, (heads, d)).unsqueeze(-1)).squeeze(-1) / math.sqrt(d)  # (B, heads, w)
         scores = (scores + self.position_bias).masked_fill((slots[..., -1] <= 0).unsqueeze(1), float("-inf"))
         attended = (torch.softmax(scores, -1).unsqueeze(-2) @ values).flatten(1)  # (B, W)
-        return LSTMState(self._finish(e, attended, fast), slots.view(batch, w * width)[:, width:])
+        return LSTMState(self._finish(e, attended, False), slots.view(batch, w * width)[:, width:])
 
     def unroll(
         self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool

@@ -92,3 +92,30 @@ def layer_norm(x: torch.Tensor, norm: torch.nn.LayerNorm) -> torch.Tensor:
     y, stats = torch.empty_like(x), x.new_empty(2, *x.shape[:-1])
     ext.layer_norm_fwd(x, norm.weight, norm.bias, norm.eps, y, stats[0], stats[1])
     return y
+
+
+def window_step_params(layer: torch.nn.Module) -> list[torch.Tensor]:
+    """A windowed Transformer layer's 17 tensors in the order ``csrc/window_step.cpp`` reads them."""
+    names = ("input", "norm_attention", "qkv", "out", "norm_mlp", "mlp_in", "mlp_out", "norm_out")
+    tensors = [t for name in names for t in (getattr(layer, name).weight, getattr(layer, name).bias)]
+    return [*tensors, layer.position_bias]
+
+
+@torch.no_grad()
+def window_step(
+    layer: torch.nn.Module, x: torch.Tensor, keep: torch.Tensor, cache: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One no-grad step of a windowed Transformer layer (``WindowAttentionLayer.step``) in one call of the C++
+    kernel (``csrc/window_step.cpp``): ``x`` (B, I), ``keep`` (B,) multiplies the cache first, ``cache`` (B, (w - 1)
+    * S) the layer's state c. Returns (h, the next cache): the cache is a view of a fresh (B, w * S) buffer."""
+    batch, slot = x.shape[0], layer.slot_width
+    h = x.new_empty(batch, layer.hidden_size)
+    slots = x.new_empty(batch, layer.window * slot)
+    norms = (layer.norm_attention, layer.norm_mlp, layer.norm_out)
+    ext = fast_lstm.extension()
+    assert ext is not None  # callers check fast_lstm.usable first
+    ext.window_layer_step(
+        x.contiguous(), keep.contiguous(), cache, window_step_params(layer), [float(n.eps) for n in norms], h, slots,
+        fast_lstm.num_chunks(batch),
+    )  # fmt: skip
+    return h, slots[:, slot:]

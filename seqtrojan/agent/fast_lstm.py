@@ -53,8 +53,10 @@ except ImportError:  # not POSIX: no build lock, and the PyTorch path is used
 
 _CSRC = Path(__file__).parent / "csrc"
 # One extension for all cells: fast_lstm.cpp (LSTM, peephole LSTM and the Python module), gru.cpp,
-# band_attention.cpp and layer_norm.cpp (the Transformer's attention and norms), common.h.
-_SOURCES = (_CSRC / "fast_lstm.cpp", _CSRC / "gru.cpp", _CSRC / "band_attention.cpp", _CSRC / "layer_norm.cpp")
+# band_attention.cpp, layer_norm.cpp and window_step.cpp (the Transformer's attention, norms and rollout step),
+# common.h.
+_SOURCES = tuple(_CSRC / name for name in ("fast_lstm.cpp", "gru.cpp", "band_attention.cpp", "layer_norm.cpp",
+                                           "window_step.cpp"))  # fmt: skip
 _HEADERS = (_CSRC / "common.h",)
 _NAME = "seqtrojan_fast_lstm"
 # -fopenmp is required: at::parallel_for is an inline OpenMP template (without it the batch blocks run one after
@@ -248,7 +250,7 @@ def usable(x: torch.Tensor) -> bool:
     return x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and extension() is not None
 
 
-def _num_chunks(batch: int) -> int:
+def num_chunks(batch: int) -> int:
     """One batch block per intra-op thread (tiny batches are not split)."""
     return max(1, min(torch.get_num_threads(), batch // 16))
 
@@ -343,7 +345,7 @@ class _MaskedLSTMLayer(torch.autograd.Function):
         assert _ext is not None  # callers run only after extension() loaded it
         _ext.lstm_fwd_cat(
             x.contiguous(), keep, h0.contiguous(), c0.contiguous(), wc, peep, xh, gates, h_seq, c_seq, c_prev,
-            _num_chunks(batch),
+            num_chunks(batch),
         )  # fmt: skip
         # c_seq is an output when return_c_seq: kept on ctx as an attribute it would make a reference cycle
         # (output -> grad_fn -> ctx -> output) that frees only with the cyclic GC: measured, a state-camouflage
@@ -381,7 +383,7 @@ class _MaskedLSTMLayer(torch.autograd.Function):
                 d_c_last = d_c.contiguous()
         need = ctx.needs_input_grad
         dx = gates.new_empty(steps, batch, n_in) if need[0] else None
-        chunks = _num_chunks(batch)
+        chunks = num_chunks(batch)
         dw_parts = gates.new_empty(chunks, four_h, k)
         dp_parts = None if peep is None else gates.new_empty(chunks, 3, hidden)
         dh0 = gates.new_empty(batch, hidden)
@@ -415,7 +417,7 @@ class _MaskedGRULayer(torch.autograd.Function):
         gates = _pool_get((steps, batch, 4 * hidden), dtype)
         h_seq = x.new_empty(steps, batch, hidden)
         assert _ext is not None  # callers run only after extension() loaded it
-        _ext.gru_fwd_cat(x.contiguous(), keep, h0.contiguous(), wc, xh, gates, h_seq, _num_chunks(batch))
+        _ext.gru_fwd_cat(x.contiguous(), keep, h0.contiguous(), wc, xh, gates, h_seq, num_chunks(batch))
         # backward reads h_{t-1} from xh, so h_seq (an output) is not saved: no reference cycle through ctx
         ctx.save_for_backward(keep)
         ctx.buffers = (wc, xh, gates)
@@ -435,7 +437,7 @@ class _MaskedGRULayer(torch.autograd.Function):
         d_h_seq = gates.new_zeros(steps, batch, hidden) if d_h_seq is None else d_h_seq.contiguous()
         need = ctx.needs_input_grad
         dx = gates.new_empty(steps, batch, n_in) if need[0] else None
-        chunks = _num_chunks(batch)
+        chunks = num_chunks(batch)
         dw_parts = gates.new_empty(chunks, four_h, k)
         dh0 = gates.new_empty(batch, hidden)
         assert _ext is not None  # callers run only after extension() loaded it
@@ -508,7 +510,7 @@ def step_stack(cells, x, keep, states, weight_cache: dict):
     out_h = [torch.empty_like(h) for h in hs]
     out_c = [torch.empty_like(c) for c in cs]
     assert _ext is not None  # callers run only after extension() loaded it
-    _ext.lstm_stack_step(x.contiguous(), keep.contiguous(), hs, cs, wcs, [], out_h, out_c, _num_chunks(x.shape[0]))
+    _ext.lstm_stack_step(x.contiguous(), keep.contiguous(), hs, cs, wcs, [], out_h, out_c, num_chunks(x.shape[0]))
     return list(zip(out_h, out_c))
 
 
@@ -541,7 +543,7 @@ def step_peephole_layer(
     assert _ext is not None  # callers run only after extension() loaded it
     _ext.lstm_stack_step(
         x.contiguous(), keep.contiguous(), [h], [c], [wc], [_param(cell, "peephole").contiguous()], [out_h], [out_c],
-        _num_chunks(x.shape[0]),
+        num_chunks(x.shape[0]),
     )  # fmt: skip
     return out_h, out_c
 
@@ -553,5 +555,5 @@ def step_gru_layer(cell: torch.nn.Module, x: torch.Tensor, keep: torch.Tensor, h
     out_h = torch.empty_like(h)
     wc = _step_weight(cell, _gru_weight)
     assert _ext is not None  # callers run only after extension() loaded it
-    _ext.gru_stack_step(x.contiguous(), keep.contiguous(), [h], [wc], [out_h], _num_chunks(x.shape[0]))
+    _ext.gru_stack_step(x.contiguous(), keep.contiguous(), [h], [wc], [out_h], num_chunks(x.shape[0]))
     return out_h

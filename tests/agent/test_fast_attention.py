@@ -1,4 +1,5 @@
-"""The C++ band attention equals the Transformer layer's PyTorch path: unroll, gradients, steps, gradcheck."""
+"""The C++ band attention and layer norm equal the Transformer layer's PyTorch path: unroll, gradients, steps,
+gradcheck. Head widths 4 and 8 take the kernel's general path, 16 and 32 its compiled-width one."""
 
 from __future__ import annotations
 
@@ -7,16 +8,19 @@ import torch
 
 from seqtrojan.agent import fast_lstm
 from seqtrojan.agent.cells import WindowAttentionLayer
-from seqtrojan.agent.fast_attention import band_attention
+from seqtrojan.agent.fast_attention import _LayerNorm, band_attention, layer_norm
 from seqtrojan.agent.state import LSTMState
 
 pytestmark = pytest.mark.skipif(fast_lstm.extension() is None, reason=f"C++ kernels unavailable: {fast_lstm.error()}")
 
 
-def _layer(heads: int, dtype: torch.dtype, window: int = 4) -> WindowAttentionLayer:
-    layer = WindowAttentionLayer(5, 8, window, heads).to(dtype)
+def _layer(heads: int, dtype: torch.dtype, window: int = 4, width: int = 8) -> WindowAttentionLayer:
+    layer = WindowAttentionLayer(5, width, window, heads).to(dtype)
     with torch.no_grad():
         layer.position_bias.normal_()  # zero at init: a wrong slot order would go unseen
+        for norm in (layer.norm_attention, layer.norm_mlp, layer.norm_out):  # ones and zeros at init
+            norm.weight.normal_()
+            norm.bias.normal_()
     return layer
 
 
@@ -27,16 +31,18 @@ def _inputs(layer: WindowAttentionLayer, steps: int, batch: int, dtype: torch.dt
     keep[0, 0], keep[1:, 1] = 1, 1
     cache = torch.randn(batch, layer.window - 1, layer.slot_width, dtype=dtype)
     cache[..., -1] = 1.0
-    cache[0, 0, -1] = 0.0  # the oldest slot of env 0 is empty
+    if layer.window > 1:
+        cache[0, 0, -1] = 0.0  # the oldest slot of env 0 is empty
     return x, keep, LSTMState(torch.zeros(batch, layer.hidden_size, dtype=dtype), cache.flatten(1))
 
 
 @pytest.mark.parametrize("steps", [9, 2])  # a chunk longer and one shorter than the cache
 @pytest.mark.parametrize("heads", [1, 2])
+@pytest.mark.parametrize("width", [8, 32])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_unroll_and_gradients_equal_the_torch_path(heads, dtype, steps):
+def test_unroll_and_gradients_equal_the_torch_path(heads, dtype, steps, width):
     torch.manual_seed(heads)
-    layer = _layer(heads, dtype)
+    layer = _layer(heads, dtype, width=width)
     x, keep, start = _inputs(layer, steps, 6, dtype)
     results = []
     for fast in (False, True):
@@ -57,21 +63,28 @@ def test_unroll_and_gradients_equal_the_torch_path(heads, dtype, steps):
 
 
 @pytest.mark.parametrize("heads", [1, 2])
-def test_a_step_reads_the_cache_in_place_and_equals_the_torch_step(heads):
+@pytest.mark.parametrize("width", [8, 32])
+@pytest.mark.parametrize(("window", "dtype"), [(4, torch.float32), (4, torch.float64), (1, torch.float32)])
+def test_a_step_in_one_kernel_call_equals_the_torch_step(heads, width, window, dtype):
     torch.manual_seed(3)
-    layer = _layer(heads, torch.float32)
-    x, keep, start = _inputs(layer, 1, 7, torch.float32)
+    layer = _layer(heads, dtype, window=window, width=width)
+    x, keep, start = _inputs(layer, 1, 7, dtype)
     keep[0, 2] = 0  # an episode start empties env 2's cache
+    tol = {"atol": 1e-6, "rtol": 1e-5} if dtype == torch.float32 else {"atol": 1e-12, "rtol": 1e-10}
     with torch.no_grad():
-        expected = layer.step(x[0], start, keep[0], False)
-        got = layer.step(x[0], start, keep[0], True)
-    torch.testing.assert_close(got.h, expected.h, atol=1e-6, rtol=1e-5)
-    torch.testing.assert_close(got.c, expected.c)
+        for k in (keep[0], None):
+            expected = layer.step(x[0], start, k, False)
+            got = layer.step(x[0], start, k, True)
+            torch.testing.assert_close(got.h, expected.h, **tol)
+            torch.testing.assert_close(got.c, expected.c)
+            # and from a cache that is a view into the previous step's buffer (as in a rollout)
+            torch.testing.assert_close(layer.step(x[0], got, k, True).h, layer.step(x[0], expected, k, False).h, **tol)
 
 
-def test_band_attention_passes_gradcheck_in_float64():
+@pytest.mark.parametrize("d", [3, 16])
+def test_band_attention_passes_gradcheck_in_float64(d):
     torch.manual_seed(0)
-    batch, steps, heads, d, window = 2, 5, 2, 3, 3
+    batch, steps, heads, window = 2, 5, 2, 3
     qkv = torch.randn(batch, steps, 3 * heads * d, dtype=torch.float64, requires_grad=True)
     # the cached positions with a validity column after the keys and values, as the layer's cache holds them
     prefix = torch.randn(batch, window - 1, 2 * heads * d + 1, dtype=torch.float64, requires_grad=True)
@@ -85,3 +98,33 @@ def test_mismatched_shapes_are_refused_in_one_line():
     qkv = torch.randn(2, 5, 12)
     with pytest.raises(RuntimeError, match="the prefix does not match qkv and the window"):
         band_attention(qkv, torch.randn(2, 5, 8), torch.ones(2, 5, 3, dtype=torch.bool), torch.zeros(1, 3), 1.0)
+
+
+@pytest.mark.parametrize("width", [5, 64])
+@pytest.mark.parametrize("rows", [(3,), (2, 150)])  # fewer rows than one block of the weight gradients, and more
+def test_layer_norm_equals_torch_and_its_gradients(width, rows):
+    torch.manual_seed(width)
+    norm = torch.nn.LayerNorm(width)
+    with torch.no_grad():
+        norm.weight.normal_()
+        norm.bias.normal_()
+    x = (torch.randn(*rows, width) * 3 + 1).requires_grad_()
+    grad = torch.randn(*rows, width)
+    results = []
+    for fast in (False, True):
+        x.grad, norm.weight.grad, norm.bias.grad = None, None, None
+        y = layer_norm(x, norm) if fast else norm(x)
+        y.backward(grad)
+        results.append((y.detach(), x.grad, norm.weight.grad, norm.bias.grad))
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+    with torch.no_grad():  # the forward without autograd's bookkeeping
+        torch.testing.assert_close(layer_norm(x, norm), results[0][0], atol=1e-5, rtol=1e-4)
+
+
+def test_layer_norm_passes_gradcheck_in_float64():
+    torch.manual_seed(1)
+    x = torch.randn(4, 3, 6, dtype=torch.float64, requires_grad=True)
+    weight = torch.randn(6, dtype=torch.float64, requires_grad=True)
+    bias = torch.randn(6, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, b, c: _LayerNorm.apply(a, b, c, 1e-5), (x, weight, bias))

@@ -122,7 +122,7 @@ def test_gru_forward_and_gradients_equal_grucell_loop(x_grad):
 
 def test_gru_in_several_batch_blocks_equals_grucell_loop():
     with threads(2):
-        assert fast_lstm._num_chunks(96) > 1  # the batch is really split
+        assert fast_lstm.num_chunks(96) > 1  # the batch is really split
         check_gru(steps=6, batch=96, n_in=7, hidden=16, x_grad=True)
 
 
@@ -180,7 +180,7 @@ def test_peephole_forward_and_gradients_equal_reference_loop(x_grad, return_c_se
 
 def test_peephole_in_several_batch_blocks_equals_reference_loop():
     with threads(2):
-        assert fast_lstm._num_chunks(96) > 1
+        assert fast_lstm.num_chunks(96) > 1
         check_peephole(steps=6, batch=96, n_in=7, hidden=16, x_grad=True, return_c_seq=True)
 
 

@@ -20,9 +20,6 @@
 
 namespace fastrnn {
 
-inline float exp_(float x) { return fexp(x); }  // inline, no libm call (common.h; relative error ~1e-7)
-inline double exp_(double x) { return std::exp(x); }
-
 // Where position p of sequence b lies: a pointer to its key (its value follows W further on), in the prefix for
 // p < w - 1, else in the chunk's qkv (key at column W).
 template <typename T>

@@ -75,6 +75,8 @@ inline float ftanh(float x) {
 inline float sigm(float x) { return 1.0f / (1.0f + fexp(-x)); }
 inline float tanh_(float x) { return ftanh(x); }
 inline double sigm(double x) { return 1.0 / (1.0 + std::exp(-x)); }
+inline float exp_(float x) { return fexp(x); }  // inline, no libm call inside the loops
+inline double exp_(double x) { return std::exp(x); }
 inline double tanh_(double x) { return std::tanh(x); }
 
 inline void check(const at::Tensor& t, const char* name) {
@@ -104,3 +106,8 @@ void layer_norm_fwd(const at::Tensor& x, const at::Tensor& gamma, const at::Tens
                     at::Tensor& mean, at::Tensor& rstd);
 void layer_norm_bwd(const at::Tensor& dy, const at::Tensor& x, const at::Tensor& mean, const at::Tensor& rstd,
                     const at::Tensor& gamma, at::Tensor& dx, at::Tensor& dgamma, at::Tensor& dbeta);
+
+// ---- one no-grad step of a windowed Transformer layer (window_step.cpp), bound in the same module
+void window_layer_step(const at::Tensor& x, const at::Tensor& keep, const at::Tensor& cache,
+                       const std::vector<at::Tensor>& params, const std::vector<double>& eps, at::Tensor& h_out,
+                       at::Tensor& slots_out, int64_t nchunks);

@@ -418,4 +418,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("band_attention_bwd", &band_attention_bwd, "the windowed Transformer's band attention, backward");
   m.def("layer_norm_fwd", &layer_norm_fwd, "layer norm over the last dimension, forward");
   m.def("layer_norm_bwd", &layer_norm_bwd, "layer norm over the last dimension, backward");
+  m.def("window_layer_step", &window_layer_step, "one no-grad step of a windowed Transformer layer");
 }
