@@ -36,7 +36,6 @@ class _BandAttention(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad):
         qkv, prefix, probs = ctx.saved_tensors
-        batch, _, width3 = qkv.shape
         dqkv = torch.empty_like(qkv, memory_format=torch.contiguous_format)
         dprefix = qkv.new_empty(prefix.shape)  # zero after the keys and values (the cache's validity flags)
         dscores = torch.empty_like(probs)
