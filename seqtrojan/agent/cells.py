@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from seqtrojan.agent import fast_lstm
-from seqtrojan.agent.fast_attention import band_attention, layer_norm, window_step
+from seqtrojan.agent.fast_attention import add_layer_norm, band_attention, bias_relu, window_step
 from seqtrojan.agent.state import LSTMState
 from seqtrojan.config import CELLS
 
@@ -304,16 +304,17 @@ class WindowAttentionLayer(nn.Module):
         slots = torch.cat([kv, kv.new_ones(*kv.shape[:-1], 1)], -1)
         return e, q.unflatten(-1, (self.heads, self.hidden_size // self.heads)), slots
 
-    @staticmethod
-    def _norm(norm: nn.LayerNorm, x: torch.Tensor, fast: bool) -> torch.Tensor:
-        """``norm(x)``, on the C++ kernel when ``fast`` (the same function)."""
-        return layer_norm(x, norm) if fast else norm(x)
-
-    def _finish(self, e: torch.Tensor, attended: torch.Tensor, fast: bool) -> torch.Tensor:
+    def _finish(self, e: torch.Tensor, attended: torch.Tensor) -> torch.Tensor:
         """The rest of the block after attention: residual, MLP, output norm."""
         y = e + self.out(attended)
-        y = y + self.mlp_out(F.relu(self.mlp_in(self._norm(self.norm_mlp, y, fast))))
-        return self._norm(self.norm_out, y, fast)
+        y = y + self.mlp_out(F.relu(self.mlp_in(self.norm_mlp(y))))
+        return self.norm_out(y)
+
+    def _finish_fast(self, e: torch.Tensor, attended: torch.Tensor) -> torch.Tensor:
+        """:meth:`_finish` with each residual add, bias and norm in one pass of the C++ kernel."""
+        y, normed = add_layer_norm(attended @ self.out.weight.t(), e, self.out.bias, self.norm_mlp)
+        hidden = bias_relu(normed @ self.mlp_in.weight.t(), self.mlp_in.bias)
+        return add_layer_norm(hidden @ self.mlp_out.weight.t(), y, self.mlp_out.bias, self.norm_out)[1]
 
     def step(self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor | None, fast: bool) -> LSTMState:
         batch, w, width = x.shape[0], self.window, self.slot_width
@@ -340,7 +341,7 @@ class WindowAttentionLayer(nn.Module):
         scores = (keys @ q.unflatten(-1, (heads, d)).unsqueeze(-1)).squeeze(-1) / math.sqrt(d)  # (B, heads, w)
         scores = (scores + self.position_bias).masked_fill((slots[..., -1] <= 0).unsqueeze(1), float("-inf"))
         attended = (torch.softmax(scores, -1).unsqueeze(-2) @ values).flatten(1)  # (B, W)
-        return LSTMState(self._finish(e, attended, False), slots.view(batch, w * width)[:, width:])
+        return LSTMState(self._finish(e, attended), slots.view(batch, w * width)[:, width:])
 
     def unroll(
         self, x: torch.Tensor, state: LSTMState, keep: torch.Tensor, return_states: bool, fast: bool
@@ -349,8 +350,13 @@ class WindowAttentionLayer(nn.Module):
         # reads the one below in that layout (h_seq is returned as a time-major view of it).
         steps, batch = x.shape[:2]
         w, width, slot = self.window, self.hidden_size, self.slot_width
-        e = self.input(x.transpose(0, 1))  # (B, T, W)
-        qkv = self.qkv(self._norm(self.norm_attention, e, fast))  # (B, T, 3W): [q | k | v]
+        if fast:  # the input layer's bias and the norm in one pass of the C++ kernel
+            e, normed = add_layer_norm(x.transpose(0, 1) @ self.input.weight.t(), None, self.input.bias,
+                                       self.norm_attention)  # fmt: skip
+        else:
+            e = self.input(x.transpose(0, 1))  # (B, T, W)
+            normed = self.norm_attention(e)
+        qkv = self.qkv(normed)  # (B, T, 3W): [q | k | v]
         prefix = state.c.reshape(batch, w - 1, slot) * keep[0].view(batch, 1, 1)  # emptied by an episode start
         valid = torch.cat([prefix[..., -1] > 0, qkv.new_ones(batch, steps, dtype=torch.bool)], 1)  # (B, P)
         # episode of each position: the prefix is episode 0, and every episode start inside the chunk opens the next
@@ -364,7 +370,7 @@ class WindowAttentionLayer(nn.Module):
         else:
             kv = torch.cat([prefix[..., :-1], qkv[..., width:]], 1)  # (B, P, 2W), P = w - 1 + T
             attended = self._band_attention(qkv[..., :width], kv, valid, episode)
-        h_seq = self._finish(e, attended, fast).transpose(0, 1)  # (T, B, W), a view of the batch-major result
+        h_seq = (self._finish_fast if fast else self._finish)(e, attended).transpose(0, 1)  # (T, B, W) view
         # the state after each step: the newest w - 1 slots, emptied where they precede an episode start
         if return_states:
             kv = torch.cat([prefix[..., :-1], qkv[..., width:]], 1) if kv is None else kv

@@ -57,40 +57,78 @@ def band_attention(
     return _BandAttention.apply(qkv, prefix, allowed.contiguous(), bias, scale)
 
 
-class _LayerNorm(torch.autograd.Function):
+class _AddLayerNorm(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, weight, bias, eps: float):
-        x = x.contiguous()
-        y, mean, rstd = torch.empty_like(x), x.new_empty(x.shape[:-1]), x.new_empty(x.shape[:-1])
+    def forward(ctx, product, residual, bias, weight, norm_bias, eps: float):
+        ctx.set_materialize_grads(False)
+        if product.is_contiguous() and not product.is_leaf:  # the sum is written over the product (an intermediate)
+            total = product
+            ctx.mark_dirty(product)
+        else:
+            total = product.clone(memory_format=torch.contiguous_format)
+        y, mean, rstd = torch.empty_like(total), total.new_empty(total.shape[:-1]), total.new_empty(total.shape[:-1])
         ext = fast_lstm.extension()
         assert ext is not None  # callers check fast_lstm.usable first
-        ext.layer_norm_fwd(x, weight, bias, eps, y, mean, rstd)
-        ctx.save_for_backward(x, weight, mean, rstd)
+        ext.layer_norm_fwd(total, bias, None if residual is None else residual.contiguous(), weight, norm_bias, eps, y,
+                           mean, rstd)  # fmt: skip
+        ctx.save_for_backward(total, weight, mean, rstd)
+        ctx.has_residual = residual is not None
+        return total, y
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, dtotal, dy):
+        total, weight, mean, rstd = ctx.saved_tensors
+        if dy is None:  # only the sum was used
+            dy = torch.zeros_like(total)
+        dx = torch.empty_like(total)
+        dweight, dnorm_bias, dbias = (torch.empty_like(weight) for _ in range(3))
+        ext = fast_lstm.extension()
+        assert ext is not None
+        extra = None if dtotal is None else dtotal.contiguous()
+        ext.layer_norm_bwd(dy.contiguous(), extra, total, mean, rstd, weight, dx, dweight, dnorm_bias, dbias)
+        return dx, dx if ctx.has_residual else None, dbias, dweight, dnorm_bias, None
+
+
+def add_layer_norm(
+    product: torch.Tensor, residual: torch.Tensor | None, bias: torch.Tensor, norm: torch.nn.LayerNorm
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``x = product + bias (+ residual)`` and ``norm(x)`` in one pass of the C++ kernel: a linear layer's output
+    (``product`` its matrix product without the bias) added to the block's residual stream and normed. Returns
+    ``(x, norm(x))``; differentiable with respect to all inputs. Saves the linear layer's bias copy, the residual
+    add, and backward the gradient sum and the bias reduction."""
+    return _AddLayerNorm.apply(product, residual, bias, norm.weight, norm.bias, norm.eps)
+
+
+class _BiasReLU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, product, bias):
+        if product.is_contiguous() and not product.is_leaf:  # written over the product (an intermediate)
+            y = product
+            ctx.mark_dirty(product)
+        else:
+            y = product.clone(memory_format=torch.contiguous_format)
+        ext = fast_lstm.extension()
+        assert ext is not None  # callers check fast_lstm.usable first
+        ext.bias_relu_fwd(y, bias)
+        ctx.save_for_backward(y)
         return y
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad):
-        x, weight, mean, rstd = ctx.saved_tensors
-        dx, dweight, dbias = torch.empty_like(x), torch.empty_like(weight), torch.empty_like(weight)
+        (y,) = ctx.saved_tensors
+        dx, dbias = torch.empty_like(y), y.new_empty(y.shape[-1])
         ext = fast_lstm.extension()
         assert ext is not None
-        ext.layer_norm_bwd(grad.contiguous(), x, mean, rstd, weight, dx, dweight, dbias)
-        return dx, dweight, dbias, None
+        ext.bias_relu_bwd(grad.contiguous(), y, dx, dbias)
+        return dx, dbias
 
 
-def layer_norm(x: torch.Tensor, norm: torch.nn.LayerNorm) -> torch.Tensor:
-    """``norm(x)`` (a LayerNorm over the last dimension, with its weight and bias) on the C++ kernel
-    (``csrc/layer_norm.cpp``): one pass per row forward and backward, where PyTorch's CPU layer norm costs about as
-    much as a matrix product of rows this short. Differentiable with respect to ``x`` and the norm's parameters."""
-    if torch.is_grad_enabled():
-        return _LayerNorm.apply(x, norm.weight, norm.bias, norm.eps)
-    ext = fast_lstm.extension()
-    assert ext is not None
-    x = x.contiguous()
-    y, stats = torch.empty_like(x), x.new_empty(2, *x.shape[:-1])
-    ext.layer_norm_fwd(x, norm.weight, norm.bias, norm.eps, y, stats[0], stats[1])
-    return y
+def bias_relu(product: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``relu(product + bias)`` in one pass of the C++ kernel, ``product`` a linear layer's matrix product without
+    its bias (overwritten where it is an autograd intermediate); differentiable with respect to both."""
+    return _BiasReLU.apply(product, bias)
 
 
 def window_step_params(layer: torch.nn.Module) -> list[torch.Tensor]:

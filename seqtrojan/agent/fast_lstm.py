@@ -53,10 +53,10 @@ except ImportError:  # not POSIX: no build lock, and the PyTorch path is used
 
 _CSRC = Path(__file__).parent / "csrc"
 # One extension for all cells: fast_lstm.cpp (LSTM, peephole LSTM and the Python module), gru.cpp,
-# band_attention.cpp, layer_norm.cpp and window_step.cpp (the Transformer's attention, norms and rollout step),
-# common.h.
+# band_attention.cpp, layer_norm.cpp, bias_relu.cpp and window_step.cpp (the Transformer's attention, norms, MLP
+# activation and rollout step), common.h.
 _SOURCES = tuple(_CSRC / name for name in ("fast_lstm.cpp", "gru.cpp", "band_attention.cpp", "layer_norm.cpp",
-                                           "window_step.cpp"))  # fmt: skip
+                                           "bias_relu.cpp", "window_step.cpp"))  # fmt: skip
 _HEADERS = (_CSRC / "common.h",)
 _NAME = "seqtrojan_fast_lstm"
 # -fopenmp is required: at::parallel_for is an inline OpenMP template (without it the batch blocks run one after

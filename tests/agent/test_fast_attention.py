@@ -1,5 +1,6 @@
-"""The C++ band attention and layer norm equal the Transformer layer's PyTorch path: unroll, gradients, steps,
-gradcheck. Head widths 4 and 8 take the kernel's general path, 16 and 32 its compiled-width one."""
+"""The Transformer's C++ kernels (band attention, bias + residual + layer norm, bias + ReLU, the one-call rollout
+step) equal its PyTorch path: unroll, gradients, steps, gradcheck. Head widths 4 and 8 take the attention kernel's
+general path, 16 and 32 its compiled-width one."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import torch
 
 from seqtrojan.agent import fast_lstm
 from seqtrojan.agent.cells import WindowAttentionLayer
-from seqtrojan.agent.fast_attention import _LayerNorm, band_attention, layer_norm
+from seqtrojan.agent.fast_attention import _AddLayerNorm, add_layer_norm, band_attention, bias_relu
 from seqtrojan.agent.state import LSTMState
 
 pytestmark = pytest.mark.skipif(fast_lstm.extension() is None, reason=f"C++ kernels unavailable: {fast_lstm.error()}")
@@ -102,29 +103,61 @@ def test_mismatched_shapes_are_refused_in_one_line():
 
 @pytest.mark.parametrize("width", [5, 64])
 @pytest.mark.parametrize("rows", [(3,), (2, 150)])  # fewer rows than one block of the weight gradients, and more
-def test_layer_norm_equals_torch_and_its_gradients(width, rows):
+@pytest.mark.parametrize("with_residual", [False, True])
+def test_add_layer_norm_equals_torch_and_its_gradients(width, rows, with_residual):
     torch.manual_seed(width)
     norm = torch.nn.LayerNorm(width)
     with torch.no_grad():
         norm.weight.normal_()
         norm.bias.normal_()
-    x = (torch.randn(*rows, width) * 3 + 1).requires_grad_()
-    grad = torch.randn(*rows, width)
+    leaves = [(torch.randn(*rows, width) * 3 + 1).requires_grad_() for _ in range(2)]  # the product, the residual
+    bias = torch.randn(width, requires_grad=True)
+    grads = torch.randn(*rows, width), torch.randn(*rows, width)  # of the sum's other use and of the normed sum
     results = []
     for fast in (False, True):
-        x.grad, norm.weight.grad, norm.bias.grad = None, None, None
-        y = layer_norm(x, norm) if fast else norm(x)
-        y.backward(grad)
-        results.append((y.detach(), x.grad, norm.weight.grad, norm.bias.grad))
+        for t in (*leaves, bias, norm.weight, norm.bias):
+            t.grad = None
+        product = leaves[0] * 1.0  # an intermediate, as a matrix product is: the kernel writes the sum over it
+        residual = leaves[1] if with_residual else None
+        if fast:
+            total, y = add_layer_norm(product, residual, bias, norm)
+        else:
+            total = product + bias + (residual if residual is not None else 0)
+            y = norm(total)
+        torch.autograd.backward((total, y), grads)
+        found = [total.detach(), y.detach(), leaves[0].grad, bias.grad, norm.weight.grad, norm.bias.grad]
+        results.append(found + ([leaves[1].grad] if with_residual else []))
     for a, b in zip(*results):
-        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
-    with torch.no_grad():  # the forward without autograd's bookkeeping
-        torch.testing.assert_close(layer_norm(x, norm), results[0][0], atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
 
 
-def test_layer_norm_passes_gradcheck_in_float64():
+def test_add_layer_norm_passes_gradcheck_in_float64():
     torch.manual_seed(1)
-    x = torch.randn(4, 3, 6, dtype=torch.float64, requires_grad=True)
-    weight = torch.randn(6, dtype=torch.float64, requires_grad=True)
-    bias = torch.randn(6, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda a, b, c: _LayerNorm.apply(a, b, c, 1e-5), (x, weight, bias))
+    product, residual = (torch.randn(4, 3, 6, dtype=torch.float64, requires_grad=True) for _ in range(2))
+    bias, weight, norm_bias = (torch.randn(6, dtype=torch.float64, requires_grad=True) for _ in range(3))
+
+    def f(*args):
+        total, y = _AddLayerNorm.apply(*args, 1e-5)
+        return total.sin(), y  # both outputs, each with its own gradient
+
+    assert torch.autograd.gradcheck(f, (product, residual, bias, weight, norm_bias))
+    assert torch.autograd.gradcheck(lambda *a: f(a[0], None, *a[1:])[1], (product, bias, weight, norm_bias))
+
+
+def test_bias_relu_equals_torch_and_passes_gradcheck():
+    torch.manual_seed(2)
+    leaf = torch.randn(3, 150, 16, requires_grad=True)
+    bias = torch.randn(16, requires_grad=True)
+    grad = torch.randn(3, 150, 16)
+    results = []
+    for fast in (False, True):
+        leaf.grad, bias.grad = None, None
+        product = leaf * 1.0  # an intermediate, as a matrix product is: the kernel writes over it
+        y = bias_relu(product, bias) if fast else torch.relu(product + bias)
+        y.backward(grad)
+        results.append((y.detach(), leaf.grad, bias.grad))
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    x64 = torch.randn(5, 7, dtype=torch.float64, requires_grad=True)
+    b64 = torch.randn(7, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(bias_relu, (x64, b64))

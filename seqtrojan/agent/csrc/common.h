@@ -102,10 +102,16 @@ void band_attention_bwd(const at::Tensor& grad, const at::Tensor& qkv, const at:
                         double scale);
 
 // ---- layer norm of the windowed Transformer (layer_norm.cpp), bound in the same module
-void layer_norm_fwd(const at::Tensor& x, const at::Tensor& gamma, const at::Tensor& beta, double eps, at::Tensor& y,
-                    at::Tensor& mean, at::Tensor& rstd);
-void layer_norm_bwd(const at::Tensor& dy, const at::Tensor& x, const at::Tensor& mean, const at::Tensor& rstd,
-                    const at::Tensor& gamma, at::Tensor& dx, at::Tensor& dgamma, at::Tensor& dbeta);
+void layer_norm_fwd(at::Tensor& x, const c10::optional<at::Tensor>& bias, const c10::optional<at::Tensor>& residual,
+                    const at::Tensor& gamma, const at::Tensor& beta, double eps, at::Tensor& y, at::Tensor& mean,
+                    at::Tensor& rstd);
+void layer_norm_bwd(const at::Tensor& dy, const c10::optional<at::Tensor>& dx_extra, const at::Tensor& x,
+                    const at::Tensor& mean, const at::Tensor& rstd, const at::Tensor& gamma, at::Tensor& dx,
+                    at::Tensor& dgamma, at::Tensor& dbeta, const c10::optional<at::Tensor>& dbias);
+
+// ---- a linear layer's bias and a ReLU, in place (bias_relu.cpp), bound in the same module
+void bias_relu_fwd(at::Tensor& x, const at::Tensor& bias);
+void bias_relu_bwd(const at::Tensor& dy, const at::Tensor& y, at::Tensor& dx, at::Tensor& dbias);
 
 // ---- one no-grad step of a windowed Transformer layer (window_step.cpp), bound in the same module
 void window_layer_step(const at::Tensor& x, const at::Tensor& keep, const at::Tensor& cache,

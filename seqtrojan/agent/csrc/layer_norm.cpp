@@ -7,6 +7,11 @@
 //
 // y = (x - mean) * rstd * gamma + beta, rstd = 1 / sqrt(var + eps), var the biased variance (as torch.layer_norm).
 // x, y, dy, dx: (N, W) contiguous; gamma, beta, dgamma, dbeta: (W); mean, rstd: (N).
+//
+// The "add" variants take the norm's input as a sum and return it too, for a block's residual stream: x = g + bias
+// (+ residual), written over g (g a linear layer's product without its bias); backward, the sum's gradient is the
+// norm's plus the one the sum gets from its other uses (dx_extra), and the bias gradient is its column sum. This
+// saves the bias copy of a linear layer, the residual add and, backward, the gradient sums and the bias reduction.
 #include "common.h"
 
 #include <algorithm>
@@ -15,19 +20,28 @@ namespace fastrnn {
 
 constexpr int64_t kRowsPerBlock = 128;  // of the weight-gradient partial sums (fixed: thread-count independent)
 
+// x = x + bias (+ residual) in place first where bias is given; then y = layer norm of x
 template <typename T>
-void layer_norm_forward_impl(const T* x, const T* gamma, const T* beta, T eps, T* y, T* mean, T* rstd, int64_t N,
-                             int64_t W) {
+void layer_norm_forward_impl(T* x, const T* bias, const T* residual, const T* gamma, const T* beta, T eps, T* y,
+                             T* mean, T* rstd, int64_t N, int64_t W) {
   at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
     for (int64_t i = begin; i < end; ++i) {
-      const T* xi = x + i * W;
+      T* __restrict xi = x + i * W;
+      if (residual) {
+        const T* __restrict ri = residual + i * W;
+#pragma omp simd
+        for (int64_t e = 0; e < W; ++e) xi[e] += bias[e] + ri[e];
+      } else if (bias) {
+#pragma omp simd
+        for (int64_t e = 0; e < W; ++e) xi[e] += bias[e];
+      }
       T sum = 0;
       for (int64_t e = 0; e < W; ++e) sum += xi[e];
       const T mu = sum / W;
       T squares = 0;
       for (int64_t e = 0; e < W; ++e) squares += (xi[e] - mu) * (xi[e] - mu);
       const T r = T(1) / std::sqrt(squares / W + eps);
-      T* yi = y + i * W;
+      T* __restrict yi = y + i * W;
 #pragma omp simd
       for (int64_t e = 0; e < W; ++e) yi[e] = (xi[e] - mu) * r * gamma[e] + beta[e];
       mean[i] = mu;
@@ -36,15 +50,17 @@ void layer_norm_forward_impl(const T* x, const T* gamma, const T* beta, T eps, T
   });
 }
 
+// dx = the norm's input gradient (+ dx_extra where given); dbias (where given) = column sums of dx
 template <typename T>
-void layer_norm_backward_impl(const T* dy, const T* x, const T* mean, const T* rstd, const T* gamma, T* dx,
-                              T* dgamma, T* dbeta, int64_t N, int64_t W) {
+void layer_norm_backward_impl(const T* dy, const T* dx_extra, const T* x, const T* mean, const T* rstd,
+                              const T* gamma, T* dx, T* dgamma, T* dbeta, T* dbias, int64_t N, int64_t W) {
   const int64_t blocks = (N + kRowsPerBlock - 1) / kRowsPerBlock;
-  std::vector<T> partial(blocks * 2 * W, T(0));  // per block: [d gamma | d beta]
+  std::vector<T> partial(blocks * 3 * W, T(0));  // per block: [d gamma | d beta | d bias]
   at::parallel_for(0, blocks, 1, [&](int64_t b0, int64_t b1) {
     for (int64_t blk = b0; blk < b1; ++blk) {
-      T* __restrict pg = partial.data() + blk * 2 * W;
+      T* __restrict pg = partial.data() + blk * 3 * W;
       T* __restrict pb = pg + W;
+      T* __restrict pbias = pg + 2 * W;
       for (int64_t i = blk * kRowsPerBlock; i < std::min(N, (blk + 1) * kRowsPerBlock); ++i) {
         const T* __restrict xi = x + i * W;
         const T* __restrict gi = dy + i * W;
@@ -64,16 +80,27 @@ void layer_norm_backward_impl(const T* dy, const T* x, const T* mean, const T* r
           pg[e] += gi[e] * centred * r;
           pb[e] += gi[e];
         }
+        if (dx_extra) {
+          const T* __restrict ei = dx_extra + i * W;
+#pragma omp simd
+          for (int64_t e = 0; e < W; ++e) di[e] += ei[e];
+        }
+        if (dbias) {
+#pragma omp simd
+          for (int64_t e = 0; e < W; ++e) pbias[e] += di[e];
+        }
       }
     }
   });
   std::fill(dgamma, dgamma + W, T(0));
   std::fill(dbeta, dbeta + W, T(0));
+  if (dbias) std::fill(dbias, dbias + W, T(0));
   for (int64_t blk = 0; blk < blocks; ++blk) {
-    const T* pg = partial.data() + blk * 2 * W;
+    const T* pg = partial.data() + blk * 3 * W;
     for (int64_t e = 0; e < W; ++e) {
       dgamma[e] += pg[e];
       dbeta[e] += pg[W + e];
+      if (dbias) dbias[e] += pg[2 * W + e];
     }
   }
 }
@@ -82,35 +109,70 @@ void layer_norm_backward_impl(const T* dy, const T* x, const T* mean, const T* r
 
 using namespace fastrnn;
 
-void layer_norm_fwd(const at::Tensor& x, const at::Tensor& gamma, const at::Tensor& beta, double eps, at::Tensor& y,
-                    at::Tensor& mean, at::Tensor& rstd) {
+namespace {
+
+int64_t rows_of(const at::Tensor& x) { return x.numel() / std::max<int64_t>(x.size(-1), 1); }
+
+void check_vector(const c10::optional<at::Tensor>& t, int64_t W, const at::Tensor& x, const char* what) {
+  if (!t) return;
+  TORCH_CHECK(t->is_contiguous() && t->numel() == W && t->scalar_type() == x.scalar_type(), "layer norm: ", what,
+              " must be a contiguous vector of the rows' width and dtype");
+}
+
+void check_like(const c10::optional<at::Tensor>& t, const at::Tensor& x, const char* what) {
+  if (!t) return;
+  TORCH_CHECK(t->is_contiguous() && t->numel() == x.numel() && t->scalar_type() == x.scalar_type(), "layer norm: ",
+              what, " must be contiguous and match x");
+}
+
+template <typename T>
+T* ptr(const c10::optional<at::Tensor>& t) {
+  return t ? t->data_ptr<T>() : nullptr;
+}
+
+}  // namespace
+
+// x = x + bias (+ residual) in place where bias is given; y = layer norm of x
+void layer_norm_fwd(at::Tensor& x, const c10::optional<at::Tensor>& bias, const c10::optional<at::Tensor>& residual,
+                    const at::Tensor& gamma, const at::Tensor& beta, double eps, at::Tensor& y, at::Tensor& mean,
+                    at::Tensor& rstd) {
   check(x, "layer norm: x");
-  const int64_t W = x.size(-1), N = x.numel() / std::max<int64_t>(W, 1);
-  TORCH_CHECK(gamma.numel() == W && beta.numel() == W && gamma.is_contiguous() && beta.is_contiguous(),
-              "layer norm: gamma and beta must be contiguous with the rows' width");
+  const int64_t W = x.size(-1), N = rows_of(x);
+  check_vector(gamma, W, x, "gamma");
+  check_vector(beta, W, x, "beta");
+  check_vector(bias, W, x, "bias");
+  check_like(residual, x, "the residual");
+  TORCH_CHECK(!residual || bias, "layer norm: a residual needs a bias");
   TORCH_CHECK(y.is_contiguous() && y.numel() == x.numel() && mean.numel() == N && rstd.numel() == N,
               "layer norm: output buffers do not match");
-  TORCH_CHECK(gamma.scalar_type() == x.scalar_type() && beta.scalar_type() == x.scalar_type(),
-              "layer norm: x, gamma and beta must have one dtype");
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "layer_norm_fwd", [&] {
-    layer_norm_forward_impl<scalar_t>(x.data_ptr<scalar_t>(), gamma.data_ptr<scalar_t>(), beta.data_ptr<scalar_t>(),
+    layer_norm_forward_impl<scalar_t>(x.data_ptr<scalar_t>(), ptr<scalar_t>(bias), ptr<scalar_t>(residual),
+                                      gamma.data_ptr<scalar_t>(), beta.data_ptr<scalar_t>(),
                                       static_cast<scalar_t>(eps), y.data_ptr<scalar_t>(), mean.data_ptr<scalar_t>(),
                                       rstd.data_ptr<scalar_t>(), N, W);
   });
 }
 
-void layer_norm_bwd(const at::Tensor& dy, const at::Tensor& x, const at::Tensor& mean, const at::Tensor& rstd,
-                    const at::Tensor& gamma, at::Tensor& dx, at::Tensor& dgamma, at::Tensor& dbeta) {
+// dx = the norm's input gradient (+ dx_extra); dbias = column sums of dx, where given
+void layer_norm_bwd(const at::Tensor& dy, const c10::optional<at::Tensor>& dx_extra, const at::Tensor& x,
+                    const at::Tensor& mean, const at::Tensor& rstd, const at::Tensor& gamma, at::Tensor& dx,
+                    at::Tensor& dgamma, at::Tensor& dbeta, const c10::optional<at::Tensor>& dbias) {
   check(dy, "layer norm backward: dy");
   check(x, "layer norm backward: x");
-  const int64_t W = x.size(-1), N = x.numel() / std::max<int64_t>(W, 1);
+  const int64_t W = x.size(-1), N = rows_of(x);
+  check_like(dx_extra, x, "the extra gradient");
+  check_vector(gamma, W, x, "gamma");
+  check_vector(dgamma, W, x, "d gamma");
+  check_vector(dbeta, W, x, "d beta");
+  check_vector(dbias, W, x, "d bias");
   TORCH_CHECK(dy.numel() == x.numel() && dx.is_contiguous() && dx.numel() == x.numel() && mean.numel() == N &&
-                  rstd.numel() == N && gamma.numel() == W && dgamma.numel() == W && dbeta.numel() == W,
+                  rstd.numel() == N,
               "layer norm backward: buffers do not match");
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "layer_norm_bwd", [&] {
-    layer_norm_backward_impl<scalar_t>(dy.data_ptr<scalar_t>(), x.data_ptr<scalar_t>(), mean.data_ptr<scalar_t>(),
-                                       rstd.data_ptr<scalar_t>(), gamma.data_ptr<scalar_t>(),
-                                       dx.data_ptr<scalar_t>(), dgamma.data_ptr<scalar_t>(),
-                                       dbeta.data_ptr<scalar_t>(), N, W);
+    layer_norm_backward_impl<scalar_t>(dy.data_ptr<scalar_t>(), ptr<scalar_t>(dx_extra), x.data_ptr<scalar_t>(),
+                                       mean.data_ptr<scalar_t>(), rstd.data_ptr<scalar_t>(),
+                                       gamma.data_ptr<scalar_t>(), dx.data_ptr<scalar_t>(),
+                                       dgamma.data_ptr<scalar_t>(), dbeta.data_ptr<scalar_t>(),
+                                       ptr<scalar_t>(dbias), N, W);
   });
 }
