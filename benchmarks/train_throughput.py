@@ -8,8 +8,9 @@
 Throughput: env steps per second of the whole PPO loop (collect + GAE + 4 epochs of minibatch updates) with the
 paper's network (54 -> LSTM 64 -> LSTM 32), median over updates 2-6, for each LSTM backend.
 Cells: the same loop and widths (64, 32) with each sequence model: the LSTM, peephole LSTM and GRU on their fused
-C++ kernels and on the PyTorch path, the windowed Transformer (window 8) with its C++ band attention and on the
-PyTorch path (the rest of its block is PyTorch either way).
+C++ kernels and on the PyTorch path, the windowed Transformer (window 8) with its C++ kernels (band attention,
+fused bias + residual + norm and bias + ReLU passes, one-call rollout step; its linear products are PyTorch's either
+way) and on the PyTorch path.
 Time and env steps to a success target: benchmarks/sample_efficiency.py.
 Run it alone on the machine.
 """

@@ -1,12 +1,19 @@
-"""The windowed Transformer's band attention on the C++ extension (``csrc/band_attention.cpp``).
+"""The windowed Transformer's C++ kernels (``csrc/``; the extension of :mod:`seqtrojan.agent.fast_lstm`, built and
+loaded there), each the same function as the PyTorch path of :class:`seqtrojan.agent.cells.WindowAttentionLayer`
+(tested against it, and with gradcheck in float64):
 
-Why: the PyTorch path (:meth:`seqtrojan.agent.cells.WindowAttentionLayer._band_attention`) computes all T x P scores
-of a training chunk and masks all but ``window`` per query, in about a dozen ops (and their backward), after copies
-that assemble the queries, keys and values; the kernel reads each query's ``window`` slots where they lie (the
-layer's [q | k | v] projection of the chunk and the cached positions before it) in one pass forward and one
-backward, and hands the gradients back in that same layout. It computes the same function (tested against the
-PyTorch path, and with gradcheck in float64); the extension is the one of :mod:`seqtrojan.agent.fast_lstm`, built
-and loaded there.
+- :func:`band_attention` (``band_attention.cpp``): the PyTorch path computes all T x P scores of a training chunk
+  and masks all but ``window`` per query, in about a dozen ops (and their backward), after copies that assemble the
+  queries, keys and values; the kernel reads each query's ``window`` slots where they lie (the layer's [q | k | v]
+  projection of the chunk and the cached positions before it) in one pass forward and one backward, and hands the
+  gradients back in that same layout.
+- :func:`add_layer_norm` (``layer_norm.cpp``) and :func:`bias_relu` (``bias_relu.cpp``): a linear layer's bias, the
+  residual add and the layer norm after it, or the bias and the MLP's ReLU, in one pass forward and one backward
+  (with the bias gradient). At a policy's widths (32, 64) PyTorch's CPU layer norm costs about as much as a matrix
+  product of the same rows, and each bias, add and activation is a further pass over the chunk.
+- :func:`window_step` (``window_step.cpp``): a rollout step of a whole layer in one call (the five products as BLAS
+  calls on one block of envs per thread, the norms, and per env the new cache written and attended over while it
+  is in cache), where the PyTorch path is about twenty ops per layer.
 """
 
 from __future__ import annotations

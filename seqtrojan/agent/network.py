@@ -134,7 +134,8 @@ class RecurrentActorCritic(nn.Module):
         self.lstm_backend = "auto"
         """'auto' uses the fused C++ kernels (:mod:`seqtrojan.agent.fast_lstm`) on CPU where they build, 'torch'
         never, 'cpp' always (an error where unavailable). Both compute the same function. For the Transformer the
-        kernel is its band attention (:mod:`seqtrojan.agent.fast_attention`); the rest of its block is PyTorch."""
+        kernels are its band attention, its fused bias + residual + norm and bias + ReLU passes and its one-call rollout
+        step (:mod:`seqtrojan.agent.fast_attention`); its linear layers' products are PyTorch's (BLAS)."""
         self._weight_cache: dict = {}
 
     def set_lstm_backend(self, backend: str) -> None:
