@@ -18,10 +18,15 @@ loaded there), each the same function as the PyTorch path of :class:`seqtrojan.a
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch.autograd.function import once_differentiable
 
 from seqtrojan.agent import fast_lstm
+
+if TYPE_CHECKING:  # cells imports this module
+    from seqtrojan.agent.cells import WindowAttentionLayer
 
 
 class _BandAttention(torch.autograd.Function):
@@ -138,7 +143,7 @@ def bias_relu(product: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     return _BiasReLU.apply(product, bias)
 
 
-def window_step_params(layer: torch.nn.Module) -> list[torch.Tensor]:
+def window_step_params(layer: WindowAttentionLayer) -> list[torch.Tensor]:
     """A windowed Transformer layer's 17 tensors in the order ``csrc/window_step.cpp`` reads them."""
     names = ("input", "norm_attention", "qkv", "out", "norm_mlp", "mlp_in", "mlp_out", "norm_out")
     tensors = [t for name in names for t in (getattr(layer, name).weight, getattr(layer, name).bias)]
@@ -147,7 +152,7 @@ def window_step_params(layer: torch.nn.Module) -> list[torch.Tensor]:
 
 @torch.no_grad()
 def window_step(
-    layer: torch.nn.Module, x: torch.Tensor, keep: torch.Tensor, cache: torch.Tensor
+    layer: WindowAttentionLayer, x: torch.Tensor, keep: torch.Tensor, cache: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """One no-grad step of a windowed Transformer layer (``WindowAttentionLayer.step``) in one call of the C++
     kernel (``csrc/window_step.cpp``): ``x`` (B, I), ``keep`` (B,) multiplies the cache first, ``cache`` (B, (w - 1)
