@@ -10,16 +10,16 @@ weight gradients while each step's data is still in cache. Measured on this proj
 about 520k samples/s forward + backward for the paper's 54 -> 64 -> 32 network versus about 280k/s for the
 PyTorch path (see benchmarks/train_throughput.py).
 
-The extension is compiled once per machine on first use (about 30 s; needs a C++ compiler, which the PyTorch CPU
-wheels already require for this) into ``~/.cache/seqtrojan`` (``SEQTROJAN_CACHE`` overrides), in a folder keyed by
-the sources (the bytes of every file in ``csrc`` and their path), the Python environment (``sys.prefix``), the torch
-version and the CPU, so that two clones or virtual environments never share one. A build runs in a fresh temporary
-folder under an ``fcntl.flock`` lock of our own and is renamed into place when complete: a killed build leaves
-neither a half-built extension nor a lock (the kernel drops a dead process's flock), and loading a built extension
-takes no lock at all. A process that finds another one building waits up to ``SEQTROJAN_KERNEL_WAIT`` seconds
-(default 300), saying so on stderr, and then uses the PyTorch path. Where it cannot be built, or on CUDA, or when an
-intervention must see every step, :mod:`seqtrojan.agent.network` uses its PyTorch path, which computes the same
-function. ``SEQTROJAN_LSTM_BACKEND=torch`` disables the extension.
+The extension is compiled once per machine on first use (about a minute on 2 cores; needs a C++ compiler, which the
+PyTorch CPU wheels already require for this) into ``~/.cache/seqtrojan`` (``SEQTROJAN_CACHE`` overrides), in a folder
+keyed by the sources (the bytes of every file in ``csrc`` and their path), the Python environment (``sys.prefix``), the
+torch version and the CPU, so that two clones or virtual environments never share one. A build runs in a fresh temporary
+folder under an ``fcntl.flock`` lock of our own and is renamed into place when complete: a killed build leaves neither a
+half-built extension nor a lock (the kernel drops a dead process's flock), and loading a built extension takes no lock
+at all. A process that finds another one building waits up to ``SEQTROJAN_KERNEL_WAIT`` seconds (default 300), saying so
+on stderr, and then uses the PyTorch path. Where it cannot be built, or on CUDA, or when an intervention must see every
+step, :mod:`seqtrojan.agent.network` uses its PyTorch path, which computes the same function.
+``SEQTROJAN_LSTM_BACKEND=torch`` disables the extension.
 
 Semantics are exactly those of the PyTorch path (tested, including gradcheck in float64). Activations in
 float32 use inline approximations with about 3e-7 maximum error, the size of float32 rounding.
@@ -188,7 +188,7 @@ def _build(build_dir: Path):
     # Leftovers of killed builds (no live builder exists while we hold the lock), including torch's 'lock' baton.
     for old in build_dir.parent.glob(f".{build_dir.name}.build-*"):
         shutil.rmtree(old, ignore_errors=True)
-    print("seqtrojan: compiling the fast LSTM kernels (once per machine, about 30 s)...", file=sys.stderr, flush=True)
+    print("seqtrojan: compiling the C++ kernels (once per machine, about a minute)...", file=sys.stderr, flush=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{build_dir.name}.build-", dir=build_dir.parent))
     try:
         module = load(

@@ -1,7 +1,8 @@
 """Building and loading the C++ LSTM kernels: no stale lock, a bounded wait, signals honoured while waiting.
 
 Every scenario runs in a subprocess with its own SEQTROJAN_CACHE and a timeout, so a regression fails instead of
-hanging the suite. One test compiles the extension for real (about 30 s of CPU); the others never build.
+hanging the suite. One test compiles the extension for real (about 100 s of CPU over its six sources); the others
+never build.
 """
 
 from __future__ import annotations

@@ -2,7 +2,9 @@
 // the BLAS GEMM, the activations and the argument checks.  See fast_lstm.cpp for the design.
 #pragma once
 
-#include <torch/extension.h>
+// ATen only (about a third of the compile time of torch/extension.h, which only fast_lstm.cpp needs: it binds
+// the module)
+#include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <cmath>
 #include <cstdint>

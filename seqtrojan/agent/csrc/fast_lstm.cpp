@@ -38,6 +38,8 @@
 // Activations (float): inline vectorisable exp / rational tanh approximations (max error ~3e-7,
 // comparable to float32 rounding); double (gradcheck): std::exp / std::tanh.
 
+#include <torch/extension.h>  // the Python module (PYBIND11_MODULE below)
+
 #include "common.h"
 
 namespace {
