@@ -69,15 +69,20 @@ def band_attention(
     return _BandAttention.apply(qkv, prefix, allowed.contiguous(), bias, scale)
 
 
+def _writable(ctx, product: torch.Tensor) -> torch.Tensor:
+    """``product`` itself where a kernel may write over it (an autograd intermediate, such as a matrix product:
+    marked dirty), else a contiguous copy (a leaf, or strided)."""
+    if product.is_contiguous() and not product.is_leaf:
+        ctx.mark_dirty(product)
+        return product
+    return product.clone(memory_format=torch.contiguous_format)
+
+
 class _AddLayerNorm(torch.autograd.Function):
     @staticmethod
     def forward(ctx, product, residual, bias, weight, norm_bias, eps: float):
         ctx.set_materialize_grads(False)
-        if product.is_contiguous() and not product.is_leaf:  # the sum is written over the product (an intermediate)
-            total = product
-            ctx.mark_dirty(product)
-        else:
-            total = product.clone(memory_format=torch.contiguous_format)
+        total = _writable(ctx, product)  # the sum is written over it
         y, mean, rstd = torch.empty_like(total), total.new_empty(total.shape[:-1]), total.new_empty(total.shape[:-1])
         ext = fast_lstm.extension()
         assert ext is not None  # callers check fast_lstm.usable first
@@ -115,11 +120,7 @@ def add_layer_norm(
 class _BiasReLU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, product, bias):
-        if product.is_contiguous() and not product.is_leaf:  # written over the product (an intermediate)
-            y = product
-            ctx.mark_dirty(product)
-        else:
-            y = product.clone(memory_format=torch.contiguous_format)
+        y = _writable(ctx, product)
         ext = fast_lstm.extension()
         assert ext is not None  # callers check fast_lstm.usable first
         ext.bias_relu_fwd(y, bias)

@@ -81,6 +81,21 @@ inline float exp_(float x) { return fexp(x); }  // inline, no libm call inside t
 inline double exp_(double x) { return std::exp(x); }
 inline double tanh_(double x) { return std::tanh(x); }
 
+// y = layer norm of one row x of W (biased variance, as torch.layer_norm); its mean and 1 / std are stored
+template <typename T>
+inline void norm_row(const T* x, T* y, int64_t W, const T* gamma, const T* beta, T eps, T& mean, T& rstd) {
+  T sum = 0;
+  for (int64_t e = 0; e < W; ++e) sum += x[e];
+  const T mu = sum / W;
+  T squares = 0;
+  for (int64_t e = 0; e < W; ++e) squares += (x[e] - mu) * (x[e] - mu);
+  const T r = T(1) / std::sqrt(squares / W + eps);
+#pragma omp simd
+  for (int64_t e = 0; e < W; ++e) y[e] = (x[e] - mu) * r * gamma[e] + beta[e];
+  mean = mu;
+  rstd = r;
+}
+
 inline void check(const at::Tensor& t, const char* name) {
   TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
   TORCH_CHECK(t.device().is_cpu(), name, " must be on CPU");

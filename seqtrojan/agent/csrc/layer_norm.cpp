@@ -35,17 +35,7 @@ void layer_norm_forward_impl(T* x, const T* bias, const T* residual, const T* ga
 #pragma omp simd
         for (int64_t e = 0; e < W; ++e) xi[e] += bias[e];
       }
-      T sum = 0;
-      for (int64_t e = 0; e < W; ++e) sum += xi[e];
-      const T mu = sum / W;
-      T squares = 0;
-      for (int64_t e = 0; e < W; ++e) squares += (xi[e] - mu) * (xi[e] - mu);
-      const T r = T(1) / std::sqrt(squares / W + eps);
-      T* __restrict yi = y + i * W;
-#pragma omp simd
-      for (int64_t e = 0; e < W; ++e) yi[e] = (xi[e] - mu) * r * gamma[e] + beta[e];
-      mean[i] = mu;
-      rstd[i] = r;
+      norm_row(xi, y + i * W, W, gamma, beta, eps, mean[i], rstd[i]);
     }
   });
 }

@@ -29,18 +29,8 @@ struct WindowWeights {
 // y rows = layer norm of x rows (n rows of W)
 template <typename T>
 void norm_rows(const T* x, T* y, int64_t n, int64_t W, const T* gamma, const T* beta, T eps) {
-  for (int64_t r = 0; r < n; ++r) {
-    const T* xr = x + r * W;
-    T sum = 0;
-    for (int64_t e = 0; e < W; ++e) sum += xr[e];
-    const T mu = sum / W;
-    T squares = 0;
-    for (int64_t e = 0; e < W; ++e) squares += (xr[e] - mu) * (xr[e] - mu);
-    const T rstd = T(1) / std::sqrt(squares / W + eps);
-    T* yr = y + r * W;
-#pragma omp simd
-    for (int64_t e = 0; e < W; ++e) yr[e] = (xr[e] - mu) * rstd * gamma[e] + beta[e];
-  }
+  T mean, rstd;
+  for (int64_t r = 0; r < n; ++r) norm_row(x + r * W, y + r * W, W, gamma, beta, eps, mean, rstd);
 }
 
 // c (n x m, row-major) += a (n x k, row-major, row stride lda) w^T, w (m x k) row-major: a linear layer on n rows
