@@ -118,13 +118,13 @@ void band_attention_bwd(const at::Tensor& grad, const at::Tensor& qkv, const at:
                         const at::Tensor& probs, at::Tensor& dqkv, at::Tensor& dprefix, at::Tensor& dscores,
                         double scale);
 
-// ---- layer norm of the windowed Transformer (layer_norm.cpp), bound in the same module
-void layer_norm_fwd(at::Tensor& x, const c10::optional<at::Tensor>& bias, const c10::optional<at::Tensor>& residual,
+// ---- bias + residual + layer norm of the windowed Transformer (layer_norm.cpp), bound in the same module
+void layer_norm_fwd(at::Tensor& x, const at::Tensor& bias, const c10::optional<at::Tensor>& residual,
                     const at::Tensor& gamma, const at::Tensor& beta, double eps, at::Tensor& y, at::Tensor& mean,
                     at::Tensor& rstd);
 void layer_norm_bwd(const at::Tensor& dy, const c10::optional<at::Tensor>& dx_extra, const at::Tensor& x,
                     const at::Tensor& mean, const at::Tensor& rstd, const at::Tensor& gamma, at::Tensor& dx,
-                    at::Tensor& dgamma, at::Tensor& dbeta, const c10::optional<at::Tensor>& dbias);
+                    at::Tensor& dgamma, at::Tensor& dbeta, at::Tensor& dbias);
 
 // ---- a linear layer's bias and a ReLU, in place (bias_relu.cpp), bound in the same module
 void bias_relu_fwd(at::Tensor& x, const at::Tensor& bias);

@@ -418,8 +418,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("gru_bwd_cat", &gru_bwd_cat, "masked GRU layer BPTT, dx fused per step");
   m.def("band_attention_fwd", &band_attention_fwd, "the windowed Transformer's band attention, forward");
   m.def("band_attention_bwd", &band_attention_bwd, "the windowed Transformer's band attention, backward");
-  m.def("layer_norm_fwd", &layer_norm_fwd, "layer norm over the last dimension (of a sum), forward");
-  m.def("layer_norm_bwd", &layer_norm_bwd, "layer norm over the last dimension (of a sum), backward");
+  m.def("layer_norm_fwd", &layer_norm_fwd, "bias (+ residual) and layer norm over the last dimension, forward");
+  m.def("layer_norm_bwd", &layer_norm_bwd, "bias (+ residual) and layer norm over the last dimension, backward");
   m.def("bias_relu_fwd", &bias_relu_fwd, "a linear layer's bias and a ReLU on its product, in place");
   m.def("bias_relu_bwd", &bias_relu_bwd, "the backward of bias_relu_fwd, with the bias gradient");
   m.def("window_layer_step", &window_layer_step, "one no-grad step of a windowed Transformer layer");

@@ -1,17 +1,16 @@
-// Layer norm over the last dimension (the windowed Transformer's three norms per block), forward and backward.
+// A linear layer's bias, the residual add and the layer norm after it (the windowed Transformer's three norms per
+// block), forward and backward.
 //
 // PyTorch's CPU layer norm costs about as much as a matrix product of the same rows when rows are as short as a
 // policy's (32 or 64 units): per-row dispatch and a separate reduction pass for the weight gradients. Here a row is
 // one pass forward and one backward, rows in parallel, and the weight and bias gradients are summed per fixed block
 // of rows and then over the blocks in order, so that the result does not depend on the number of threads.
 //
+// x = g + bias (+ residual), written over g (g a linear layer's product without its bias), and y = layer norm of x:
 // y = (x - mean) * rstd * gamma + beta, rstd = 1 / sqrt(var + eps), var the biased variance (as torch.layer_norm).
-// x, y, dy, dx: (N, W) contiguous; gamma, beta, dgamma, dbeta: (W); mean, rstd: (N).
-//
-// The "add" variants take the norm's input as a sum and return it too, for a block's residual stream: x = g + bias
-// (+ residual), written over g (g a linear layer's product without its bias); backward, the sum's gradient is the
-// norm's plus the one the sum gets from its other uses (dx_extra), and the bias gradient is its column sum. This
-// saves the bias copy of a linear layer, the residual add and, backward, the gradient sums and the bias reduction.
+// Backward, x's gradient is the norm's plus the one x gets from its other uses (dx_extra), and the bias gradient is
+// its column sum. This saves the bias copy of a linear layer, the residual add and, backward, the gradient sums and
+// the bias reduction. x, y, dy, dx: (N, W) contiguous; bias, gamma, beta and their gradients: (W); mean, rstd: (N).
 #include "common.h"
 
 #include <algorithm>
@@ -20,7 +19,7 @@ namespace fastrnn {
 
 constexpr int64_t kRowsPerBlock = 128;  // of the weight-gradient partial sums (fixed: thread-count independent)
 
-// x = x + bias (+ residual) in place first where bias is given; then y = layer norm of x
+// x = x + bias (+ residual) in place first; then y = layer norm of x
 template <typename T>
 void layer_norm_forward_impl(T* x, const T* bias, const T* residual, const T* gamma, const T* beta, T eps, T* y,
                              T* mean, T* rstd, int64_t N, int64_t W) {
@@ -31,7 +30,7 @@ void layer_norm_forward_impl(T* x, const T* bias, const T* residual, const T* ga
         const T* __restrict ri = residual + i * W;
 #pragma omp simd
         for (int64_t e = 0; e < W; ++e) xi[e] += bias[e] + ri[e];
-      } else if (bias) {
+      } else {
 #pragma omp simd
         for (int64_t e = 0; e < W; ++e) xi[e] += bias[e];
       }
@@ -40,7 +39,7 @@ void layer_norm_forward_impl(T* x, const T* bias, const T* residual, const T* ga
   });
 }
 
-// dx = the norm's input gradient (+ dx_extra where given); dbias (where given) = column sums of dx
+// dx = the norm's input gradient (+ dx_extra where given); dbias = column sums of dx
 template <typename T>
 void layer_norm_backward_impl(const T* dy, const T* dx_extra, const T* x, const T* mean, const T* rstd,
                               const T* gamma, T* dx, T* dgamma, T* dbeta, T* dbias, int64_t N, int64_t W) {
@@ -75,22 +74,20 @@ void layer_norm_backward_impl(const T* dy, const T* dx_extra, const T* x, const 
 #pragma omp simd
           for (int64_t e = 0; e < W; ++e) di[e] += ei[e];
         }
-        if (dbias) {
 #pragma omp simd
-          for (int64_t e = 0; e < W; ++e) pbias[e] += di[e];
-        }
+        for (int64_t e = 0; e < W; ++e) pbias[e] += di[e];
       }
     }
   });
   std::fill(dgamma, dgamma + W, T(0));
   std::fill(dbeta, dbeta + W, T(0));
-  if (dbias) std::fill(dbias, dbias + W, T(0));
+  std::fill(dbias, dbias + W, T(0));
   for (int64_t blk = 0; blk < blocks; ++blk) {
     const T* pg = partial.data() + blk * 3 * W;
     for (int64_t e = 0; e < W; ++e) {
       dgamma[e] += pg[e];
       dbeta[e] += pg[W + e];
-      if (dbias) dbias[e] += pg[2 * W + e];
+      dbias[e] += pg[2 * W + e];
     }
   }
 }
@@ -122,8 +119,8 @@ T* ptr(const c10::optional<at::Tensor>& t) {
 
 }  // namespace
 
-// x = x + bias (+ residual) in place where bias is given; y = layer norm of x
-void layer_norm_fwd(at::Tensor& x, const c10::optional<at::Tensor>& bias, const c10::optional<at::Tensor>& residual,
+// x = x + bias (+ residual) in place; y = layer norm of x
+void layer_norm_fwd(at::Tensor& x, const at::Tensor& bias, const c10::optional<at::Tensor>& residual,
                     const at::Tensor& gamma, const at::Tensor& beta, double eps, at::Tensor& y, at::Tensor& mean,
                     at::Tensor& rstd) {
   check(x, "layer norm: x");
@@ -132,21 +129,20 @@ void layer_norm_fwd(at::Tensor& x, const c10::optional<at::Tensor>& bias, const 
   check_vector(beta, W, x, "beta");
   check_vector(bias, W, x, "bias");
   check_like(residual, x, "the residual");
-  TORCH_CHECK(!residual || bias, "layer norm: a residual needs a bias");
   TORCH_CHECK(y.is_contiguous() && y.numel() == x.numel() && mean.numel() == N && rstd.numel() == N,
               "layer norm: output buffers do not match");
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "layer_norm_fwd", [&] {
-    layer_norm_forward_impl<scalar_t>(x.data_ptr<scalar_t>(), ptr<scalar_t>(bias), ptr<scalar_t>(residual),
+    layer_norm_forward_impl<scalar_t>(x.data_ptr<scalar_t>(), bias.data_ptr<scalar_t>(), ptr<scalar_t>(residual),
                                       gamma.data_ptr<scalar_t>(), beta.data_ptr<scalar_t>(),
                                       static_cast<scalar_t>(eps), y.data_ptr<scalar_t>(), mean.data_ptr<scalar_t>(),
                                       rstd.data_ptr<scalar_t>(), N, W);
   });
 }
 
-// dx = the norm's input gradient (+ dx_extra); dbias = column sums of dx, where given
+// dx = the norm's input gradient (+ dx_extra); dbias = column sums of dx
 void layer_norm_bwd(const at::Tensor& dy, const c10::optional<at::Tensor>& dx_extra, const at::Tensor& x,
                     const at::Tensor& mean, const at::Tensor& rstd, const at::Tensor& gamma, at::Tensor& dx,
-                    at::Tensor& dgamma, at::Tensor& dbeta, const c10::optional<at::Tensor>& dbias) {
+                    at::Tensor& dgamma, at::Tensor& dbeta, at::Tensor& dbias) {
   check(dy, "layer norm backward: dy");
   check(x, "layer norm backward: x");
   const int64_t W = x.size(-1), N = rows_of(x);
@@ -163,6 +159,6 @@ void layer_norm_bwd(const at::Tensor& dy, const c10::optional<at::Tensor>& dx_ex
                                        mean.data_ptr<scalar_t>(), rstd.data_ptr<scalar_t>(),
                                        gamma.data_ptr<scalar_t>(), dx.data_ptr<scalar_t>(),
                                        dgamma.data_ptr<scalar_t>(), dbeta.data_ptr<scalar_t>(),
-                                       ptr<scalar_t>(dbias), N, W);
+                                       dbias.data_ptr<scalar_t>(), N, W);
   });
 }
