@@ -375,6 +375,10 @@ class WindowAttentionLayer(nn.Module):
         if return_states:
             kv = torch.cat([prefix[..., :-1], qkv[..., width:]], 1) if kv is None else kv
             caches = self._caches(kv, valid, episode, range(1, steps + 1))
+        elif 1 < w <= steps + 1:  # only the last one, all of whose w - 1 slots lie in the chunk (all valid)
+            same = (episode[:, steps:] == episode[:, -1:]).unsqueeze(-1)  # of the newest slot's episode
+            slots = torch.cat([qkv[:, steps - (w - 1) :, width:], same.to(qkv.dtype)], -1) * same  # (B, w - 1, S)
+            caches = slots.flatten(1).unsqueeze(0)
         else:  # only the last one: from the prefix and the chunk's last w - 1 positions
             last = min(steps, w - 1)
             tail = torch.cat([prefix[..., :-1], qkv[:, steps - last :, width:]], 1)

@@ -270,7 +270,11 @@ class RecurrentActorCritic(nn.Module):
             finals.append(final)
             if seq is not None:
                 sequences.append(seq)
-        logits, values = self.heads(x)
+        if x.transpose(0, 1).is_contiguous() and not x.is_contiguous():  # a batch-major layer (the Transformer):
+            logits, values = self.heads(x.transpose(0, 1))  # the heads read it as it lies, not a time-major copy
+            logits, values = logits.transpose(0, 1).contiguous(), values.t().contiguous()
+        else:
+            logits, values = self.heads(x)
         return UnrollOutput(logits, values, RecurrentState(tuple(finals)), tuple(sequences) if return_states else None)
 
     def _unroll_stepwise(

@@ -75,10 +75,10 @@ def ppo_update(
         order = torch.randperm(n, generator=generator).to(rollout.obs.device)
         epoch_kl = []
         for mb in order.split(per_batch):
+            picked = {name: tensor.index_select(1, mb) for name, tensor in seq.items()}  # ~2x faster than [:, mb]
             minibatch = PPOMinibatch(
-                seq["obs"][:, mb], seq["starts"][:, mb], initial_state_from(rollout.seq_states, mb),
-                seq["actions"][:, mb], seq["logprobs"][:, mb], seq["values"][:, mb], seq["advantages"][:, mb],
-                seq["returns"][:, mb], cfg,
+                picked["obs"], picked["starts"], initial_state_from(rollout.seq_states, mb), picked["actions"],
+                picked["logprobs"], picked["values"], picked["advantages"], picked["returns"], cfg,
             )  # fmt: skip
             out = agent.unroll(minibatch.obs, minibatch.initial, minibatch.starts, return_states=needs_states)
             parts = ppo_loss(
@@ -94,8 +94,8 @@ def ppo_update(
             loss = parts.loss
             if penalties:
                 batch = PenaltyBatch(
-                    agent, out.states, masks["trojan"][:, mb] if masks else None,
-                    masks["active"][:, mb] if masks else None, minibatch,
+                    agent, out.states, masks["trojan"].index_select(1, mb) if masks else None,
+                    masks["active"].index_select(1, mb) if masks else None, minibatch,
                 )  # fmt: skip
                 for penalty in penalties:
                     value = penalty.loss(batch)

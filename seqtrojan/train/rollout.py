@@ -141,4 +141,8 @@ class RolloutCollector:
 
 def initial_state_from(seq_states: tuple[LSTMState, ...], index: torch.Tensor) -> RecurrentState:
     """Start states of the chosen sequences; ``index`` selects from the flattened (T / L * B) sequences."""
-    return RecurrentState(tuple(LSTMState(s.h.flatten(0, 1)[index], s.c.flatten(0, 1)[index]) for s in seq_states))
+
+    def pick(t: torch.Tensor) -> torch.Tensor:  # index_select: the same copy as t[index], faster
+        return t.flatten(0, 1).index_select(0, index)
+
+    return RecurrentState(tuple(LSTMState(pick(s.h), pick(s.c)) for s in seq_states))

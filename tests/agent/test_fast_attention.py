@@ -37,7 +37,7 @@ def _inputs(layer: WindowAttentionLayer, steps: int, batch: int, dtype: torch.dt
     return x, keep, LSTMState(torch.zeros(batch, layer.hidden_size, dtype=dtype), cache.flatten(1))
 
 
-@pytest.mark.parametrize("steps", [9, 2])  # a chunk longer and one shorter than the cache
+@pytest.mark.parametrize("steps", [9, 3, 2])  # a chunk longer than the cache, as long, shorter
 @pytest.mark.parametrize("heads", [1, 2])
 @pytest.mark.parametrize("width", [8, 32])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
