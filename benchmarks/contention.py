@@ -4,6 +4,7 @@
     python benchmarks/contention.py --competitors 0 1 --rounds 5
     python benchmarks/contention.py --competitor matmul              # competitors multiply matrices instead
     python benchmarks/contention.py --variant default --variant GOMP_SPINCOUNT=300000 --competitors 0 1
+    python benchmarks/contention.py --cell transformer --variant default --variant GOMP_SPINCOUNT=3000
 
 Each --variant (NAME=VALUE[,NAME=VALUE...], or 'default' for the environment as it is) is measured in turn,
 interleaved with the others; GOMP_SPINCOUNT=300000 with OMP_WAIT_POLICY unset is libgomp's own default (what
@@ -43,7 +44,7 @@ COMPETITORS = {
 }
 
 
-def _worker(size: int, holes: int, envs: int, backend: str) -> None:
+def _worker(size: int, holes: int, envs: int, backend: str, cell: str) -> None:
     """Print one JSON line: this process's PPO throughput and the settings it ran with."""
     import seqtrojan  # first: it sets the OpenMP defaults, which torch's runtime reads once when it loads
 
@@ -56,7 +57,7 @@ def _worker(size: int, holes: int, envs: int, backend: str) -> None:
     del seqtrojan
 
     with tempfile.TemporaryDirectory() as tmp:
-        rate = measure_speed(size, holes, envs, backend, "cpu", tmp)
+        rate = measure_speed(size, holes, envs, backend, "cpu", tmp, cell)
     settings = {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS")}
     used = "cpp" if backend != "torch" and fast_lstm.extension() is not None else "torch"
     print(json.dumps({"rate": rate, "threads": torch.get_num_threads(), "backend": used, **settings}))
@@ -73,7 +74,7 @@ def measure(competitors: int, args: argparse.Namespace, env: dict[str, str]) -> 
     procs = _start_competitors(competitors, args.competitor)
     try:
         cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--grid", str(args.grid[0])]
-        cmd += [str(args.grid[1]), "--envs", str(args.envs), "--backend", args.backend]
+        cmd += [str(args.grid[1]), "--envs", str(args.envs), "--backend", args.backend, "--cell", args.cell]
         out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
     finally:
         for p in procs:
@@ -105,12 +106,14 @@ def main() -> None:
     parser.add_argument("--grid", type=int, nargs=2, default=[7, 3], metavar=("SIZE", "HOLES"))
     parser.add_argument("--envs", type=int, default=512)
     parser.add_argument("--backend", choices=("auto", "torch", "cpp"), default="auto")
+    parser.add_argument("--cell", choices=("lstm", "lstm_peephole", "gru", "transformer"), default="lstm",
+                        help="the sequence model trained (agent.cell)")  # fmt: skip
     parser.add_argument("--variant", action="append", default=[], help="NAME=VALUE[,NAME=VALUE...] or 'default'")
     parser.add_argument("--json", default=None)
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
-        _worker(args.grid[0], args.grid[1], args.envs, args.backend)
+        _worker(args.grid[0], args.grid[1], args.envs, args.backend, args.cell)
         return
 
     from rich.console import Console
@@ -132,8 +135,8 @@ def main() -> None:
                 info[v] = result
                 console.print(f"round {r + 1}, {n} competitors, {v}: {rates[v][n][-1]:,.0f} env steps/s")
     table = Table(
-        title=f"PPO throughput under contention: {args.grid[0]}x{args.grid[0]}/{args.grid[1]}, {args.envs} envs, "
-        f"{args.competitor} competitors, {args.rounds} rounds"
+        title=f"PPO throughput under contention: {args.cell}, {args.grid[0]}x{args.grid[0]}/{args.grid[1]}, "
+        f"{args.envs} envs, {args.competitor} competitors, {args.rounds} rounds"
     )
     for col in ("variant", "competitors", "median env steps/s", "ratio to alone", "vs first"):
         table.add_column(col, justify="right")
@@ -152,7 +155,8 @@ def main() -> None:
         console.print(f"{v}: the worker ran with {', '.join(f'{k}={x}' for k, x in info[v].items())}")
     console.print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     if args.json:
-        Path(args.json).write_text(json.dumps({"competitor": args.competitor, "settings": info, "rates": rates}))
+        record = {"cell": args.cell, "competitor": args.competitor, "settings": info, "rates": rates}
+        Path(args.json).write_text(json.dumps(record))
 
 
 if __name__ == "__main__":
