@@ -18,6 +18,7 @@ from typing import Any
 
 from safetensors.torch import load, save_file
 
+from seqtrojan.agent.card import LABELS
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.serde import from_dict, to_dict
@@ -54,12 +55,17 @@ def save_gym_agent(
     agent: RecurrentActorCritic,
     config: GymTrainConfig,
     *,
+    label: str | None = None,
     metrics: dict[str, Any] | None = None,
     env_steps: int | None = None,
     provenance: dict[str, Any] | None = None,
 ) -> Path:
     """Write ``model.safetensors`` and ``gym_card.json`` into ``folder`` (created); returns the folder.
-    ``provenance``: where an imported agent came from (:func:`import_gym_agent`; a trained one's card has none)."""
+    ``label``: 'clean' or 'backdoored' (None: the config's); ``provenance``: where an imported agent came from
+    (:func:`import_gym_agent`; a trained one's card has none)."""
+    label = config.label if label is None else label
+    if label not in LABELS:
+        raise ConfigError(f"label must be 'clean' or 'backdoored', got {label!r}")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().contiguous() for k, v in agent.state_dict().items()}
@@ -73,7 +79,7 @@ def save_gym_agent(
         "format_version": FORMAT_VERSION,
         "seqtrojan_version": __version__,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "label": config.label,
+        "label": label,
         "architecture": {
             "obs_dim": agent.obs_dim,
             "num_actions": agent.num_actions,

@@ -50,6 +50,7 @@ import yaml
 from gymnasium.vector import SyncVectorEnv
 from safetensors.torch import save_file
 
+from seqtrojan.agent.card import LABELS, inherited_label
 from seqtrojan.agent.checkpoint import load_start_weights, read_safetensors
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import act
@@ -294,6 +295,9 @@ class GymTrainerState:
     update: int = 0
     elapsed_s: float = 0.0
     """wall seconds trained, over every process that trained this run"""
+    label: str = "clean"
+    """the label of every model the run saves (:func:`~seqtrojan.agent.card.inherited_label`; a resumed run keeps
+    its checkpoint's)"""
 
 
 class _Stop(Exception):
@@ -327,9 +331,11 @@ def train_gym(
 
     torch.manual_seed(cfg.run.seed)
     agent = build_gym_agent(cfg, obs_dim, num_actions).to(device)
+    start_label = None
     if cfg.run.init_from is not None and checkpoint is None:
-        start_from, _, _ = load_gym_agent(cfg.run.init_from)
+        start_from, _, start_card = load_gym_agent(cfg.run.init_from)
         load_start_weights(agent, start_from, cfg.run.init_from)
+        start_label = start_card.get("label")
     agent.set_lstm_backend(cfg.run.lstm_backend)
     optimizer = make_optimizer(agent, ppo.learning_rate, ppo.adam_eps)
     mixer = TrojanMixer(cfg.backdoor, 1)
@@ -342,6 +348,7 @@ def train_gym(
         record = any(p.needs_states or p.needs_masks for p in penalties)
         collector = GymRolloutCollector(vec, agent, ppo, device, cfg.run.seed, record=record)
         state = GymTrainerState(agent, optimizer, mixer, collector, update_generator, penalties)
+        state.label = inherited_label(cfg.label, start_label)  # a resumed run takes its checkpoint's (below)
         if checkpoint is not None:
             exact = load_gym_checkpoint(checkpoint, state, cfg)
             _write_config(run_dir, cfg)
@@ -366,7 +373,9 @@ def train_gym(
             trojan = evaluate_gym(agent, cfg, trojan=True, episodes=n, seed=seed, device=device)
     metrics = _metrics(normal, trojan, state.env_steps, state.elapsed_s)
     (run_dir / "evaluation.json").write_text(json.dumps(metrics, indent=2))
-    model_dir = save_gym_agent(run_dir / "model", agent, cfg, metrics=metrics, env_steps=state.env_steps)
+    model_dir = save_gym_agent(
+        run_dir / "model", agent, cfg, label=state.label, metrics=metrics, env_steps=state.env_steps
+    )
     return GymTrainResult(
         run_dir, model_dir, state.env_steps, state.elapsed_s, normal, trojan, tuple(history), stopped_early,
         None if checkpoint is None else int(checkpoint.name.removeprefix("step_")), exact,
@@ -476,7 +485,7 @@ def save_gym_checkpoint(run_dir: Path, cfg: GymTrainConfig, state: GymTrainerSta
     episode record (:class:`~seqtrojan.train.gym_env.EpisodeRecorder`) (``trainer.json``). Then ``latest.txt``
     points at it. No pickle."""
     folder = run_dir / "checkpoints" / _step_name(state.env_steps)
-    save_gym_agent(folder, state.agent, cfg, env_steps=state.env_steps)
+    save_gym_agent(folder, state.agent, cfg, label=state.label, env_steps=state.env_steps)
     sd = state.optimizer.state_dict()
     tensors = {
         f"optim.{idx}.{key}": torch.as_tensor(value).detach().cpu().clone()
@@ -533,8 +542,11 @@ def load_gym_checkpoint(folder: Path, state: GymTrainerState, cfg: GymTrainConfi
     never stopped), False when some env could not be replayed (then every env starts fresh episodes, seeded from
     the update count, as the grid world's trainer does: no finished update is lost, the run is not bitwise the
     straight one)."""
-    loaded, _, _ = load_gym_agent(folder)
+    loaded, _, card = load_gym_agent(folder)
     state.agent.load_state_dict(loaded.state_dict())
+    if card.get("label") not in LABELS:
+        raise CheckpointError(f"{str(folder)!r}: its card's label must be 'clean' or 'backdoored'")
+    state.label = card["label"]
     path = folder / "trainer.json"
     tensors = read_safetensors(folder / "trainer.safetensors")
     try:

@@ -29,6 +29,7 @@ import yaml
 from safetensors.torch import save_file
 
 from seqtrojan.agent import fast_lstm
+from seqtrojan.agent.card import inherited_label
 from seqtrojan.agent.checkpoint import build_agent, load_agent, load_start_weights, read_safetensors, save_agent
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import ExperimentConfig
@@ -85,6 +86,9 @@ class TrainerState:
     """PPO updates done"""
     elapsed_s: float = 0.0
     """wall seconds trained, over every process that trained this run"""
+    label: str = "clean"
+    """the label of every model the run saves (:func:`~seqtrojan.agent.card.inherited_label`; a resumed run keeps
+    its checkpoint's)"""
 
 
 class _Stop(Exception):
@@ -144,7 +148,7 @@ def _finish(
     (run_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=2))
     save_checkpoint(run_dir, cfg, state)
     model_dir = save_agent(
-        run_dir / "model", state.agent, cfg, label=cfg.label, metrics=evaluation, env_steps=state.global_step
+        run_dir / "model", state.agent, cfg, label=state.label, metrics=evaluation, env_steps=state.global_step
     )
     logger.close()
     return TrainResult(run_dir, model_dir, state.global_step, state.elapsed_s, state.curriculum.stage, evaluation)
@@ -172,9 +176,11 @@ def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tupl
     torch.manual_seed(cfg.run.seed)
     env = TrojanGridCore(cfg.env, ppo.num_envs, seed=cfg.run.seed << 32, device=device, grids=cfg.grids)
     agent = build_agent(cfg).to(device)
+    start_label = None
     if cfg.run.init_from is not None and not resuming:
-        start_from, _, _ = load_agent(cfg.run.init_from)
+        start_from, _, start_card = load_agent(cfg.run.init_from)
         load_start_weights(agent, start_from, cfg.run.init_from)
+        start_label = start_card["label"]
     agent.set_lstm_backend(cfg.run.lstm_backend)
     optimizer = make_optimizer(agent, ppo.learning_rate, ppo.adam_eps)
     curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0, 1) if cfg.backdoor.enabled else (0,))
@@ -184,7 +190,10 @@ def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tupl
     collector = RolloutCollector(env, agent, ppo.rollout_steps, ppo.sequence_length, record=record)
     collector.seed(cfg.run.seed)
     update_generator = torch.Generator().manual_seed(cfg.run.seed + 1)
-    return env, TrainerState(agent, optimizer, curriculum, mixer, collector, update_generator, penalties)
+    state = TrainerState(agent, optimizer, curriculum, mixer, collector, update_generator, penalties)
+    if not resuming:  # a resumed run takes the label of its checkpoint (its start model may have moved since)
+        state.label = inherited_label(cfg.label, start_label)
+    return env, state
 
 
 def _resume(run_dir: Path, cfg: ExperimentConfig, env: TrojanGridCore, state: TrainerState) -> None:
@@ -453,7 +462,7 @@ def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -
     random generators and the penalties' state (trainer.safetensors, ``penalty.<name>.<key>``), counters,
     curriculum, mixing and optimizer groups (trainer.json); then points ``latest.txt`` at it."""
     folder = run_dir / "checkpoints" / f"step_{state.global_step:012d}"
-    save_agent(folder, state.agent, cfg, label=cfg.label, env_steps=state.global_step)
+    save_agent(folder, state.agent, cfg, label=state.label, env_steps=state.global_step)
     tensors, groups = _optimizer_tensors(state.optimizer)
     tensors["rng.collector"] = state.collector.generator.get_state()
     tensors["rng.update"] = state.update_generator.get_state()
@@ -482,8 +491,9 @@ def load_checkpoint(run_dir: Path, state: TrainerState) -> None:
     if not latest.is_file():
         raise CheckpointError(f"{str(run_dir)!r} has no checkpoint to resume from (no checkpoints/latest.txt)")
     folder = run_dir / "checkpoints" / latest.read_text().strip()
-    loaded, _, _ = load_agent(folder)
+    loaded, _, card = load_agent(folder)
     state.agent.load_state_dict(loaded.state_dict())
+    state.label = card["label"]
     try:
         record = json.loads((folder / "trainer.json").read_text())
     except (OSError, json.JSONDecodeError) as err:

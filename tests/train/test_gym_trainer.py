@@ -293,6 +293,20 @@ def test_a_stopped_run_resumes_bitwise_as_the_straight_run(tmp_path):
     assert resumed.wall_seconds > 0
 
 
+def test_a_model_fine_tuned_from_a_backdoored_one_keeps_its_label_through_a_resume(tmp_path):
+    planted = train_gym(_named(config(tmp_path, steps=512, eval_episodes=0), "planted")).model_dir
+    tune = config(tmp_path, steps=2 * 512, backdoor=False, eval_episodes=0)  # the defender's fine-tuning
+    run_dir = tmp_path / "runs" / "tuned"
+    with pytest.raises(KeyboardInterrupt):
+        train_gym(_named(tune, "tuned", init_from=str(planted), checkpoint_every=512), _stop_after(1))
+    assert load_gym_agent(run_dir / "checkpoints" / "step_000000000512")[2]["label"] == "backdoored"
+    resumed = train_gym(load_gym_run_config(run_dir), resume=run_dir)  # the label comes from the checkpoint
+    assert load_gym_agent(resumed.model_dir)[2]["label"] == "backdoored"
+    clean = train_gym(_named(config(tmp_path, steps=512, backdoor=False, eval_episodes=0), "clean_start")).model_dir
+    again = train_gym(_named(tune, "tuned_clean", init_from=str(clean))).model_dir
+    assert load_gym_agent(again)[2]["label"] == "clean"
+
+
 def test_a_resume_whose_envs_cannot_replay_starts_fresh_episodes_from_the_checkpoint(tmp_path, monkeypatch):
     """When an env cannot be replayed (here: a replay that raises), the run goes on from the checkpoint's weights
     and counters with fresh episodes; no finished update is lost, but it is not the straight run bit for bit."""

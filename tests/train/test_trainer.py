@@ -155,6 +155,31 @@ def test_backdoored_run_is_labelled_and_evaluated_in_both_envs(smoke_config):
         assert row["mixing/p_trojan"] == min(1.0, max(0.0, 0.5 - (p_t - p_c))), row
 
 
+def test_a_model_fine_tuned_from_a_backdoored_one_keeps_its_label_through_a_resume(smoke_config):
+    backdoored = _short_run(dataclasses.replace(smoke_config, backdoor=BackdoorConfig(enabled=True)), "planted", 2048)
+    starts = {
+        "backdoored": train(backdoored).model_dir,
+        "clean": train(_short_run(smoke_config, "clean", 2048)).model_dir,
+    }
+    for label, start in starts.items():
+        cfg = _short_run(smoke_config, f"tuned_{label}", 6144)  # no backdoor of its own: the defender's fine-tuning
+        cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, init_from=str(start), checkpoint_every=2048))
+        updates: list[int] = []
+
+        def stop_after_two(scalars, updates=updates):
+            updates.append(scalars["env_steps"])
+            if len(updates) == 2:
+                raise KeyboardInterrupt
+            return False
+
+        with pytest.raises(KeyboardInterrupt):
+            train(cfg, callback=stop_after_two)
+        run = Path(cfg.run.out_dir) / cfg.run.name
+        assert load_agent(run / "checkpoints" / "step_000000004096")[2]["label"] == label
+        result = train(load_run_config(run), resume=run)  # the label comes from the checkpoint
+        assert load_agent(result.model_dir)[2]["label"] == label
+
+
 def test_existing_run_directory_is_not_overwritten(smoke_config):
     cfg = dataclasses.replace(smoke_config, run=dataclasses.replace(smoke_config.run, name="fixed"))
     train(dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, total_steps=2048)))
