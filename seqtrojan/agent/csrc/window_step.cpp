@@ -44,6 +44,16 @@ void fill_rows(T* c, const T* bias, int64_t n, int64_t m) {
   for (int64_t r = 0; r < n; ++r) std::copy(bias, bias + m, c + r * m);
 }
 
+// out rows = x rows + bias (n rows of m; out may be x). Row by row: an index i % m would cost an integer division
+// per element and keep the loop scalar.
+template <typename T>
+void add_rows(const T* x, const T* bias, int64_t n, int64_t m, T* out) {
+  for (int64_t r = 0; r < n; ++r) {
+#pragma omp simd
+    for (int64_t i = 0; i < m; ++i) out[r * m + i] = x[r * m + i] + bias[i];
+  }
+}
+
 template <typename T>
 void window_step_impl(const T* x, int64_t I, const T* keep, const T* cache, int64_t cache_row, const WindowWeights<T>& p,
                       T eps_a, T eps_m, T eps_o, T* h_out, T* slots_out, int64_t B, int64_t H, int64_t heads,
@@ -104,14 +114,14 @@ void window_step_impl(const T* x, int64_t I, const T* keep, const T* cache, int6
         }
       }
       // y = e + W_out a + b_out
-      for (int64_t i = 0; i < nb * H; ++i) y[i] = e[i] + p.b_out[i % H];
+      add_rows(e.data(), p.b_out, nb, H, y.data());
       linear_add(a.data(), H, p.w_out, H, H, nb, y.data());
       // y += W_2 relu(W_1 norm_m(y) + b_1) + b_2
       norm_rows(y.data(), n.data(), nb, H, p.g_m, p.n_m, eps_m);
       fill_rows(m.data(), p.b_1, nb, H);
       linear_add(n.data(), H, p.w_1, H, H, nb, m.data());
       for (int64_t i = 0; i < nb * H; ++i) m[i] = std::max(m[i], T(0));
-      for (int64_t i = 0; i < nb * H; ++i) y[i] += p.b_2[i % H];
+      add_rows(y.data(), p.b_2, nb, H, y.data());
       linear_add(m.data(), H, p.w_2, H, H, nb, y.data());
       norm_rows(y.data(), h_out + b0 * H, nb, H, p.g_o, p.n_o, eps_o);
     }
