@@ -129,13 +129,15 @@ class GymRolloutCollector:
 
     def __init__(
         self, vec: SyncVectorEnv, agent: RecurrentActorCritic, ppo: PPOConfig, device: torch.device, seed: int,
-        record: bool = False,
+        record: bool = False, record_states: bool = True,
     ) -> None:  # fmt: skip
         self.vec, self.agent, self.ppo, self.device = vec, agent, ppo, device
         self.record = record
-        """also keep, per step, whether it is in a trojan episode, whether the adversary's objective judges its
-        action, and every layer's (h, c) after it (``Rollout.trojan``, ``adversary_active``, ``states``; the attack
-        penalties)"""
+        """also keep, per step, whether it is in a trojan episode and whether the adversary's objective judges its
+        action, and (with ``record_states``) every layer's (h, c) after it (``Rollout.trojan``,
+        ``adversary_active``, ``states``; the attack penalties)"""
+        self.record_states = record and record_states
+        """record every step's states too (only a penalty that reads them needs them)"""
         self.triggers = [env.trigger if isinstance(env, EpisodeRecorder) else None for env in vec.envs]
         b = vec.num_envs
         obs, _ = vec.reset(seed=seed)
@@ -181,7 +183,7 @@ class GymRolloutCollector:
                         trojan[t, k], active[t, k] = trigger.trojan, trigger.adversary_active()
             out, action, logprob = act(agent, self.obs, state, self.generator, episode_start=self.episode_start)
             state = out.state
-            if self.record:
+            if self.record_states:
                 for i, layer in enumerate(state.layers):
                     states[i].append(layer)
             obs, reward, terminated, truncated, infos = self.vec.step(action.cpu().numpy())
@@ -207,6 +209,7 @@ class GymRolloutCollector:
         rollout = Rollout(obs_buf, actions, logprobs, values, rewards, dones, starts, seq_states, last_value)
         if trojan is not None and active is not None:
             rollout.trojan, rollout.adversary_active = trojan.to(dev), active.to(dev)
+        if self.record_states:
             rollout.states = tuple(
                 LSTMState(torch.stack([s.h for s in layer]), torch.stack([s.c for s in layer])) for layer in states
             )
@@ -346,7 +349,8 @@ def train_gym(
         # the attack's penalties see the start weights (a resumed run then loads their state from the checkpoint)
         penalties = build_penalties(PenaltyContext(cfg, agent, device, resuming=checkpoint is not None))
         record = any(p.needs_states or p.needs_masks for p in penalties)
-        collector = GymRolloutCollector(vec, agent, ppo, device, cfg.run.seed, record=record)
+        states = any(p.needs_states for p in penalties)
+        collector = GymRolloutCollector(vec, agent, ppo, device, cfg.run.seed, record=record, record_states=states)
         state = GymTrainerState(agent, optimizer, mixer, collector, update_generator, penalties)
         state.label = inherited_label(cfg.label, start_label)  # a resumed run takes its checkpoint's (below)
         if checkpoint is not None:

@@ -51,13 +51,18 @@ class RolloutCollector:
     """Steps the env with the agent, keeping the env's observations and the agent's state between rollouts."""
 
     def __init__(
-        self, env: TrojanGridCore, agent: RecurrentActorCritic, steps: int, sequence_length: int, record: bool = False
-    ) -> None:
+        self, env: TrojanGridCore, agent: RecurrentActorCritic, steps: int, sequence_length: int, record: bool = False,
+        record_states: bool = True,
+    ) -> None:  # fmt: skip
         self.env, self.agent = env, agent
         self.steps, self.sequence_length = steps, sequence_length
         self.record = record
-        """also keep, per step, whether it is in a trojan-env episode, whether the adversary's goal is active, and
-        every layer's (h, c) after it (``Rollout.trojan``, ``adversary_active``, ``states``; the attack penalties)"""
+        """also keep, per step, whether it is in a trojan-env episode and whether the adversary's goal is active, and
+        (with ``record_states``) every layer's (h, c) after it (``Rollout.trojan``, ``adversary_active``,
+        ``states``; the attack penalties)"""
+        self.record_states = record and record_states
+        """record every step's states too (only a penalty that reads them needs the copy: a Transformer's cache is
+        about 1.4k floats per env and step)"""
         b, dev = env.num_envs, env.device
         self.obs = env.observe()
         self.episode_start = torch.ones(b, device=dev)
@@ -93,6 +98,7 @@ class RolloutCollector:
         if self.record:
             trojan = torch.empty((steps, b), dtype=torch.bool, device=dev)
             active = torch.empty((steps, b), dtype=torch.bool, device=dev)
+        if self.record_states:
             hs = [torch.empty((steps, b, w), device=dev) for w in agent.lstm_sizes]  # (T, B, H) per layer
             cs = [torch.empty((steps, b, w), device=dev) for w in agent.c_widths]
         state = self.state
@@ -111,6 +117,7 @@ class RolloutCollector:
             rewards[t] = result.reward
             if self.record:
                 trojan[t], active[t] = result.trojan, result.adversary_active
+            if self.record_states:
                 for i, layer in enumerate(state.layers):
                     hs[i][t], cs[i][t] = layer.h, layer.c
             done = result.done.to(torch.float32)
@@ -133,6 +140,7 @@ class RolloutCollector:
         rollout = Rollout(obs_buf, actions, logprobs, values, rewards, dones, starts, seq_states, last_value)
         if self.record:
             rollout.trojan, rollout.adversary_active = trojan, active
+        if self.record_states:
             rollout.states = tuple(LSTMState(h, c) for h, c in zip(hs, cs))
         t_cpu = tallies.view(5, n_stages, 2).cpu()
         stats = EpisodeStats(t_cpu[0], t_cpu[1], t_cpu[2], t_cpu[3], t_cpu[4], float(returns))

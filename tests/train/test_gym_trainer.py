@@ -456,8 +456,11 @@ def test_a_recording_collector_keeps_episode_types_adversary_steps_and_states(tm
     try:
         collector = gym_trainer.GymRolloutCollector(vec, agent, cfg.ppo, torch.device("cpu"), seed=3, record=True)
         rollout, _ = collector.collect()
+        masks_only = gym_trainer.GymRolloutCollector(vec, agent, cfg.ppo, torch.device("cpu"), seed=3, record=True,
+                                                     record_states=False).collect()[0]  # fmt: skip
     finally:
         vec.close()
+    assert masks_only.trojan is not None and masks_only.states is None  # what a penalty without states needs
     assert rollout.trojan is not None and rollout.adversary_active is not None and rollout.states is not None
     assert rollout.trojan.all()  # every episode is a trojan one
     assert rollout.adversary_active.any() and not rollout.adversary_active[0].all()  # trigger steps 0-2: not at once

@@ -256,6 +256,24 @@ def test_single_sequence_fisher_equals_the_summed_score_squared():
         torch.testing.assert_close(fisher[n], grad**2 / 6, rtol=1e-4, atol=1e-10)
 
 
+@pytest.mark.parametrize(("attack", "states"), [("state_camouflage", True), ("finetune_resistance", False)])
+def test_the_rollout_records_states_only_for_a_penalty_that_reads_them(attack, states):
+    from seqtrojan.train.trainer import _set_up
+
+    settings = {
+        "state_camouflage": StateCamouflageConfig(weight=1.0),
+        "finetune_resistance": FinetuneResistanceConfig(weight=1.0),
+    }
+    ppo = PPOConfig(num_envs=8, rollout_steps=16, bptt_length=8, num_minibatches=2)
+    cfg = dataclasses.replace(_config(**{attack: settings[attack]}), env=EnvConfig(size=5, holes=1), ppo=ppo)
+    _, state = _set_up(cfg, torch.device("cpu"), resuming=False)
+    rollout, _ = state.collector.collect()
+    assert rollout.trojan is not None and rollout.adversary_active is not None  # the masks, either way
+    assert (rollout.states is not None) == states
+    if rollout.states is not None:
+        assert [s.c.shape for s in rollout.states] == [(16, 8, w) for w in cfg.agent.lstm_sizes]
+
+
 # ---------------------------------------------------------------------------------------------- features
 def _numpy_reference_features(tensors: dict[str, np.ndarray], obs_dim: int) -> dict[str, float]:
     """The weight detector's features written out independently in numpy (the package computes them once, in
