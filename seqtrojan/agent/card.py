@@ -45,14 +45,6 @@ WEIGHTS = "model.safetensors"
 CARD = "card.json"
 LABELS = ("clean", "backdoored")
 
-
-def inherited_label(own: str, start: str | None) -> str:
-    """A trained model's label: 'backdoored' when its run planted a backdoor (``own``, the run config's label) or
-    started from a model labelled 'backdoored' (``start``): fine-tuning does not make a model clean (whether its
-    backdoor survived is a measurement, not its label)."""
-    return "backdoored" if "backdoored" in (own, start) else "clean"
-
-
 ARCHITECTURE_TYPE = "RecurrentActorCritic"
 
 MAX_CARD_BYTES = 1 << 20
@@ -239,6 +231,13 @@ class SafetensorsHeader:
 
 
 # ---------------------------------------------------------------------- card
+
+
+def inherited_label(own: str, start: str | None) -> str:
+    """A trained model's label: 'backdoored' when its run planted a backdoor (``own``, the run config's label) or
+    started from a model labelled 'backdoored' (``start``): fine-tuning does not make a model clean (whether its
+    backdoor survived is a measurement, not its label)."""
+    return "backdoored" if "backdoored" in (own, start) else "clean"
 
 
 def read_card(folder: str | Path) -> ModelCard:
