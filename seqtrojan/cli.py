@@ -329,11 +329,11 @@ def _gym_mitigate(argv: list[str]) -> None:
         """torch device of the network (the envs step on the CPU)"""
 
     args = tyro.cli(GymMitigateArgs, args=argv, prog="seqtrojan gym-mitigate")
-    agent, cfg, _ = load_gym_agent(args.model)
+    agent, cfg, card = load_gym_agent(args.model)
     report = mitigate_gym_model(
         agent.to(args.device), cfg, args.out, model=str(args.model), finetune_steps=args.finetune_steps,
         prune_fraction=args.prune_fraction, calibration_episodes=args.calibration_episodes, episodes=args.episodes,
-        seed=args.seed, device=args.device,
+        seed=args.seed, device=args.device, label=card.get("label"),
     )  # fmt: skip
     print(f"model: {args.model} ({report.env_id}); {report.episodes} fresh episodes per type and arm")
     for arm in report.arms:

@@ -81,14 +81,16 @@ def least_active_gym_units(
 
 
 def finetune_gym(
-    agent: RecurrentActorCritic, config: GymTrainConfig, steps: int, out: Path, name: str, seed: int
-) -> RecurrentActorCritic:
-    """PPO on normal episodes only from ``agent``'s weights (saved as ``out/<name>_start``); the run is
-    ``out/<name>``, reused when finished and resumed when stopped."""
+    agent: RecurrentActorCritic, config: GymTrainConfig, steps: int, out: Path, name: str, seed: int,
+    label: str | None = None,
+) -> RecurrentActorCritic:  # fmt: skip
+    """PPO on normal episodes only from ``agent``'s weights (saved as ``out/<name>_start`` with ``label``, its
+    card's; None: its config's; the fine-tuned model inherits it); the run is ``out/<name>``, reused when finished
+    and resumed when stopped."""
     from seqtrojan.train.gym_model import load_gym_agent, save_gym_agent
     from seqtrojan.train.gym_trainer import train_gym_or_resume
 
-    start = save_gym_agent(out / f"{name}_start", agent, config)
+    start = save_gym_agent(out / f"{name}_start", agent, config, label=label)
     tune = dataclasses.replace(
         config,
         ppo=dataclasses.replace(config.ppo, total_steps=steps),
@@ -113,8 +115,10 @@ def mitigate_gym_model(
     episodes: int = 500,
     seed: int = 0,
     device: torch.device | str = "cpu",
+    label: str | None = None,
 ) -> GymMitigationReport:
-    """Every arm of the module docstring, measured (see there)."""
+    """Every arm of the module docstring, measured (see there). ``label``: the model's card's (None: its
+    config's), which the fine-tuned models inherit."""
     if config.trigger is None:
         raise ConfigError("the gym config has no trigger section: there is no attack to measure")
     for name, value in (("finetune_steps", finetune_steps), ("calibration_episodes", calibration_episodes),
@@ -130,9 +134,9 @@ def mitigate_gym_model(
     candidates = {
         "before": (agent, ()),
         "pruned": (pruned, tuple(int(u) for u in units)),
-        "fine_pruned": (finetune_gym(pruned, config, finetune_steps, out, "fine_pruned", seed),
+        "fine_pruned": (finetune_gym(pruned, config, finetune_steps, out, "fine_pruned", seed, label),
                         tuple(int(u) for u in units)),
-        "fine_tuned": (finetune_gym(agent, config, finetune_steps, out, "fine_tuned", seed), ()),
+        "fine_tuned": (finetune_gym(agent, config, finetune_steps, out, "fine_tuned", seed, label), ()),
     }  # fmt: skip
     arms = []
     for name, (candidate, removed) in candidates.items():

@@ -100,13 +100,15 @@ def least_active(h: np.ndarray, mask: np.ndarray, fraction: float) -> np.ndarray
     return np.argsort(activity)[: max(1, round(fraction * h.shape[-1]))]
 
 
-def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, steps: int, out: Path, seed: int):
-    """PPO on the normal env only (the defender's clean episodes), starting from ``agent``'s weights. A finished
+def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, steps: int, out: Path, seed: int,
+             label: str | None = None):  # fmt: skip
+    """PPO on the normal env only (the defender's clean episodes), starting from ``agent``'s weights, saved as
+    ``out/start`` with ``label`` (its card's; None: its config's), which the fine-tuned model inherits. A finished
     fine-tune in ``out`` is reused and a stopped one resumed."""
     from seqtrojan.agent.checkpoint import load_agent
     from seqtrojan.train.trainer import train_or_resume
 
-    start = save_agent(out / "start", agent, cfg, label=cfg.label)
+    start = save_agent(out / "start", agent, cfg, label=cfg.label if label is None else label)
     tune_cfg = dataclasses.replace(
         cfg,
         env=cfg.env.with_grid(grid),
@@ -124,7 +126,8 @@ def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec,
 @dataclass(frozen=True)
 class MitigationContext:
     """What every mitigation is given: the agent to mitigate, its config, the grid, the settings, a folder of its
-    own, and the oracle's goal units (None: none found, or a clean agent)."""
+    own, the oracle's goal units (None: none found, or a clean agent) and the agent's label (its card's; None: its
+    config's; the fine-tuned models inherit it)."""
 
     agent: RecurrentActorCritic
     cfg: ExperimentConfig
@@ -132,6 +135,7 @@ class MitigationContext:
     mcfg: MitigationConfig
     out: Path
     goal: GoalUnits | None = None
+    label: str | None = None
 
     def measure(self, agent: RecurrentActorCritic, title: str, intervention: Any = None,
                 units: tuple[int, ...] = ()) -> MitigationArm:  # fmt: skip
@@ -156,7 +160,8 @@ def fine_pruning(ctx: MitigationContext) -> dict[str, MitigationArm]:
     kept = tuple(int(u) for u in units)
     rows = {"pruned": ctx.measure(pruned, f"pruned {len(kept)} least-active units", units=kept)}
     if mcfg.finetune_steps > 0:
-        tuned = finetune(pruned, ctx.cfg, ctx.grid, mcfg.finetune_steps, ctx.out / "fine_pruning", mcfg.seed)
+        tuned = finetune(pruned, ctx.cfg, ctx.grid, mcfg.finetune_steps, ctx.out / "fine_pruning", mcfg.seed,
+                         ctx.label)  # fmt: skip
         rows["fine_pruned"] = ctx.measure(tuned, "fine-pruning (pruned, then fine-tuned on clean episodes)",
                                           units=kept)  # fmt: skip
     return rows
@@ -166,7 +171,8 @@ def fine_pruning(ctx: MitigationContext) -> dict[str, MitigationArm]:
 def fine_tuning(ctx: MitigationContext) -> dict[str, MitigationArm]:
     if ctx.mcfg.finetune_steps <= 0:
         return {}
-    tuned = finetune(ctx.agent, ctx.cfg, ctx.grid, ctx.mcfg.finetune_steps, ctx.out / "fine_tuning", ctx.mcfg.seed)
+    tuned = finetune(ctx.agent, ctx.cfg, ctx.grid, ctx.mcfg.finetune_steps, ctx.out / "fine_tuning", ctx.mcfg.seed,
+                     ctx.label)  # fmt: skip
     return {"fine_tuned": ctx.measure(tuned, "fine-tuning on clean episodes")}
 
 
@@ -183,11 +189,12 @@ def unit_reset(ctx: MitigationContext) -> dict[str, MitigationArm]:
 
 def run_mitigation(
     agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, mcfg: MitigationConfig, out: Path,
-    goal: GoalUnits | None = None,
+    goal: GoalUnits | None = None, label: str | None = None,
 ) -> MitigationResult:  # fmt: skip
-    """The agent before any mitigation (row ``before``), then the rows of every registered mitigation."""
+    """The agent before any mitigation (row ``before``), then the rows of every registered mitigation. ``label``:
+    the agent's card's (None: its config's), which its fine-tuned models inherit."""
     out.mkdir(parents=True, exist_ok=True)
-    ctx = MitigationContext(agent, cfg, grid, mcfg, out, goal)
+    ctx = MitigationContext(agent, cfg, grid, mcfg, out, goal, label)
     rows = {"before": ctx.measure(agent, "no mitigation")}
     for name, mitigation in MITIGATIONS.items():
         for key, arm in mitigation(ctx).items():

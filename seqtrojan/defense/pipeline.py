@@ -46,7 +46,7 @@ def run_defense(model: Path, out: Path, cfg: DefenseConfig, device: str = "cpu",
     oracle = _oracle_goal_units(agent, acfg, grid, cfg) if acfg.backdoor.enabled else None
     goal = oracle[0] if oracle is not None else None
     log(f"mitigation: {', '.join(MITIGATIONS.names())} ...")
-    mitigation = run_mitigation(agent, acfg, grid, cfg.mitigation, out / "mitigation", goal)
+    mitigation = run_mitigation(agent, acfg, grid, cfg.mitigation, out / "mitigation", goal, card["label"])
     result = DefenseResult(
         model=str(model),
         label=card["label"],

@@ -22,8 +22,9 @@ def test_every_arm_is_measured_and_a_rerun_reuses_the_fine_tunes(tiny_two_goals_
     assert [a.name for a in report.arms] == ["before", "pruned", "fine_pruned", "fine_tuned"]
     assert all(a.clean_success.n == a.attack_success.n == 12 for a in report.arms)
     assert len(report.arms[1].pruned_units) == round(0.25 * agent.lstm_sizes[-1]) and not report.arms[0].pruned_units
-    tuned, tune_cfg, _ = load_gym_agent(tmp_path / "fine_tuned" / "model")
+    tuned, tune_cfg, tuned_card = load_gym_agent(tmp_path / "fine_tuned" / "model")
     assert tune_cfg.run.init_from == str(tmp_path / "fine_tuned_start") and not tune_cfg.backdoor.enabled
+    assert tuned_card["label"] == "backdoored"  # fine-tuned without a backdoor of its own: still the lineage's label
     assert tune_cfg.ppo.total_steps == 512 and tune_cfg.ppo.learning_rate == cfg.ppo.learning_rate
     assert any(not bool((a == b).all()) for a, b in zip(tuned.state_dict().values(), agent.state_dict().values()))
     stamp = (tmp_path / "fine_tuned" / "model" / "gym_card.json").stat().st_mtime_ns

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from seqtrojan.agent.card import read_card
 from seqtrojan.agent.checkpoint import build_agent
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
@@ -109,9 +110,13 @@ def test_pruned_units_stay_silent(agent):
 
 
 def test_mitigation_measures_before_and_after(tmp_path, agent):
-    result = run_mitigation(
-        agent, CFG, GRID, MitigationConfig(finetune_steps=2048, calibration_episodes=32, eval_episodes=32), tmp_path
-    )
+    mcfg = MitigationConfig(finetune_steps=2048, calibration_episodes=32, eval_episodes=32)
+    # the card says backdoored though the config plants nothing (a model itself fine-tuned from a backdoored one):
+    # the fine-tuned models inherit the card's label
+    result = run_mitigation(agent, CFG, GRID, mcfg, tmp_path, label="backdoored")
+    for arm in ("fine_tuning", "fine_pruning"):
+        for folder in (tmp_path / arm / "start", tmp_path / arm / "finetune" / "model"):
+            assert read_card(folder).label == "backdoored", folder
     assert list(result) == ["before", "pruned", "fine_pruned", "fine_tuned"]  # no oracle without goal units
     assert all(arm.clean_success.n == arm.attack_success.n == 32 for arm in result.values())
     assert len(result["pruned"].units) == 2  # a quarter of the last layer's 8 units
