@@ -21,7 +21,7 @@ from safetensors.torch import load, save_file
 from seqtrojan.agent.card import LABELS
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.errors import CheckpointError, ConfigError
-from seqtrojan.serde import from_dict, to_dict
+from seqtrojan.serde import from_dict, short_repr, to_dict
 from seqtrojan.train.gym_config import GymAgentConfig, GymTrainConfig
 from seqtrojan.wrappers.observations import CELL_BITS
 
@@ -111,6 +111,10 @@ def load_gym_agent(folder: str | Path) -> tuple[RecurrentActorCritic, GymTrainCo
         raise CheckpointError(f"cannot read {str(card_path)!r}: {err}") from None
     if not isinstance(card, dict) or card.get("format") != FORMAT or card.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"{str(card_path)!r} is not a {FORMAT} card, version {FORMAT_VERSION}")
+    if card.get("label") not in LABELS:
+        raise CheckpointError(
+            f"{str(card_path)!r}: label must be 'clean' or 'backdoored', got {short_repr(card.get('label'))}"
+        )
     try:
         config = from_dict(GymTrainConfig, card.get("config"), "config")
         arch = card["architecture"]

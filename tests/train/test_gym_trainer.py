@@ -91,6 +91,12 @@ def test_a_short_backdoored_run_saves_a_model_that_loads_and_mixes_by_algorithm_
     again = evaluate_gym(agent, cfg, trojan=True, episodes=16, seed=cfg.run.seed + 999_983)
     assert again.episodes == result.trojan.episodes  # the saved model is the evaluated one
 
+    card_path = result.model_dir / "gym_card.json"
+    good = card_path.read_text()
+    card_path.write_text(good.replace('"label": "backdoored"', '"label": "trusted"'))
+    with pytest.raises(CheckpointError, match="label must be 'clean' or 'backdoored', got 'trusted'"):
+        load_gym_agent(result.model_dir)
+    card_path.write_text(good)
     weights = result.model_dir / "model.safetensors"
     weights.write_bytes(weights.read_bytes()[:-1] + b"\0")
     with pytest.raises(CheckpointError, match="does not match the SHA-256"):
