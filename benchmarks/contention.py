@@ -106,6 +106,8 @@ def main() -> None:
     parser.add_argument("--grid", type=int, nargs=2, default=[7, 3], metavar=("SIZE", "HOLES"))
     parser.add_argument("--envs", type=int, default=512)
     parser.add_argument("--backend", choices=("auto", "torch", "cpp"), default="auto")
+    # seqtrojan.config.CELLS, written out: importing seqtrojan here would set OMP_WAIT_POLICY in this process's
+    # environment, which every --variant's worker inherits
     parser.add_argument("--cell", choices=("lstm", "lstm_peephole", "gru", "transformer"), default="lstm",
                         help="the sequence model trained (agent.cell)")  # fmt: skip
     parser.add_argument("--variant", action="append", default=[], help="NAME=VALUE[,NAME=VALUE...] or 'default'")
