@@ -375,15 +375,14 @@ class WindowAttentionLayer(nn.Module):
         if return_states:
             kv = torch.cat([prefix[..., :-1], qkv[..., width:]], 1) if kv is None else kv
             caches = self._caches(kv, valid, episode, range(1, steps + 1))
-        elif 1 < w <= steps + 1:  # only the last one, all of whose w - 1 slots lie in the chunk (all valid)
-            same = (episode[:, steps:] == episode[:, -1:]).unsqueeze(-1)  # of the newest slot's episode
-            slots = torch.cat([qkv[:, steps - (w - 1) :, width:], same.to(qkv.dtype)], -1) * same  # (B, w - 1, S)
-            caches = slots.flatten(1).unsqueeze(0)
-        else:  # only the last one: from the prefix and the chunk's last w - 1 positions
-            last = min(steps, w - 1)
-            tail = torch.cat([prefix[..., :-1], qkv[:, steps - last :, width:]], 1)
-            keep_tail = [*range(w - 1), *range(w - 1 + steps - last, w - 1 + steps)]
-            caches = self._caches(tail, valid[:, keep_tail], episode[:, keep_tail], range(last, last + 1))
+        else:  # only the last one: the newest w - 1 positions (the prefix's last ones, then the chunk's)
+            new = qkv[:, max(0, steps - (w - 1)) :, width:]
+            tail = torch.cat([
+                torch.cat([prefix[:, steps:, :-1], (prefix[:, steps:, -1:] > 0).to(qkv.dtype)], -1),
+                torch.cat([new, new.new_ones(*new.shape[:-1], 1)], -1),
+            ], 1)  # (B, w - 1, S) [key | value | valid]  # fmt: skip
+            same = (episode[:, steps:] == episode[:, -1:]).unsqueeze(-1)  # of the newest position's episode
+            caches = (tail * same).flatten(1).unsqueeze(0)
         final = LSTMState(h_seq[-1], caches[-1])
         return h_seq, final, LSTMState(h_seq, caches) if return_states else None
 
