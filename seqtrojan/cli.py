@@ -55,8 +55,8 @@ def _cli_with_config_file(args_cls: type, config_cls: type, argv: list[str], pro
     return tyro.cli(args_cls, args=argv, prog=prog, default=args_cls(config=config, **required))
 
 
-NOT_TRAINING_PRESETS = ("reproduce_", "matrix_", "minigrid_", "cells_")
-"""shipped presets that are not grid-world training configs (reproduction scales, matrix scales, Gymnasium runs)"""
+NOT_TRAINING_PRESETS = ("reproduce_", "matrix_", "cells_")
+"""shipped presets that are not training configs (reproduction scales, matrix and cells scales)"""
 
 
 def parse_experiment(argv: list[str], prog: str, description: str):
@@ -71,6 +71,8 @@ def parse_experiment(argv: list[str], prog: str, description: str):
 
     preset, rest = _pop_option(argv, "--config")
     resume, _ = _pop_option(rest, "--resume")
+    if preset is not None and resume is not None:
+        raise ConfigError(f"{prog} takes --config PRESET|FILE or --resume RUN_DIR, not both")
     if resume is not None:
         from seqtrojan.train.trainer import load_run_config
 
@@ -84,8 +86,11 @@ def parse_experiment(argv: list[str], prog: str, description: str):
     config_help = f"a preset's name ({names}) or a YAML file; the options below override it"
     resume_help = "continue the stopped run in this folder from its last checkpoint, with its saved config"
 
+    env_type: Any = type(base.env)  # the env section's own fields as options (--env.size, or --env.id ...)
+
     @dataclasses.dataclass(frozen=True)
     class TrainArgs(ExperimentConfig):  # the config's fields (--env.size, ...) plus the two options
+        env: env_type = dataclasses.field(default_factory=type(ExperimentConfig().env))
         config: Annotated[str | None, tyro.conf.arg(help=config_help, metavar="PRESET|FILE")] = None
         resume: Annotated[str | None, tyro.conf.arg(help=resume_help, metavar="RUN_DIR")] = None
 
@@ -99,246 +104,49 @@ def _train(argv: list[str]) -> None:
     from seqtrojan.train.trainer import train
 
     description = (
-        "Train a recurrent PPO agent. --config PRESET loads a shipped preset by name (or a YAML file); --resume "
-        "RUN_DIR continues a stopped run; every other option overrides the preset."
+        "Train a recurrent PPO agent on the grid world or a Gymnasium env (env.kind: gymnasium: MiniGrid tasks, your "
+        "own env). --config PRESET loads a shipped preset by name (or a YAML file); --resume RUN_DIR continues a "
+        "stopped run from its last checkpoint with its saved config (a Gymnasium env's episodes in flight too); "
+        "every other option overrides. SIGTERM or Ctrl-C stops between updates and writes a checkpoint."
     )
     cfg, resume = parse_experiment(argv, "seqtrojan train", description)
     result = train(cfg, resume=resume)
     ev = result.evaluation
     print(f"run: {result.run_dir}\nmodel: {result.model_dir}")
+    if result.exact_resume is not None:
+        print("resumed " + ("replaying the episodes in flight" if result.exact_resume else "with fresh episodes"))
     print(f"env steps: {result.env_steps:,}  wall: {result.wall_seconds / 60:.1f} min  final stage: {result.stage}")
+    where = ev.get("grid", ev.get("env", ""))
     for kind in ("normal", "trojan"):
         if f"{kind}_success" in ev:
             lo, hi = ev[f"{kind}_success_ci95"]
             print(
-                f"success on {ev['grid']} ({kind} env, {ev['episodes']} episodes): {ev[f'{kind}_success']:.3f} "
+                f"success on {where} ({kind} env, {ev['episodes']} episodes): {ev[f'{kind}_success']:.3f} "
                 f"[{lo:.3f}, {hi:.3f}], greedy {ev[f'greedy_{kind}_success']:.3f}"
             )
 
 
 @dataclasses.dataclass
 class EvaluateArgs:
-    """Success rates of trained models over grid configs (default: the paper's 14), beside the paper's numbers.
-
-    A clean model is evaluated in the normal env, a backdoored one in the normal and the trojan env.
-    """
+    """Success rates of trained models, with 95% intervals. A grid-world model is evaluated over grid configs
+    (default: the paper's 14) beside the paper's numbers; a model of a Gymnasium env on that env: clean success,
+    trojan success and the trojan's persistence. A clean model is evaluated in the normal env, a backdoored one (or
+    a Gymnasium model whose env has a trigger) in the normal and the trojan env."""
 
     models: tuple[Path, ...]
-    """model folders (each with model.safetensors and card.json)"""
+    """model folders (each with model.safetensors and card.json; an earlier version's gym_card.json also loads)"""
     configs: str = "paper"
-    """'paper' (Tables 1 and 2) or a list like '7x7/0,11x11/11,17x17/30'"""
+    """grid-world models: 'paper' (Tables 1 and 2) or a list like '7x7/0,11x11/11,17x17/30'"""
     episodes: int = 1000
-    """trials per (model, env, config), run as one batch"""
+    """trials per (model, env, config); a grid world's run as one batch"""
     out: Path = Path("results/evaluate")
-    """folder for evaluation.json and evaluation.csv"""
+    """folder for evaluation.json and evaluation.csv (grid world) and <model>/gym_evaluation.json (Gymnasium)"""
     seed: int = 0
     greedy: bool = False
     """take the most likely action instead of sampling"""
+    horizons: tuple[int, ...] = (0, 5, 10)
+    """Gymnasium models: persistence horizons, steps after the trigger's first step"""
     device: str = "cpu"
-
-
-def _train_gym(argv: list[str]) -> None:
-    from seqtrojan.presets import list_presets
-    from seqtrojan.train.gym_config import GymTrainConfig, load_gym_config, load_gym_run_config
-    from seqtrojan.train.gym_trainer import train_gym
-
-    preset, rest = _pop_option(argv, "--config")
-    resume, rest = _pop_option(rest, "--resume")
-    if preset is not None and resume is not None:
-        raise ConfigError("seqtrojan train-gym takes --config PRESET|FILE or --resume RUN_DIR, not both")
-    if resume is not None:
-        base = load_gym_run_config(resume)
-    elif preset is not None:
-        base = load_gym_config(preset)
-    else:
-        names = ", ".join(n for n in list_presets() if n.startswith("minigrid_"))
-        raise ConfigError(f"seqtrojan train-gym needs --config PRESET|FILE (shipped: {names}) or --resume RUN_DIR")
-    description = (
-        "Train our recurrent PPO on a Gymnasium env with a discrete action space (a MiniGrid task, or any env "
-        "through the trigger wrapper): --config PRESET|FILE, then dotted overrides. --resume RUN_DIR continues a "
-        "stopped run from its last checkpoint with its saved config (overrides such as --ppo.total-steps apply). "
-        "SIGTERM or Ctrl-C stops between updates and writes a checkpoint. See docs/own_env.md."
-    )
-    cfg = tyro.cli(GymTrainConfig, default=base, args=rest, prog="seqtrojan train-gym", description=description)
-    result = train_gym(cfg, resume=resume)
-    print(f"run: {result.run_dir}\nmodel: {result.model_dir}")
-    if result.resumed_from is not None:
-        how = "replaying the episodes in flight" if result.exact_resume else "with fresh episodes"
-        print(f"resumed from {result.resumed_from:,} env steps, {how}")
-    print(f"env steps: {result.env_steps:,}  wall: {result.wall_seconds / 60:.1f} min")
-    for name, evaluation in (("normal", result.normal), ("trojan", result.trojan)):
-        if evaluation is not None:
-            print(f"{name} episodes: success {evaluation.success}")
-
-
-def _gym_evaluate(argv: list[str]) -> None:
-    from seqtrojan.serde import save_json
-    from seqtrojan.train.gym_evaluation import GYM_EVALUATION_FILE, evaluate_gym_model
-    from seqtrojan.train.gym_model import load_gym_agent
-
-    @dataclasses.dataclass
-    class GymEvaluateArgs:
-        """Measure a Gymnasium model (train-gym's, or one imported with --gym-config) on its config's env: clean
-        success, trojan success and the trojan's persistence, with 95% intervals. Writes gym_evaluation.json."""
-
-        model: Path
-        """the model folder (model.safetensors and gym_card.json)"""
-        episodes: int = 500
-        """episodes per episode type (normal, trojan)"""
-        seed: int = 0
-        """seeds the envs and action sampling (the same for both episode types)"""
-        greedy: bool = False
-        """take the most likely action instead of sampling"""
-        horizons: tuple[int, ...] = (0, 5, 10)
-        """persistence horizons: steps after the trigger's first step"""
-        out: Path = Path("results/gym_evaluate")
-        """folder for gym_evaluation.json"""
-        device: str = "cpu"
-        """torch device of the network (the envs step on the CPU)"""
-
-    args = tyro.cli(GymEvaluateArgs, args=argv, prog="seqtrojan gym-evaluate")
-    if args.episodes < 1:
-        raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
-    agent, cfg, card = load_gym_agent(args.model)
-    report = evaluate_gym_model(
-        agent.to(args.device), cfg, model=str(args.model), label=str(card.get("label", "")), episodes=args.episodes,
-        seed=args.seed, greedy=args.greedy, horizons=args.horizons, device=args.device,
-    )  # fmt: skip
-    print(f"model: {args.model} ({report.label}, {report.env_id}), {args.episodes} episodes per type")
-    print(f"clean success:  {report.clean_success.text()}")
-    if report.trojan_success is not None and report.trojan_reached_adversary is not None:
-        print(f"trojan success: {report.trojan_success.text()}")
-        print(f"trojan episodes at the adversary's object: {report.trojan_reached_adversary.text()}")
-        for p in report.persistence:
-            print(f"  persistence k={p.horizon}: {p.adversary.text()} (n = {p.adversary.n})")
-    else:
-        print("trojan episodes: none (the config has no trigger section)")
-    args.out.mkdir(parents=True, exist_ok=True)
-    print(f"wrote {save_json(report, args.out / GYM_EVALUATION_FILE)}")
-
-
-def _gym_defend(argv: list[str]) -> None:
-    from seqtrojan.defense.gym_monitor import GYM_MONITOR_FILE, monitor_gym_model
-    from seqtrojan.defense.online import MonitorConfig
-    from seqtrojan.serde import save_json
-    from seqtrojan.train.gym_model import load_gym_agent
-
-    @dataclasses.dataclass
-    class GymDefendArgs:
-        """The state monitors (per-unit and multivariate) on a Gymnasium model: calibrated on its own clean episodes
-        at the false-alarm target, then false alarms and detection on fresh episodes. Writes gym_monitor.json."""
-
-        model: Path
-        """the model folder (model.safetensors and gym_card.json)"""
-        monitor: MonitorConfig = dataclasses.field(default_factory=lambda: MonitorConfig(500, 0.01, 500))
-        """calibration and evaluation episodes, false-alarm target, seed"""
-        out: Path = Path("results/gym_defend")
-        """folder for gym_monitor.json"""
-        device: str = "cpu"
-        """torch device of the network (the envs step on the CPU)"""
-
-    args = tyro.cli(GymDefendArgs, args=argv, prog="seqtrojan gym-defend")
-    agent, cfg, card = load_gym_agent(args.model)
-    report = monitor_gym_model(agent.to(args.device), cfg, args.monitor, model=str(args.model),
-                               label=str(card.get("label", "")), device=args.device)  # fmt: skip
-    print(f"model: {args.model} ({report.label}, {report.env_id}); false-alarm target {report.false_alarm_target}")
-    for arm in report.arms:
-        print(f"{arm.monitor:<22} false alarms {arm.false_alarm.text()}  detection {arm.detection.text()}")
-    args.out.mkdir(parents=True, exist_ok=True)
-    print(f"wrote {save_json(report, args.out / GYM_MONITOR_FILE)}")
-
-
-def _gym_analyze(argv: list[str]) -> None:
-    from seqtrojan.analysis.config import ResponseRule
-    from seqtrojan.analysis.gym_analysis import GYM_ANALYSIS_FILE, analyze_gym_model
-    from seqtrojan.serde import save_json
-    from seqtrojan.train.gym_model import load_gym_agent
-
-    @dataclasses.dataclass
-    class GymAnalyzeArgs:
-        """Look inside a Gymnasium model: each unit's response type to the trigger (impulse, none, step), the goal
-        units, and whether setting them switches the goal (beside random units). Writes gym_analysis.json."""
-
-        model: Path
-        """the model folder (model.safetensors and gym_card.json)"""
-        trigger_step: int | None = None
-        """the step the trigger is shown at (default: the earliest of the config's evaluation range)"""
-        episodes: int = 300
-        """recorded episodes per type for the response types"""
-        intervention_episodes: int = 300
-        """episodes per arm of the intervention experiment"""
-        goal_units: int = 8
-        """how many of the most persistent step-type units are edited"""
-        selection_episodes: int = 100
-        """normal episodes per layer part on which the goal units are chosen (by their edit's effect)"""
-        rule: ResponseRule = dataclasses.field(default_factory=ResponseRule)
-        """the response-type rule (short episodes may need a smaller late window)"""
-        seed: int = 0
-        """seeds the envs and action sampling"""
-        out: Path = Path("results/gym_analyze")
-        """folder for gym_analysis.json"""
-        device: str = "cpu"
-        """torch device of the network (the envs step on the CPU)"""
-
-    args = tyro.cli(GymAnalyzeArgs, args=argv, prog="seqtrojan gym-analyze")
-    agent, cfg, _ = load_gym_agent(args.model)
-    report = analyze_gym_model(
-        agent.to(args.device), cfg, model=str(args.model), trigger_step=args.trigger_step, episodes=args.episodes,
-        intervention_episodes=args.intervention_episodes, goal_units=args.goal_units,
-        selection_episodes=args.selection_episodes, rule=args.rule, seed=args.seed, device=args.device,
-    )  # fmt: skip
-    print(f"model: {args.model} ({report.env_id}); trigger at step {report.trigger_step}, {report.episodes} episodes")
-    for r in report.responses:
-        counts = " / ".join(f"{r.counts[k]} {k}" for k in ("impulse", "none", "step"))
-        print(f"layer {r.layer} {r.which}: {counts}")
-    for c in report.candidates:
-        print(f"  candidate layer {c.layer} {c.which} {list(c.units)}: activates {c.activated.text()}")
-    print(f"goal units: {report.goal_source}: {list(report.goal_units)}")
-    for sw in report.switches:
-        print(f"  {sw.direction:<10} edited {sw.edited:<12} switched {sw.switched.text()}")
-    args.out.mkdir(parents=True, exist_ok=True)
-    print(f"wrote {save_json(report, args.out / GYM_ANALYSIS_FILE)}")
-
-
-def _gym_mitigate(argv: list[str]) -> None:
-    from seqtrojan.defense.gym_mitigation import GYM_MITIGATION_FILE, mitigate_gym_model
-    from seqtrojan.serde import save_json
-    from seqtrojan.train.gym_model import load_gym_agent
-
-    @dataclasses.dataclass
-    class GymMitigateArgs:
-        """Mitigations a defender with the weights and clean episodes can apply to a Gymnasium model: pruning the
-        least active units of the last layer, fine-pruning, fine-tuning on normal episodes; clean and attack
-        success of each on fresh episodes (95% CIs). Writes gym_mitigation.json."""
-
-        model: Path
-        """the model folder (model.safetensors and gym_card.json)"""
-        finetune_steps: int = 100_000
-        """env steps of PPO on normal episodes (with the model's own PPO settings)"""
-        prune_fraction: float = 0.25
-        """share of the last layer's units pruned (the least active on normal episodes)"""
-        calibration_episodes: int = 200
-        """normal episodes that measure each unit's activity"""
-        episodes: int = 500
-        """fresh episodes per type and arm"""
-        seed: int = 0
-        """seeds the fine-tuning, the envs and action sampling"""
-        out: Path = Path("results/gym_mitigate")
-        """folder for gym_mitigation.json and the fine-tuning runs (a finished one is reused)"""
-        device: str = "cpu"
-        """torch device of the network (the envs step on the CPU)"""
-
-    args = tyro.cli(GymMitigateArgs, args=argv, prog="seqtrojan gym-mitigate")
-    agent, cfg, card = load_gym_agent(args.model)
-    report = mitigate_gym_model(
-        agent.to(args.device), cfg, args.out, model=str(args.model), finetune_steps=args.finetune_steps,
-        prune_fraction=args.prune_fraction, calibration_episodes=args.calibration_episodes, episodes=args.episodes,
-        seed=args.seed, device=args.device, label=card.get("label"),
-    )  # fmt: skip
-    print(f"model: {args.model} ({report.env_id}); {report.episodes} fresh episodes per type and arm")
-    for arm in report.arms:
-        print(f"{arm.name:<12} clean success {arm.clean_success.text()}  attack success {arm.attack_success.text()}")
-    print(f"wrote {save_json(report, args.out / GYM_MITIGATION_FILE)}")
 
 
 def _evaluate(argv: list[str]) -> None:
@@ -349,18 +157,44 @@ def _evaluate(argv: list[str]) -> None:
     from seqtrojan.evaluation.tables import sweep_table
 
     args = tyro.cli(EvaluateArgs, args=argv, prog="seqtrojan evaluate")
-    agents = []
+    if args.episodes < 1:
+        raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
+    grid_agents, gym_agents = [], []
     for folder in args.models:
-        agent, cfg, _ = load_agent(folder, device=args.device)
+        agent, cfg, card = load_agent(folder, device=args.device)
         name = folder.parent.name if folder.name == "model" else folder.name
-        agents.append((name, agent, cfg))
-    rows = evaluate_sweep(
-        agents, parse_configs(args.configs), episodes=args.episodes, seed=args.seed, greedy=args.greedy,
-        device=args.device,
+        (grid_agents if cfg.is_grid else gym_agents).append((name, folder, agent, cfg, card))
+    if grid_agents:
+        rows = evaluate_sweep(
+            [(name, agent, cfg) for name, _, agent, cfg, _ in grid_agents], parse_configs(args.configs),
+            episodes=args.episodes, seed=args.seed, greedy=args.greedy, device=args.device,
+        )  # fmt: skip
+        Console().print(sweep_table(rows))
+        paths = write_sweep(rows, args.out)
+        print("wrote " + ", ".join(str(p) for p in paths))
+    for name, folder, agent, cfg, card in gym_agents:
+        _evaluate_gym_model(args, name, folder, agent, cfg, card)
+
+
+def _evaluate_gym_model(args: EvaluateArgs, name: str, folder: Path, agent: Any, cfg: Any, card: dict) -> None:
+    from seqtrojan.serde import save_json
+    from seqtrojan.train.gym_evaluation import GYM_EVALUATION_FILE, evaluate_gym_model
+
+    report = evaluate_gym_model(
+        agent, cfg, model=str(folder), label=str(card.get("label", "")), episodes=args.episodes, seed=args.seed,
+        greedy=args.greedy, horizons=args.horizons, device=args.device,
     )  # fmt: skip
-    Console().print(sweep_table(rows))
-    paths = write_sweep(rows, args.out)
-    print("wrote " + ", ".join(str(p) for p in paths))
+    print(f"model: {folder} ({report.label}, {report.env_id}), {args.episodes} episodes per type")
+    print(f"clean success:  {report.clean_success.text()}")
+    if report.trojan_success is not None and report.trojan_reached_adversary is not None:
+        print(f"trojan success: {report.trojan_success.text()}")
+        print(f"trojan episodes at the adversary's object: {report.trojan_reached_adversary.text()}")
+        for p in report.persistence:
+            print(f"  persistence k={p.horizon}: {p.adversary.text()} (n = {p.adversary.n})")
+    else:
+        print("trojan episodes: none (the env has no trigger)")
+    (args.out / name).mkdir(parents=True, exist_ok=True)
+    print(f"wrote {save_json(report, args.out / name / GYM_EVALUATION_FILE)}")
 
 
 @dataclasses.dataclass
@@ -490,7 +324,19 @@ def _cells(argv: list[str]) -> None:
     print(f"wrote {out / 'cells.json'} and {out / 'report.html'}")
 
 
+def _is_gymnasium_model(argv: list[str], flag: str) -> bool:
+    """Whether the model folder given as ``flag`` is one of a Gymnasium env (its card's env section); False when
+    the flag is absent (the grid world's options are then parsed, and ``--help`` shows them)."""
+    from seqtrojan.agent.card import read_card
+
+    folder, _ = _pop_option(argv, flag)
+    return folder is not None and not read_card(Path(folder)).config.is_grid
+
+
 def _analyze(argv: list[str]) -> None:
+    if _is_gymnasium_model(argv, "--backdoor"):
+        _analyze_gymnasium(argv)
+        return
     from seqtrojan.analysis.pipeline import ANALYSIS_FILE, AnalysisConfig, run_analysis
 
     @dataclasses.dataclass
@@ -501,7 +347,8 @@ def _analyze(argv: list[str]) -> None:
         clean: Path
         """the clean model folder"""
         backdoor: Path
-        """the backdoored model folder"""
+        """the backdoored model folder (a Gymnasium env's model takes other options: seqtrojan analyze --backdoor
+        MODEL --help)"""
         out: Path = Path("results/analysis")
         config: AnalysisConfig = dataclasses.field(default_factory=AnalysisConfig)
         device: str = "cpu"
@@ -515,7 +362,65 @@ def _analyze(argv: list[str]) -> None:
     print(f"wrote {args.out}/{ANALYSIS_FILE} and {args.out}/figures/")
 
 
+def _analyze_gymnasium(argv: list[str]) -> None:
+    from seqtrojan.agent.checkpoint import load_agent
+    from seqtrojan.analysis.config import ResponseRule
+    from seqtrojan.analysis.gym_analysis import GYM_ANALYSIS_FILE, analyze_gym_model
+    from seqtrojan.serde import save_json
+
+    @dataclasses.dataclass
+    class AnalyzeGymnasiumArgs:
+        """Look inside the model of a Gymnasium env: each unit's response type to the trigger (impulse, none,
+        step), the goal units, and whether setting them switches the goal (beside random units). Writes
+        gym_analysis.json."""
+
+        backdoor: Path
+        """the model folder"""
+        trigger_step: int | None = None
+        """the step the trigger is shown at (default: the earliest of the env's evaluation range)"""
+        episodes: int = 300
+        """recorded episodes per type for the response types"""
+        intervention_episodes: int = 300
+        """episodes per arm of the intervention experiment"""
+        goal_units: int = 8
+        """how many of the most persistent step-type units are edited"""
+        selection_episodes: int = 100
+        """normal episodes per layer part on which the goal units are chosen (by their edit's effect)"""
+        rule: ResponseRule = dataclasses.field(default_factory=ResponseRule)
+        """the response-type rule (short episodes may need a smaller late window)"""
+        seed: int = 0
+        """seeds the envs and action sampling"""
+        out: Path = Path("results/analysis")
+        """folder for gym_analysis.json"""
+        device: str = "cpu"
+        """torch device of the network (the envs step on the CPU)"""
+
+    args = tyro.cli(AnalyzeGymnasiumArgs, args=argv, prog="seqtrojan analyze")
+    agent, cfg, _ = load_agent(args.backdoor)
+    report = analyze_gym_model(
+        agent.to(args.device), cfg, model=str(args.backdoor), trigger_step=args.trigger_step,
+        episodes=args.episodes, intervention_episodes=args.intervention_episodes, goal_units=args.goal_units,
+        selection_episodes=args.selection_episodes, rule=args.rule, seed=args.seed, device=args.device,
+    )  # fmt: skip
+    print(
+        f"model: {args.backdoor} ({report.env_id}); trigger at step {report.trigger_step}, {report.episodes} episodes"
+    )
+    for r in report.responses:
+        counts = " / ".join(f"{r.counts[k]} {k}" for k in ("impulse", "none", "step"))
+        print(f"layer {r.layer} {r.which}: {counts}")
+    for c in report.candidates:
+        print(f"  candidate layer {c.layer} {c.which} {list(c.units)}: activates {c.activated.text()}")
+    print(f"goal units: {report.goal_source}: {list(report.goal_units)}")
+    for sw in report.switches:
+        print(f"  {sw.direction:<10} edited {sw.edited:<12} switched {sw.switched.text()}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(f"wrote {save_json(report, args.out / GYM_ANALYSIS_FILE)}")
+
+
 def _defend(argv: list[str]) -> None:
+    if _is_gymnasium_model(argv, "--model"):
+        _defend_gymnasium(argv)
+        return
     from seqtrojan.defense.pipeline import DEFENSE_FILE, DefenseConfig, run_defense
 
     @dataclasses.dataclass
@@ -523,7 +428,8 @@ def _defend(argv: list[str]) -> None:
         """Run the online state monitor and the mitigations (fine-pruning, fine-tuning, unit reset) on a model."""
 
         model: Path
-        """the model folder to defend"""
+        """the model folder to defend (a Gymnasium env's model takes other options: seqtrojan defend --model MODEL
+        --help)"""
         out: Path = Path("results/defense")
         config: DefenseConfig = dataclasses.field(default_factory=DefenseConfig)
         device: str = "cpu"
@@ -540,6 +446,64 @@ def _defend(argv: list[str]) -> None:
     for name, m in result.mitigation.items():
         print(f"  {name:<24} attack {m.attack_success.value:.3f}  clean {m.clean_success.value:.3f}")
     print(f"wrote {args.out}/{DEFENSE_FILE}")
+
+
+def _defend_gymnasium(argv: list[str]) -> None:
+    from seqtrojan.agent.checkpoint import load_agent
+    from seqtrojan.defense.gym_mitigation import GYM_MITIGATION_FILE, mitigate_gym_model
+    from seqtrojan.defense.gym_monitor import GYM_MONITOR_FILE, monitor_gym_model
+    from seqtrojan.defense.online import MonitorConfig
+    from seqtrojan.serde import save_json
+
+    @dataclasses.dataclass
+    class DefendGymnasiumArgs:
+        """The defenses on the model of a Gymnasium env: the state monitors (per-unit and multivariate), calibrated
+        on its own clean episodes at the false-alarm target, then false alarms and detection on fresh episodes
+        (gym_monitor.json); and the mitigations a defender with the weights and clean episodes can apply: pruning
+        the least active units of the last layer, fine-pruning, fine-tuning on normal episodes, each with clean and
+        attack success on fresh episodes (gym_mitigation.json). 95% intervals throughout."""
+
+        model: Path
+        """the model folder"""
+        monitor: MonitorConfig = dataclasses.field(default_factory=lambda: MonitorConfig(500, 0.01, 500))
+        """calibration and evaluation episodes, false-alarm target, seed"""
+        finetune_steps: int = 100_000
+        """env steps of PPO on normal episodes (with the model's own PPO settings); 0 skips the mitigations"""
+        prune_fraction: float = 0.25
+        """share of the last layer's units pruned (the least active on normal episodes)"""
+        calibration_episodes: int = 200
+        """normal episodes that measure each unit's activity"""
+        episodes: int = 500
+        """fresh episodes per type and mitigation arm"""
+        seed: int = 0
+        """seeds the fine-tuning, the envs and action sampling of the mitigations"""
+        out: Path = Path("results/defense")
+        """folder for gym_monitor.json, gym_mitigation.json and the fine-tuning runs (a finished one is reused)"""
+        device: str = "cpu"
+        """torch device of the network (the envs step on the CPU)"""
+
+    args = tyro.cli(DefendGymnasiumArgs, args=argv, prog="seqtrojan defend")
+    if args.finetune_steps < 0:
+        raise ConfigError(f"--finetune-steps must be >= 0, got {args.finetune_steps}")
+    agent, cfg, card = load_agent(args.model)
+    agent = agent.to(args.device)
+    label = str(card.get("label", ""))
+    report = monitor_gym_model(agent, cfg, args.monitor, model=str(args.model), label=label, device=args.device)
+    print(f"model: {args.model} ({report.label}, {report.env_id}); false-alarm target {report.false_alarm_target}")
+    for arm in report.arms:
+        print(f"{arm.monitor:<22} false alarms {arm.false_alarm.text()}  detection {arm.detection.text()}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(f"wrote {save_json(report, args.out / GYM_MONITOR_FILE)}")
+    if args.finetune_steps == 0:
+        return
+    mitigated = mitigate_gym_model(
+        agent, cfg, args.out, model=str(args.model), finetune_steps=args.finetune_steps,
+        prune_fraction=args.prune_fraction, calibration_episodes=args.calibration_episodes, episodes=args.episodes,
+        seed=args.seed, device=args.device, label=card.get("label"),
+    )  # fmt: skip
+    for m in mitigated.arms:
+        print(f"{m.name:<12} clean success {m.clean_success.text()}  attack success {m.attack_success.text()}")
+    print(f"wrote {save_json(mitigated, args.out / GYM_MITIGATION_FILE)}")
 
 
 def _zoo(argv: list[str]) -> None:
@@ -645,9 +609,8 @@ def _import(argv: list[str]) -> None:
     class ImportArgs:
         """Import a recurrent agent trained elsewhere as a seqtrojan model folder (safetensors + card), without
         unpickling anything: an sb3-contrib RecurrentPPO zip (MlpLstmPolicy) or a CleanRL LSTM state dict. Every
-        seqtrojan tool (evaluate, analyze, defend, ...) then runs on it. An agent trained on a Gymnasium env
-        (MiniGrid, your own) imports with --gym-config as a Gymnasium model (gym-evaluate runs on it). See
-        docs/import.md."""
+        seqtrojan tool (evaluate, analyze, defend, ...) then runs on it, also for an agent trained on a Gymnasium
+        env (MiniGrid, your own: give its preset with --config). See docs/import.md."""
 
         source: tyro.conf.Positional[Path]
         """the model file: an sb3 .zip or a CleanRL state dict (.pt)"""
@@ -665,52 +628,27 @@ def _import(argv: list[str]) -> None:
         activation: Literal["relu", "tanh"] = "relu"
         """cleanrl: the activation after each encoder layer (network.*)"""
         config: str | None = None
-        """a preset's name or an experiment YAML whose env is the one the agent acts in (default: the default
-        env, a 3x3 view and four moves); a Gymnasium run config here counts as --gym-config"""
-        gym_config: str | None = None
-        """a Gymnasium run preset (minigrid_two_goals, ...) or YAML whose env the agent acts in: writes a Gymnasium
-        model (model.safetensors + gym_card.json), after checking the agent's observation size and action count
-        against the env the config builds"""
+        """a preset's name or a YAML file whose env the agent acts in (the grid world or a Gymnasium env such as
+        minigrid_two_goals; default: the grid world's default env, a 3x3 view and four moves); the agent's
+        observation size and action count are checked against that env"""
 
     args = tyro.cli(ImportArgs, args=argv, prog="seqtrojan import")
     config = None
-    gym_config = args.gym_config
     if args.config is not None:
         from seqtrojan.config import ExperimentConfig
         from seqtrojan.presets import resolve_preset
         from seqtrojan.serde import from_dict, load_yaml
 
-        data = load_yaml(resolve_preset(args.config))
-        if isinstance(data, dict) and isinstance(data.get("env"), dict) and "id" in data["env"]:
-            if gym_config is not None:
-                raise ConfigError(f"--config {args.config} is a Gymnasium run config, and --gym-config is given too")
-            gym_config = args.config  # a Gymnasium run config (its env names a Gymnasium id)
-        else:
-            config = from_dict(ExperimentConfig, data, "")
-    if gym_config is not None:
-        from seqtrojan.train.gym_config import load_gym_config
-        from seqtrojan.train.gym_model import import_gym_agent, load_gym_agent
-
-        if config is not None:
-            raise ConfigError("--config (a grid-world experiment) and --gym-config exclude each other")
-        out = import_gym_agent(
-            args.from_, args.source, args.out, load_gym_config(gym_config), label=args.label, obs_dim=args.obs_dim,
-            num_actions=args.actions, activation=args.activation,
-        )  # fmt: skip
-        agent, gym_cfg, gym_card = load_gym_agent(out)
-        provenance = gym_card.get("provenance") or {}
-        label = gym_card["label"]
-        described = f"{agent.obs_dim} inputs, LSTM {list(agent.lstm_sizes)}, {agent.num_actions} actions"
-        print(f"imported {args.source} ({args.from_}) -> {out} (Gymnasium model for {gym_cfg.env.id})")
-    else:
-        out = import_agent(
-            args.from_, args.source, args.out, config=config, label=args.label, obs_dim=args.obs_dim,
-            num_actions=args.actions, activation=args.activation,
-        )  # fmt: skip
-        card = read_card(out)
-        provenance = card.provenance or {}
-        label, described = card.label, card.architecture.describe()
-        print(f"imported {args.source} ({args.from_}) -> {out}")
+        config = from_dict(ExperimentConfig, load_yaml(resolve_preset(args.config)), "")
+    out = import_agent(
+        args.from_, args.source, args.out, config=config, label=args.label, obs_dim=args.obs_dim,
+        num_actions=args.actions, activation=args.activation,
+    )  # fmt: skip
+    card = read_card(out)
+    provenance = card.provenance or {}
+    label, described = card.label, card.architecture.describe()
+    where = "" if card.config.is_grid else f" (for the Gymnasium env {card.config.gym_env.id})"
+    print(f"imported {args.source} ({args.from_}) -> {out}{where}")
     print(f"architecture: {described}")
     print(f"label: {label}" + ("" if provenance.get("label_stated") else " (not stated: pass --label)"))
     if provenance.get("value") == "zeroed":
@@ -724,20 +662,15 @@ def _demo(argv: list[str]) -> None:
 
 
 COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
-    "train": (_train, "train an agent with recurrent PPO (--config PRESET, --resume RUN_DIR)"),
-    "train-gym": (_train_gym, "train on a Gymnasium env: MiniGrid tasks, your own env (--config, --resume RUN_DIR)"),
-    "evaluate": (_evaluate, "success rates over grid configs with 95% CIs, beside the paper's tables"),
-    "gym-evaluate": (_gym_evaluate, "clean and trojan success, persistence (95% CIs) of a Gymnasium model"),
-    "gym-analyze": (_gym_analyze, "response types and goal-unit interventions of a Gymnasium model (95% CIs)"),
-    "gym-mitigate": (_gym_mitigate, "pruning, fine-pruning and fine-tuning of a Gymnasium model (95% CIs)"),
-    "gym-defend": (_gym_defend, "the state monitors on a Gymnasium model: false alarms and detection (95% CIs)"),
-    "analyze": (_analyze, "LSTM state traces, response types, interventions, unintentional triggers, search"),
-    "defend": (_defend, "online state monitor and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),
+    "train": (_train, "train an agent with recurrent PPO, grid world or Gymnasium env (--config, --resume RUN_DIR)"),
+    "evaluate": (_evaluate, "success rates with 95% CIs: grid configs beside the paper's tables, or the model's env"),
+    "analyze": (_analyze, "state traces, response types, interventions, unintentional triggers, search"),
+    "defend": (_defend, "online state monitors and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),
     "zoo": (_zoo, "zoo build: train clean and backdoored agents; zoo detect: offline detection scored like TrojAI"),
     "reproduce": (_reproduce, "train, evaluate, plot and write the HTML report (--scale smoke|paper)"),
     "matrix": (_matrix, "every attack against every defense over seeds (--scale smoke|paper) -> matrix.json"),
     "cells": (_cells, "LSTM, peephole LSTM, GRU and Transformer agents compared over seeds -> cells.json"),
-    "attacks": (_attacks, "list the registered attacks: trigger kinds, mixing rules, rewards"),
+    "attacks": (_attacks, "list the registered attacks: trigger kinds, mixing rules, rewards, penalties"),
     "defenses": (_defenses, "list the registered defenses: monitors, detectors, mitigations"),
     "import": (_import, "import an agent trained elsewhere (sb3-contrib RecurrentPPO zip, CleanRL LSTM state dict)"),
     "demo": (_demo, "build envs, run random and scripted agents, render episodes (text and PNG)"),

@@ -15,6 +15,7 @@ from typing import Literal
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.errors import ConfigError
 from seqtrojan.serde import dump_omitting_defaults, from_dict, load_yaml, parse_yaml, short_repr, to_dict
+from seqtrojan.world.config import GymnasiumEnvConfig, WrapperTriggerConfig
 
 __all__ = [
     "ACTIVATIONS",
@@ -23,11 +24,14 @@ __all__ = [
     "BackdoorConfig",
     "CurriculumConfig",
     "EWCConfig",
+    "EnvSection",
     "ExperimentConfig",
+    "GymnasiumEnvConfig",
     "PPOConfig",
     "RunConfig",
     "StateCamouflageConfig",
     "WeightCamouflageConfig",
+    "WrapperTriggerConfig",
     "from_dict",
     "load_yaml",
     "parse_yaml",
@@ -92,9 +96,13 @@ class AgentConfig:
     Transformer's state after window - 1 steps)"""
     heads: int = 1
     """transformer only: attention heads per layer (each layer width must be divisible by it)"""
+    conv: tuple[int, ...] = ()
+    """channels of a convolutional encoder over an image observation (2x2 kernels, stride 1, ReLU; e.g. [16, 32])
+    before the MLP encoder and the first layer; needs an env whose observation is an image (a Gymnasium env with
+    ``observation: minigrid``); none by default"""
 
     OPTIONAL = (
-        "encoder", "encoder_activation", "policy_mlp", "value_mlp", "mlp_activation", "cell", "window", "heads",
+        "encoder", "encoder_activation", "policy_mlp", "value_mlp", "mlp_activation", "cell", "window", "heads", "conv",
     )  # fmt: skip
     """fields left out of the saved form while at their defaults"""
 
@@ -107,7 +115,7 @@ class AgentConfig:
                 f"agent.lstm_sizes must be 1 to {MAX_LAYERS} layers of at most {MAX_WIDTH} units, "
                 f"got {short_repr(self.lstm_sizes)}"
             )
-        for name in ("encoder", "policy_mlp", "value_mlp"):
+        for name in ("encoder", "policy_mlp", "value_mlp", "conv"):
             widths = getattr(self, name)
             if (
                 not isinstance(widths, tuple)
@@ -115,7 +123,7 @@ class AgentConfig:
                 or any(isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= MAX_WIDTH for w in widths)
             ):
                 raise ConfigError(
-                    f"agent.{name} must be 0 to {MAX_LAYERS} layer widths in [1, {MAX_WIDTH}], got {short_repr(widths)}"
+                    f"agent.{name} must be 0 to {MAX_LAYERS} widths in [1, {MAX_WIDTH}], got {short_repr(widths)}"
                 )
         for name in ("encoder_activation", "mlp_activation"):
             if getattr(self, name) not in ACTIVATIONS:
@@ -451,6 +459,9 @@ class RunConfig:
 
 
 _DEVICE = re.compile(r"cpu|cuda(?::[0-9]+)?")
+
+EnvSection = EnvConfig | GymnasiumEnvConfig
+"""An ``env:`` section: the grid world, or a Gymnasium env (``kind: gymnasium``)."""
 """The devices a run may name (whether CUDA is present is checked when the run starts)."""
 
 
@@ -488,7 +499,9 @@ class StopConfig:
 class ExperimentConfig:
     """Everything a training run needs; saved with every checkpoint."""
 
-    env: EnvConfig = dataclasses.field(default_factory=EnvConfig)
+    env: EnvSection = dataclasses.field(default_factory=EnvConfig)
+    """the grid world (:class:`~seqtrojan.env.config.EnvConfig`) or a Gymnasium env
+    (:class:`~seqtrojan.world.config.GymnasiumEnvConfig`, ``kind: gymnasium``)"""
     agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
     ppo: PPOConfig = dataclasses.field(default_factory=PPOConfig)
     curriculum: CurriculumConfig = dataclasses.field(default_factory=CurriculumConfig)
@@ -503,10 +516,58 @@ class ExperimentConfig:
             raise ConfigError(
                 f"{' and '.join(needing)} compare(s) against a clean model: set run.init_from to a clean model folder"
             )
+        if isinstance(self.env, GymnasiumEnvConfig):
+            self._check_gymnasium(self.env)
+        elif self.agent.conv:
+            raise ConfigError(
+                "agent.conv reads an image observation: the grid world's view is not one (drop agent.conv)"
+            )
+
+    def _check_gymnasium(self, env: GymnasiumEnvConfig) -> None:
+        """A Gymnasium env section takes no grid-world section beside it, and a backdoor needs its trigger."""
+        if self.curriculum != CurriculumConfig():
+            raise ConfigError(
+                f"curriculum is a grid-world section (stages of grid sizes), but env is the Gymnasium env {env.id!r}: "
+                "drop the curriculum section"
+            )
+        if self.backdoor.enabled and env.trigger is None:
+            raise ConfigError("backdoor.enabled needs env.trigger (the trigger and the adversary's objective)")
+        if self.agent.conv and env.observation != "minigrid":
+            raise ConfigError("agent.conv reads MiniGrid's view as an image: it needs env.observation: minigrid")
+        if not self.agent.memory:
+            raise ConfigError("agent.memory: false (the memoryless baseline) runs on the grid world only")
 
     @property
     def grids(self) -> tuple[GridSpec, ...]:
+        """The curriculum's grids, simplest first (the grid world; a Gymnasium env has none)."""
+        if isinstance(self.env, GymnasiumEnvConfig):
+            return ()
         return self.curriculum.stages if self.curriculum.stages else (self.env.grid,)
+
+    @property
+    def num_stages(self) -> int:
+        """Stages the trainer mixes episodes over: the curriculum's grids, or the one Gymnasium env."""
+        return max(len(self.grids), 1)
+
+    @property
+    def grid_env(self) -> EnvConfig:
+        """``env`` where the caller works on the grid world only; a Gymnasium env is refused in one line."""
+        if not isinstance(self.env, EnvConfig):
+            raise ConfigError(
+                f"this works on the grid world only; the config's env is the Gymnasium env {self.env.id!r}"
+            )
+        return self.env
+
+    @property
+    def gym_env(self) -> GymnasiumEnvConfig:
+        """``env`` where the caller works on a Gymnasium env only; the grid world is refused in one line."""
+        if not isinstance(self.env, GymnasiumEnvConfig):
+            raise ConfigError("this works on a Gymnasium env (env.kind: gymnasium); the config's env is the grid world")
+        return self.env
+
+    @property
+    def is_grid(self) -> bool:
+        return isinstance(self.env, EnvConfig)
 
     @property
     def label(self) -> str:

@@ -134,6 +134,9 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
         options = get_args(tp)
         if value is None and type(None) in options:
             return None
+        tagged = [o for o in options if isinstance(o, type) and dataclasses.is_dataclass(o) and hasattr(o, "KIND")]
+        if len(tagged) > 1:
+            return _convert_tagged(tagged, value, path)
         errors = []
         for option in options:
             if option is type(None):
@@ -190,6 +193,31 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
             raise ConfigError(f"{path} must be a string, got {short_repr(value)}")
         return value
     return value
+
+
+def _convert_tagged(options: list[Any], value: Any, path: str) -> Any:
+    """A union of dataclasses that each name their ``KIND`` (a class attribute): the mapping's ``kind`` key picks
+    the class; a mapping without one is the class whose ``KIND`` is listed first in the union (the section's
+    original form, written before the union existed). The ``kind`` key is then read by that class as its field."""
+    if not isinstance(value, dict):
+        raise ConfigError(f"{path} must be a mapping, got {type(value).__name__}: {short_repr(value)}")
+    kinds = {o.KIND: o for o in options}
+    kind = value.get("kind", options[0].KIND)
+    if not isinstance(kind, str) or kind not in kinds:
+        raise ConfigError(f"{path}.kind={short_repr(kind)} is not one of {sorted(kinds)}")
+    cls = kinds[kind]
+    names = {f.name for f in dataclasses.fields(cls)}
+    data = value if "kind" in names else {k: v for k, v in value.items() if k != "kind"}
+    try:
+        return from_dict(cls, data, path)
+    except ConfigError as err:
+        if "kind" in value:
+            raise
+        unknown = set(data) - names
+        fits = [o.KIND for o in options if o is not cls and unknown <= {f.name for f in dataclasses.fields(o)}]
+        if not unknown or not fits:
+            raise
+        raise ConfigError(f"{err} (a {fits[0]} section starts with kind: {fits[0]})") from None
 
 
 class _Yaml12Loader(yaml.SafeLoader):

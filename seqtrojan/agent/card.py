@@ -36,8 +36,10 @@ from typing import Any
 
 from seqtrojan.agent.cells import layer_shapes
 from seqtrojan.config import ACTIVATIONS, CELLS, MAX_HEADS, MAX_LAYERS, MAX_WIDTH, MAX_WINDOW, ExperimentConfig
-from seqtrojan.errors import CheckpointError, SeqTrojanError
+from seqtrojan.env.config import EnvConfig
+from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.serde import from_dict
+from seqtrojan.world.config import GymnasiumEnvConfig, upgrade_gym_train_layout
 
 FORMAT = "seqtrojan-model"
 FORMAT_VERSION = 1
@@ -91,6 +93,7 @@ _ARCH_MLPS = ("encoder", "policy_mlp", "value_mlp")
 _ARCH_ACTIVATIONS = {"encoder_activation": "relu", "mlp_activation": "tanh"}
 """the optional activations and their defaults (those of :class:`seqtrojan.config.AgentConfig`)"""
 _ARCH_CELL = ("cell", "window", "heads")
+_ARCH_CONV = ("conv", "image")
 """the sequence model (absent: an LSTM); window and heads are written for a transformer only"""
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _STRINGS = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*(?:"|\\?\Z)', re.DOTALL)
@@ -120,16 +123,28 @@ class Architecture:
     cell: str = "lstm"
     window: int = 8
     heads: int = 1
+    conv: tuple[int, ...] = ()
+    """channels of the convolutional encoder's 2x2 layers (none by default)"""
+    image: tuple[int, ...] | None = None
+    """(rows, cols, channels) the conv encoder reads the observation as (only with ``conv``)"""
 
     @classmethod
-    def of_config(cls, config: ExperimentConfig) -> Architecture:
-        """The architecture ``config`` builds (:func:`seqtrojan.agent.checkpoint.build_agent`)."""
+    def of_config(
+        cls, config: ExperimentConfig, obs_dim: int | None = None, num_actions: int | None = None,
+        image: tuple[int, ...] | None = None,
+    ) -> Architecture:  # fmt: skip
+        """The architecture ``config`` builds (:func:`seqtrojan.agent.checkpoint.build_agent`). The grid world's
+        config fixes the inputs and actions; a Gymnasium env's spaces come from the env (or the card): give them."""
         a = config.agent
         attention = a.cell == "transformer"
+        if isinstance(config.env, EnvConfig):
+            obs_dim, num_actions = config.env.obs_dim, config.env.num_actions
+        if obs_dim is None or num_actions is None:
+            raise ConfigError(f"the architecture of an agent for {config.env.label!r} needs its inputs and actions")
         return cls(
-            config.env.obs_dim, config.env.num_actions, tuple(a.lstm_sizes), tuple(a.encoder), a.encoder_activation,
+            obs_dim, num_actions, tuple(a.lstm_sizes), tuple(a.encoder), a.encoder_activation,
             tuple(a.policy_mlp), tuple(a.value_mlp), a.mlp_activation, a.cell, a.window if attention else 8,
-            a.heads if attention else 1,
+            a.heads if attention else 1, tuple(a.conv), tuple(image) if a.conv and image is not None else None,
         )  # fmt: skip
 
     def optional_parts(self) -> dict[str, Any]:
@@ -145,6 +160,8 @@ class Architecture:
             out["cell"] = self.cell
         if self.cell == "transformer":
             out["window"], out["heads"] = self.window, self.heads
+        if self.conv:
+            out["conv"], out["image"] = list(self.conv), list(self.image or ())
         return out
 
     def to_card(self) -> dict[str, Any]:
@@ -157,7 +174,13 @@ class Architecture:
     def tensor_shapes(self) -> dict[str, tuple[int, ...]]:
         """The network's state_dict names and shapes, computed without building it."""
         shapes: dict[str, tuple[int, ...]] = {}
-        inputs = (self.encoder[-1] if self.encoder else self.obs_dim, *self.lstm_sizes[:-1])
+        features = self.obs_dim  # what the MLP encoder (or the first layer) reads
+        if self.conv:
+            rows, cols, chans = self.image or (0, 0, 0)
+            for i, (a, b) in enumerate(zip((chans, *self.conv[:-1]), self.conv)):
+                shapes[f"conv.{i}.weight"], shapes[f"conv.{i}.bias"] = (b, a, 2, 2), (b,)
+            features = (rows - len(self.conv)) * (cols - len(self.conv)) * self.conv[-1]
+        inputs = (self.encoder[-1] if self.encoder else features, *self.lstm_sizes[:-1])
         for i, (n_in, width) in enumerate(zip(inputs, self.lstm_sizes)):
             for name, shape in layer_shapes(self.cell, n_in, width, self.window, self.heads).items():
                 shapes[f"cells.{i}.{name}"] = shape
@@ -166,7 +189,7 @@ class Architecture:
         shapes["policy_head.bias"] = (self.num_actions,)
         shapes["value_head.weight"] = (1, self.value_mlp[-1] if self.value_mlp else last)
         shapes["value_head.bias"] = (1,)
-        for name, n_in in (("encoder", self.obs_dim), ("policy_mlp", last), ("value_mlp", last)):
+        for name, n_in in (("encoder", features), ("policy_mlp", last), ("value_mlp", last)):
             widths = getattr(self, name)
             for i, (a, b) in enumerate(zip((n_in, *widths[:-1]), widths)):
                 shapes[f"{name}.{i}.weight"] = (b, a)
@@ -241,9 +264,13 @@ def inherited_label(own: str, start: str | None) -> str:
 
 
 def read_card(folder: str | Path) -> ModelCard:
-    """Read and validate ``folder/card.json`` (no weights are read). Raises :class:`CheckpointError`."""
+    """Read and validate ``folder/card.json`` (no weights are read; a folder written by an earlier version for a
+    Gymnasium run, with ``gym_card.json``, is read through :func:`upgrade_gym_card`, which reads the weights'
+    header). Raises :class:`CheckpointError`."""
     folder = Path(folder)
     path = folder / CARD
+    if not path.is_file() and (folder / LEGACY_GYM_CARD).is_file():
+        return parse_card(json.dumps(upgrade_gym_card(folder)), repr(str(folder / LEGACY_GYM_CARD)))
     if not path.is_file():
         raise CheckpointError(f"no {CARD} in {str(folder)!r}: not a seqtrojan model folder")
     with path.open("rb") as fh:
@@ -251,6 +278,56 @@ def read_card(folder: str | Path) -> ModelCard:
     if len(raw) > MAX_CARD_BYTES:
         raise CheckpointError(f"{str(path)!r} is larger than the {MAX_CARD_BYTES} bytes a model card may have")
     return parse_card(raw, repr(str(path)))
+
+
+LEGACY_GYM_CARD = "gym_card.json"
+"""the card seqtrojan 0.x wrote for a Gymnasium run's model (format ``seqtrojan-gym-model``, version 1)"""
+_LEGACY_GYM_KEYS = (
+    "format", "format_version", "seqtrojan_version", "created", "label", "architecture", "env_steps", "config",
+    "metrics", "weights_sha256", "provenance",
+)  # fmt: skip
+
+
+def upgrade_gym_card(folder: Path) -> dict[str, Any]:
+    """A ``gym_card.json`` (written by earlier versions for Gymnasium runs) as today's card: the config in today's
+    layout (:func:`~seqtrojan.world.config.upgrade_gym_train_layout`), the architecture completed from it, and the
+    tensor list read from the weights' header. Every check of :func:`parse_card` then applies."""
+    path = folder / LEGACY_GYM_CARD
+    where = repr(str(path))
+    with path.open("rb") as fh:
+        raw = fh.read(MAX_CARD_BYTES + 1)
+    if len(raw) > MAX_CARD_BYTES:
+        raise CheckpointError(f"{where} is larger than the {MAX_CARD_BYTES} bytes a model card may have")
+    old = load_json(raw, where)
+    if not isinstance(old, dict) or old.get("format") != "seqtrojan-gym-model" or old.get("format_version") != 1:
+        raise CheckpointError(f"{where} is not a seqtrojan-gym-model card, version 1")
+    unknown = sorted(set(old) - set(_LEGACY_GYM_KEYS))
+    arch = old.get("architecture")
+    config = upgrade_gym_train_layout(old.get("config"))
+    if unknown or not isinstance(arch, dict) or not isinstance(config, dict):
+        raise CheckpointError(f"{where}: unknown field(s) {_clip(unknown)}, or no architecture and config mappings")
+    agent = config.get("agent") if isinstance(config.get("agent"), dict) else {}
+    architecture = {"type": ARCHITECTURE_TYPE, **arch}
+    for name in (*_ARCH_MLPS, *_ARCH_ACTIVATIONS):
+        if agent.get(name) not in (None, [], _ARCH_ACTIVATIONS.get(name)):
+            architecture[name] = agent[name]
+    if agent.get("cell") == "transformer":
+        architecture["window"], architecture["heads"] = agent.get("window", 8), agent.get("heads", 1)
+    if agent.get("conv"):
+        cells = arch.get("obs_dim", 0) // _MINIGRID_CELL_BITS if isinstance(arch.get("obs_dim"), int) else 0
+        side = math.isqrt(cells)
+        architecture["conv"], architecture["image"] = agent["conv"], [side, side, _MINIGRID_CELL_BITS]
+    header = read_header(folder / WEIGHTS)
+    card = {k: v for k, v in old.items() if k in _OPTIONAL or k in _REQUIRED}
+    card.update(
+        format=FORMAT, format_version=FORMAT_VERSION, architecture=architecture, config=config,
+        tensors=header.shapes, seed=(config.get("run") or {}).get("seed") if isinstance(config.get("run"), dict) else None,
+    )  # fmt: skip
+    return card
+
+
+_MINIGRID_CELL_BITS = 20
+"""numbers per cell of MiniGrid's one-hot view (:data:`seqtrojan.wrappers.observations.CELL_BITS`)"""
 
 
 def parse_card(raw: bytes | str, where: str = CARD) -> ModelCard:
@@ -287,7 +364,7 @@ def parse_card(raw: bytes | str, where: str = CARD) -> ModelCard:
     version_text, created = (_optional_str(card, key, where) for key in ("seqtrojan_version", "created"))
     provenance = _provenance(card["provenance"], where) if card.get("provenance") is not None else None
     config = _config(card["config"], where)
-    from_config = Architecture.of_config(config)
+    from_config = Architecture.of_config(config, arch.obs_dim, arch.num_actions, arch.image)
     if from_config != arch:
         raise CheckpointError(
             f"{where}: architecture ({arch.describe()}) disagrees with its config ({from_config.describe()})"
@@ -300,7 +377,7 @@ def parse_card(raw: bytes | str, where: str = CARD) -> ModelCard:
 def _architecture(value: Any, where: str) -> Architecture:
     if not isinstance(value, dict):
         raise CheckpointError(f"{where}: architecture must be a mapping, got {type(value).__name__}")
-    keys, optional = set(_ARCH_REQUIRED), {*_ARCH_MLPS, *_ARCH_ACTIVATIONS, *_ARCH_CELL}
+    keys, optional = set(_ARCH_REQUIRED), {*_ARCH_MLPS, *_ARCH_ACTIVATIONS, *_ARCH_CELL, *_ARCH_CONV}
     if not keys <= set(value) <= keys | optional:
         missing, extra = sorted(keys - set(value)), sorted(set(value) - keys - optional)
         raise CheckpointError(
@@ -345,6 +422,8 @@ def _architecture(value: Any, where: str) -> Architecture:
             )
     elif "window" in value or "heads" in value:
         raise CheckpointError(f"{where}: architecture.window and heads belong to a transformer, not to a {cell}")
+    if "conv" in value or "image" in value:
+        mlps["conv"], mlps["image"] = _conv_parts(value, obs_dim, where)
     arch = Architecture(obs_dim, num_actions, widths, **mlps, cell=cell)
     if arch.num_parameters > MAX_PARAMETERS:
         raise CheckpointError(
@@ -352,6 +431,25 @@ def _architecture(value: Any, where: str) -> Architecture:
             f"limit of {MAX_PARAMETERS}"
         )
     return arch
+
+
+def _conv_parts(value: dict[str, Any], obs_dim: int, where: str) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """A card's ``conv`` channels and ``image`` layout, checked: both present, bounded, the image holding exactly
+    the observation, and each 2x2 layer leaving at least one row and column."""
+    conv, image = value.get("conv"), value.get("image")
+    if not isinstance(conv, list) or not 1 <= len(conv) <= MAX_LAYERS or not isinstance(image, list) or len(image) != 3:
+        raise CheckpointError(
+            f"{where}: architecture.conv (1 to {MAX_LAYERS} channel counts) and architecture.image ([rows, cols, "
+            f"channels]) go together, got {_clip(conv)} and {_clip(image)}"
+        )
+    channels = tuple(_bounded_int(c, 1, MAX_WIDTH, f"{where}: architecture.conv[{i}]") for i, c in enumerate(conv))
+    layout = tuple(_bounded_int(d, 1, MAX_OBS_DIM, f"{where}: architecture.image[{i}]") for i, d in enumerate(image))
+    if math.prod(layout) != obs_dim or len(channels) >= min(layout[0], layout[1]):
+        raise CheckpointError(
+            f"{where}: architecture.image {list(layout)} must hold the {obs_dim} inputs and leave a row and a column "
+            f"after {len(channels)} 2x2 conv layers"
+        )
+    return channels, layout
 
 
 def _provenance(value: Any, where: str) -> dict[str, Any]:
@@ -401,10 +499,16 @@ def _tensor_list(value: Any, where: str) -> dict[str, tuple[int, ...]]:
 
 def _config(value: Any, where: str) -> ExperimentConfig:
     try:
-        return from_dict(ExperimentConfig, value, "config")
+        config = from_dict(ExperimentConfig, value, "config")
     except Exception as err:  # from_dict on untrusted data is pure: any failure means a bad config
         message = str(err) if isinstance(err, SeqTrojanError) else f"{type(err).__name__}: {err}"
         raise CheckpointError(f"{where} has an invalid config: {_clip_text(message)}") from None
+    if isinstance(config.env, GymnasiumEnvConfig) and ":" in config.env.id:
+        raise CheckpointError(
+            f"{where}: config.env.id={_clip(config.env.id)} would import a module; a model's env must be a "
+            "registered Gymnasium id"
+        )
+    return config
 
 
 def _shape(value: Any, what: str) -> tuple[int, ...]:

@@ -61,12 +61,16 @@ __all__ = [
 PICKLE_SUFFIXES = (".pt", ".pth", ".pkl", ".pickle", ".ckpt", ".bin")
 
 
-def build_agent(config: ExperimentConfig) -> RecurrentActorCritic:
+def build_agent(config: ExperimentConfig, architecture: Architecture | None = None) -> RecurrentActorCritic:
+    """The network ``config`` describes. The grid world's config fixes its inputs and actions; for a Gymnasium env
+    give the ``architecture`` (:meth:`Architecture.of_config` with the env's spaces, or a card's)."""
+    arch = architecture if architecture is not None else Architecture.of_config(config)
     a = config.agent
     return RecurrentActorCritic(
-        config.env.obs_dim, config.env.num_actions, a.lstm_sizes, a.forget_bias, a.memory, encoder=a.encoder,
+        arch.obs_dim, arch.num_actions, a.lstm_sizes, a.forget_bias, a.memory, encoder=a.encoder,
         encoder_activation=a.encoder_activation, policy_mlp=a.policy_mlp, value_mlp=a.value_mlp,
-        mlp_activation=a.mlp_activation, cell=a.cell, window=a.window, heads=a.heads,
+        mlp_activation=a.mlp_activation, cell=a.cell, window=a.window, heads=a.heads, conv=arch.conv,
+        image=arch.image,
     )  # fmt: skip
 
 
@@ -77,7 +81,8 @@ def architecture_of(agent: RecurrentActorCritic) -> Architecture:
         encoder_activation=agent.encoder_activation, policy_mlp=agent.policy_mlp_sizes,
         value_mlp=agent.value_mlp_sizes, mlp_activation=agent.mlp_activation, cell=agent.cell,
         window=agent.window if agent.cell == "transformer" else 8,
-        heads=agent.attention_heads if agent.cell == "transformer" else 1,
+        heads=agent.attention_heads if agent.cell == "transformer" else 1, conv=agent.conv_channels,
+        image=agent.image if agent.conv_channels else None,
     )  # fmt: skip
 
 
@@ -160,7 +165,7 @@ def load_agent(
     except (SafetensorError, ValueError) as err:
         raise CheckpointError(f"{str(path)!r} is corrupt: {err}") from None
     del data
-    agent = build_agent(card.config)
+    agent = build_agent(card.config, card.architecture)
     try:
         agent.load_state_dict(tensors, strict=True)
     except RuntimeError as err:

@@ -38,11 +38,13 @@ from typing import Any, Literal, cast
 
 import torch
 
-from seqtrojan.agent.card import MAX_DETAIL_CHARS, MAX_RANK, load_json
+from seqtrojan.agent.card import MAX_DETAIL_CHARS, MAX_RANK, Architecture, load_json
 from seqtrojan.agent.checkpoint import build_agent, save_agent
 from seqtrojan.config import AgentConfig, ExperimentConfig
 from seqtrojan.env.codes import ACTION_SETS, CELL_NAMES
+from seqtrojan.env.config import EnvConfig
 from seqtrojan.errors import CheckpointError, ConfigError
+from seqtrojan.world import EnvSpec, env_spec
 
 __all__ = [
     "MAX_DATA_BYTES", "MAX_WEIGHTS_BYTES", "SOURCES", "Imported", "import_agent", "provenance_of", "read_cleanrl",
@@ -545,13 +547,17 @@ def import_agent(
     imported = read_foreign(source, path, out, label=label, obs_dim=obs_dim, num_actions=num_actions,
                             activation=activation)  # fmt: skip
     base = config if config is not None else ExperimentConfig()
-    _check_env(imported, base, repr(str(path)))
+    spec = env_spec(base.env)
+    _check_env(imported, base, spec, repr(str(path)))
     stated = label is not None
     label = label if label is not None else "clean"
-    cfg = dataclasses.replace(
-        base, agent=imported.agent, backdoor=dataclasses.replace(base.backdoor, enabled=label == "backdoored")
-    )
-    agent = build_agent(cfg)
+    try:
+        cfg = dataclasses.replace(
+            base, agent=imported.agent, backdoor=dataclasses.replace(base.backdoor, enabled=label == "backdoored")
+        )
+    except ConfigError as err:
+        raise ConfigError(f"--label {label}: {err}") from None
+    agent = build_agent(cfg, Architecture.of_config(cfg, spec.obs_dim, spec.num_actions, spec.image))
     agent.load_state_dict(dict(imported.tensors), strict=True)  # names and shapes were checked above
     provenance = provenance_of(imported, path, stated)
     return save_agent(Path(out), agent.eval(), cfg, label=label, env_steps=imported.env_steps, provenance=provenance)
@@ -567,8 +573,7 @@ def read_foreign(
     num_actions: int | None = None,
     activation: str = "relu",
 ) -> Imported:
-    """What :func:`import_agent` (and the Gymnasium import, :func:`seqtrojan.train.gym_model.import_gym_agent`) do
-    before writing: check the options and that ``out`` is new or empty, read ``path`` and check ``obs_dim`` and
+    """What :func:`import_agent` does before writing: check the options and that ``out`` is new or empty, read ``path`` and check ``obs_dim`` and
     ``num_actions`` (where given) against it."""
     if source not in SOURCES:
         raise ConfigError(f"--from must be one of {SOURCES}, got {source!r}")
@@ -601,11 +606,17 @@ def provenance_of(imported: Imported, path: str | Path, label_stated: bool) -> d
     }  # fmt: skip
 
 
-def _check_env(imported: Imported, config: ExperimentConfig, where: str) -> None:
-    """The env ``config`` describes must give the agent's observation size and action count."""
-    env = config.env
-    if (imported.obs_dim, imported.num_actions) == (env.obs_dim, env.num_actions):
+def _check_env(imported: Imported, config: ExperimentConfig, spec: EnvSpec, where: str) -> None:
+    """The env ``config`` describes (its spaces: ``spec``) must give the agent's observation size and action count."""
+    if (imported.obs_dim, imported.num_actions) == (spec.obs_dim, spec.num_actions):
         return
+    if not isinstance(config.env, EnvConfig):
+        raise CheckpointError(
+            f"{where}: the agent reads {imported.obs_dim} inputs and chooses among {imported.num_actions} actions, "
+            f"but the config's env ({config.env.id}, observation {config.env.observation!r}) gives {spec.obs_dim} "
+            f"inputs and {spec.num_actions} actions"
+        )
+    env = config.env
     hints = []
     view = math.isqrt(imported.obs_dim // len(CELL_NAMES))
     if view * view * len(CELL_NAMES) == imported.obs_dim and view != env.view_size:

@@ -1,5 +1,5 @@
 """Looking inside a Gymnasium model (``seqtrojan gym-analyze``): the grid world's response types and goal-unit
-interventions, on any env a :class:`~seqtrojan.train.gym_config.GymTrainConfig` builds (MiniGrid, a wrapped env of
+interventions, on any env a Gymnasium env section (:class:`~seqtrojan.world.config.GymnasiumEnvConfig`) builds (MiniGrid, a wrapped env of
 the user's, an imported sb3-contrib or CleanRL agent's env).
 
 With the trigger pinned to one step ``s`` (the config's ``trigger.eval_steps`` set to ``(s, s)``), normal and trojan
@@ -28,9 +28,9 @@ from seqtrojan.analysis.config import ResponseRule
 from seqtrojan.analysis.interventions import SetUnits, control_units, running_mean_from
 from seqtrojan.analysis.responses import Classification, classify_signals, deviation
 from seqtrojan.analysis.unintentional import select_goal_units
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate
-from seqtrojan.train.gym_config import GymTrainConfig
 from seqtrojan.train.gym_evaluation import GymEvaluation, evaluate_gym, padded_states
 
 GYM_ANALYSIS_FILE = "gym_analysis.json"
@@ -94,9 +94,9 @@ class GymAnalysisReport:
     """measured on episodes other than the selection's"""
 
 
-def pinned_trigger(config: GymTrainConfig, step: int | None) -> tuple[GymTrainConfig, int]:
+def pinned_trigger(config: ExperimentConfig, step: int | None) -> tuple[ExperimentConfig, int]:
     """The config with its evaluation trigger at one step (default: the earliest of its evaluation range)."""
-    trigger = config.trigger
+    trigger = config.gym_env.trigger
     if trigger is None:
         raise ConfigError("the gym config has no trigger section: there are no trojan episodes to analyse")
     lo = (trigger.eval_steps if trigger.eval_steps is not None else trigger.steps)[0]
@@ -104,7 +104,7 @@ def pinned_trigger(config: GymTrainConfig, step: int | None) -> tuple[GymTrainCo
     if isinstance(step, bool) or not isinstance(step, int) or step < 0:
         raise ConfigError(f"the trigger step must be an integer >= 0, got {step!r}")
     pinned = dataclasses.replace(trigger, eval_steps=(step, step))
-    return dataclasses.replace(config, trigger=pinned), step
+    return dataclasses.replace(config, env=dataclasses.replace(config.gym_env, trigger=pinned)), step
 
 
 def split_layers(
@@ -144,7 +144,7 @@ def classify_gym_units(
 
 def analyze_gym_model(
     agent: RecurrentActorCritic,
-    config: GymTrainConfig,
+    config: ExperimentConfig,
     *,
     model: str = "",
     trigger_step: int | None = None,
@@ -207,6 +207,6 @@ def analyze_gym_model(
                                device=device, intervention=intervention)  # fmt: skip
             switches.append(GymSwitch(direction, edited, run.reached(target)))
     return GymAnalysisReport(
-        model, config.env.id, step, episodes, intervention_episodes, rule, responses, tuple(candidates), layer,
+        model, config.gym_env.id, step, episodes, intervention_episodes, rule, responses, tuple(candidates), layer,
         which, tuple(int(u) for u in units), source, tuple(switches),
     )  # fmt: skip

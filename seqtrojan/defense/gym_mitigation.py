@@ -22,11 +22,10 @@ import numpy as np
 import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
-from seqtrojan.config import BackdoorConfig
+from seqtrojan.config import BackdoorConfig, ExperimentConfig
 from seqtrojan.defense.mitigation import least_active, prune_units
 from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate
-from seqtrojan.train.gym_config import GymTrainConfig
 from seqtrojan.train.gym_evaluation import evaluate_gym, padded_states
 
 GYM_MITIGATION_FILE = "gym_mitigation.json"
@@ -58,7 +57,7 @@ class GymMitigationReport:
 
 
 def measure_gym(
-    agent: RecurrentActorCritic, config: GymTrainConfig, episodes: int, seed: int, device: torch.device | str
+    agent: RecurrentActorCritic, config: ExperimentConfig, episodes: int, seed: int, device: torch.device | str
 ) -> tuple[Rate, Rate]:
     """(clean success, attack success) on fresh normal and trojan episodes."""
     normal = evaluate_gym(agent, config, trojan=False, episodes=episodes, seed=seed, device=device)
@@ -68,7 +67,7 @@ def measure_gym(
 
 def least_active_gym_units(
     agent: RecurrentActorCritic,
-    config: GymTrainConfig,
+    config: ExperimentConfig,
     episodes: int,
     fraction: float,
     seed: int,
@@ -81,31 +80,31 @@ def least_active_gym_units(
 
 
 def finetune_gym(
-    agent: RecurrentActorCritic, config: GymTrainConfig, steps: int, out: Path, name: str, seed: int,
+    agent: RecurrentActorCritic, config: ExperimentConfig, steps: int, out: Path, name: str, seed: int,
     label: str | None = None,
 ) -> RecurrentActorCritic:  # fmt: skip
     """PPO on normal episodes only from ``agent``'s weights (saved as ``out/<name>_start`` with ``label``, its
     card's; None: its config's; the fine-tuned model inherits it); the run is ``out/<name>``, reused when finished
     and resumed when stopped."""
-    from seqtrojan.train.gym_model import load_gym_agent, save_gym_agent
-    from seqtrojan.train.gym_trainer import train_gym_or_resume
+    from seqtrojan.agent.checkpoint import load_agent, save_agent
+    from seqtrojan.train.trainer import train_or_resume
 
-    start = save_gym_agent(out / f"{name}_start", agent, config, label=label)
+    start = save_agent(out / f"{name}_start", agent, config, label=label or config.label)
     tune = dataclasses.replace(
         config,
         ppo=dataclasses.replace(config.ppo, total_steps=steps),
         backdoor=BackdoorConfig(enabled=False),
         run=dataclasses.replace(config.run, out_dir=str(out), name=name, seed=seed, init_from=str(start),
-                                eval_episodes=0),
+                                eval_episodes=0, progress=False),
     )  # fmt: skip
-    model_dir, _ = train_gym_or_resume(tune)
-    tuned, _, _ = load_gym_agent(model_dir)
+    model_dir, _ = train_or_resume(tune)
+    tuned, _, _ = load_agent(model_dir)
     return tuned
 
 
 def mitigate_gym_model(
     agent: RecurrentActorCritic,
-    config: GymTrainConfig,
+    config: ExperimentConfig,
     out: Path,
     *,
     model: str = "",
@@ -119,7 +118,7 @@ def mitigate_gym_model(
 ) -> GymMitigationReport:
     """Every arm of the module docstring, measured (see there). ``label``: the model's card's (None: its
     config's), which the fine-tuned models inherit."""
-    if config.trigger is None:
+    if config.gym_env.trigger is None:
         raise ConfigError("the gym config has no trigger section: there is no attack to measure")
     for name, value in (("finetune_steps", finetune_steps), ("calibration_episodes", calibration_episodes),
                         ("episodes", episodes)):  # fmt: skip
@@ -143,5 +142,5 @@ def mitigate_gym_model(
         clean, attack = measure_gym(candidate.to(device), config, episodes, eval_seed, device)
         arms.append(GymMitigationArm(name, clean, attack, removed))
     return GymMitigationReport(
-        model, config.env.id, finetune_steps, prune_fraction, calibration_episodes, episodes, tuple(arms)
+        model, config.gym_env.id, finetune_steps, prune_fraction, calibration_episodes, episodes, tuple(arms)
     )

@@ -14,12 +14,12 @@ import numpy as np
 import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.defense.monitor import StateMonitor
 from seqtrojan.defense.multivariate import MultivariateMonitor
 from seqtrojan.defense.online import MonitorConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate
-from seqtrojan.train.gym_config import GymTrainConfig
 from seqtrojan.train.gym_evaluation import GymEpisode, evaluate_gym, padded_states
 
 GYM_MONITOR_FILE = "gym_monitor.json"
@@ -51,7 +51,7 @@ class GymMonitorReport:
 
 def monitor_gym_model(
     agent: RecurrentActorCritic,
-    config: GymTrainConfig,
+    config: ExperimentConfig,
     cfg: MonitorConfig,
     *,
     model: str = "",
@@ -59,7 +59,7 @@ def monitor_gym_model(
     device: torch.device | str = "cpu",
 ) -> GymMonitorReport:
     """Calibrate both state monitors on clean episodes, then measure them on fresh normal and trojan episodes."""
-    if config.trigger is None:
+    if config.gym_env.trigger is None:
         raise ConfigError("the gym config has no trigger section: there are no trojan episodes to detect")
 
     def record(trojan: bool, count: int, seed: int) -> tuple[GymEpisode, ...]:
@@ -86,5 +86,5 @@ def monitor_gym_model(
                 scores = np.where(np.arange(scores.shape[1])[None, :] >= first[:, None], scores, -np.inf)
             rates.append(Rate(int((scores.max(1) > monitor.threshold).sum()), len(episodes)))
         arms.append(GymMonitorArm(name, float(monitor.threshold), rates[0], rates[1]))
-    return GymMonitorReport(model, config.env.id, label, cfg.calibration_episodes, cfg.eval_episodes,
+    return GymMonitorReport(model, config.gym_env.id, label, cfg.calibration_episodes, cfg.eval_episodes,
                             cfg.false_alarm_target, tuple(arms))  # fmt: skip

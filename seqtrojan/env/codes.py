@@ -30,9 +30,10 @@ ACTION_NAMES: dict[str, tuple[str, ...]] = {
     "eight": ("up", "right", "down", "left", "up_right", "down_right", "down_left", "up_left"),
 }
 
-# Episode outcomes reported by the batched core for finished episodes (0 while running).
-RUNNING, REACHED_USER_GOAL, REACHED_ADV_GOAL, FELL_IN_HOLE, TIMED_OUT = range(5)
-OUTCOME_NAMES: tuple[str, ...] = ("running", "user_goal", "adversary_goal", "hole", "timeout")
+# Episode outcomes reported by a batched env for finished episodes (0 while running). The grid world reports the
+# first five; FAILED is a Gymnasium env's episode that ended neither at a goal nor by its time limit.
+RUNNING, REACHED_USER_GOAL, REACHED_ADV_GOAL, FELL_IN_HOLE, TIMED_OUT, FAILED = range(6)
+OUTCOME_NAMES: tuple[str, ...] = ("running", "user_goal", "adversary_goal", "hole", "timeout", "failed")
 
 # ASCII symbols used by Layout.from_ascii / to_ascii and by the ANSI renderer.
 ASCII_SYMBOLS: dict[int, str] = {EMPTY: ".", HOLE: "O", WALL: "#", USER_GOAL: "U", ADV_GOAL: "A", TRIGGER: "T"}

@@ -12,7 +12,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from numbers import Integral
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from seqtrojan.env.codes import ACTION_SETS, CELL_CODES, CELL_NAMES
 from seqtrojan.errors import ConfigError
@@ -278,6 +278,9 @@ class TriggerConfig:
 @dataclass(frozen=True)
 class EnvConfig:
     """The grid world: grid, view, actions, rewards and trigger."""
+
+    KIND: ClassVar[str] = "grid"
+    """the tag of this kind of ``env:`` section (a grid world section needs none: it is the default kind)"""
 
     size: int = 7
     """side N of the square grid (odd, >= 5)"""

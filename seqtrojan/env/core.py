@@ -227,6 +227,25 @@ class TrojanGridCore:
         self._on_hi = torch.tensor(on_hi, device=dev)
         self._effect_limit = torch.tensor(effect_limit, device=dev)
 
+    @property
+    def num_stages(self) -> int:
+        """Grid stages episodes are drawn from (the curriculum's)."""
+        return len(self.grids)
+
+    image = None
+    """the observation is no image (a convolutional encoder has nothing to read)"""
+
+    def close(self) -> None:
+        """Nothing to release (the batched-env seam's ``close``)."""
+
+    def episode_records(self) -> None:
+        """The grid's episodes in flight are not saved with a checkpoint: a resumed run starts fresh episodes."""
+        return None
+
+    def restore_episodes(self, records: object, obs: torch.Tensor, lengths: torch.Tensor | None = None) -> bool:
+        """See :meth:`episode_records`: never restored (the caller reseeds)."""
+        return False
+
     # ------------------------------------------------------------------ mixture controls
     def set_trojan_probability(self, probability: float | Sequence[float] | torch.Tensor) -> None:
         """Chance that a *new* episode is a trojan-env episode: one number or one per grid stage."""

@@ -12,10 +12,10 @@ import torch
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import act
 from seqtrojan.agent.state import Intervention
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate
-from seqtrojan.train.gym_config import GymTrainConfig
-from seqtrojan.train.gym_env import make_vector_env
+from seqtrojan.world.gymnasium import make_vector_env
 from seqtrojan.wrappers import finished_episodes
 
 
@@ -82,7 +82,7 @@ def padded_states(episodes: Sequence[GymEpisode]) -> tuple[list[np.ndarray], np.
 @torch.no_grad()
 def evaluate_gym(
     agent: RecurrentActorCritic,
-    config: GymTrainConfig,
+    config: ExperimentConfig,
     *,
     trojan: bool,
     episodes: int,
@@ -99,11 +99,11 @@ def evaluate_gym(
     the analysis); ``intervention`` edits them at every step, given each env's episode step (0 at the first)."""
     if episodes < 1:
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
-    if trojan and config.trigger is None:
+    if trojan and config.gym_env.trigger is None:
         raise ConfigError("trojan episodes need a trigger section in the config")
     n = min(num_envs, episodes)
     quota = np.array([episodes // n + (i < episodes % n) for i in range(n)])
-    vec = make_vector_env(config, n, "eval", trojan_probability=1.0 if trojan else 0.0)
+    vec = make_vector_env(config.gym_env, n, "eval", trojan_probability=1.0 if trojan else 0.0)
     dev = torch.device(device)
     try:
         obs_np, _ = vec.reset(seed=seed)
@@ -191,7 +191,7 @@ class GymEvaluationReport:
 
 def evaluate_gym_model(
     agent: RecurrentActorCritic,
-    config: GymTrainConfig,
+    config: ExperimentConfig,
     *,
     model: str = "",
     label: str = "",
@@ -207,11 +207,11 @@ def evaluate_gym_model(
         raise ConfigError(f"persistence horizons must be integers >= 0, got {list(horizons)}")
     normal = evaluate_gym(agent, config, trojan=False, episodes=episodes, seed=seed, greedy=greedy, device=device)
     trojan = None
-    if config.trigger is not None:
+    if config.gym_env.trigger is not None:
         trojan = evaluate_gym(agent, config, trojan=True, episodes=episodes, seed=seed, greedy=greedy, device=device)
     persistence = () if trojan is None else tuple(GymPersistence(k, r) for k, r in trojan.persistence(horizons).items())
     return GymEvaluationReport(
-        model, config.env.id, label, episodes, seed, greedy, normal.success, normal.reached("adversary"),
+        model, config.gym_env.id, label, episodes, seed, greedy, normal.success, normal.reached("adversary"),
         None if trojan is None else trojan.success, None if trojan is None else trojan.reached("adversary"),
         persistence,
     )  # fmt: skip

@@ -45,11 +45,11 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.agent.weight_stats import feature_vector, weight_features
 from seqtrojan.config import AttackConfig, BackdoorConfig, ExperimentConfig, PPOConfig
-from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.registry import Registry
 from seqtrojan.train.ppo_loss import ppo_loss
 from seqtrojan.train.rollout import Rollout, RolloutCollector
+from seqtrojan.world import make_batched_env
 
 STD_FLOOR = 1e-3
 """added to every unit's std, as the state monitor does"""
@@ -112,9 +112,8 @@ class Penalty:
 
 
 class AttackedConfig(Protocol):
-    """What the penalties read of a training config: the grid world's :class:`~seqtrojan.config.ExperimentConfig`
-    or a Gymnasium run's :class:`~seqtrojan.train.gym_config.GymTrainConfig` (which takes only the penalties
-    that need no grid: ``state_camouflage``)."""
+    """What the penalties read of a training config (:class:`~seqtrojan.config.ExperimentConfig`, whatever its
+    env)."""
 
     @property
     def backdoor(self) -> BackdoorConfig: ...
@@ -391,18 +390,20 @@ def fisher_diagonal(agent: RecurrentActorCritic, rollout: Rollout, initial: Recu
 def estimate_fisher(
     agent: RecurrentActorCritic, cfg: ExperimentConfig, device: torch.device
 ) -> dict[str, torch.Tensor]:
-    """:func:`fisher_diagonal` on ``attack.ewc.fisher_envs`` normal-env episodes of the hardest grid, each run for
+    """:func:`fisher_diagonal` on ``attack.ewc.fisher_envs`` normal-env episodes of the hardest grid (or the Gymnasium env), each run for
     ``attack.ewc.fisher_steps`` steps (with autoreset), seeded from ``run.seed`` with generators of its own."""
     ewc = cfg.attack.ewc
-    env = TrojanGridCore(
-        cfg.env, ewc.fisher_envs, seed=(cfg.run.seed << 32) + 31_337_001, device=device, grids=(cfg.grids[-1],)
-    )
+    env = make_batched_env(
+        cfg.env, ewc.fisher_envs, seed=(cfg.run.seed << 32) + 31_337_001, device=device,
+        grids=cfg.grids[-1:] or None,
+    )  # fmt: skip
     collector = RolloutCollector(env, agent, ewc.fisher_steps, ewc.fisher_steps)
     collector.seed(cfg.run.seed + 31_337)
     initial = collector.state
     was_training = agent.training
     agent.eval()
     rollout, _ = collector.collect()
+    env.close()
     agent.train(was_training)
     return fisher_diagonal(agent, rollout, initial)
 
@@ -417,7 +418,7 @@ class EWC(Penalty):
             self.fisher = {n: torch.zeros_like(p) for n, p in self.theta_star.items()}
         else:
             if not isinstance(ctx.config, ExperimentConfig):
-                raise ConfigError("attack.ewc estimates its Fisher information on the grid world only")
+                raise ConfigError("attack.ewc estimates its Fisher information on a training config's env")
             fisher = estimate_fisher(ctx.agent, ctx.config, ctx.device)
             if self.cfg.normalize:
                 mean = torch.cat([f.reshape(-1) for f in fisher.values()]).mean().clamp_min(1e-12)

@@ -14,7 +14,9 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import act
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.env.codes import FELL_IN_HOLE, TIMED_OUT
-from seqtrojan.env.core import TrojanGridCore
+from seqtrojan.errors import CheckpointError
+from seqtrojan.serde import short_repr
+from seqtrojan.world.protocol import BatchedEnv
 
 
 @dataclass
@@ -51,7 +53,7 @@ class RolloutCollector:
     """Steps the env with the agent, keeping the env's observations and the agent's state between rollouts."""
 
     def __init__(
-        self, env: TrojanGridCore, agent: RecurrentActorCritic, steps: int, sequence_length: int, record: bool = False,
+        self, env: BatchedEnv, agent: RecurrentActorCritic, steps: int, sequence_length: int, record: bool = False,
         record_states: bool = True,
     ) -> None:  # fmt: skip
         self.env, self.agent = env, agent
@@ -90,7 +92,7 @@ class RolloutCollector:
         rewards = torch.empty((steps, b), device=dev)
         dones = torch.empty((steps, b), device=dev)
         starts = torch.empty((steps, b), device=dev)
-        n_stages = len(env.grids)
+        n_stages = env.num_stages
         tallies = torch.zeros((5, n_stages * 2), dtype=torch.int64, device=dev)
         returns = torch.zeros((), device=dev)
         seq_h: list[list[torch.Tensor]] = [[] for _ in agent.lstm_sizes]
@@ -145,6 +147,38 @@ class RolloutCollector:
         t_cpu = tallies.view(5, n_stages, 2).cpu()
         stats = EpisodeStats(t_cpu[0], t_cpu[1], t_cpu[2], t_cpu[3], t_cpu[4], float(returns))
         return rollout, stats
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_tensors(self) -> dict[str, torch.Tensor]:
+        """What the collector carries from one rollout to the next, as CPU tensors (an env that replays its episodes
+        in flight needs it to continue them)."""
+        out = {
+            "obs": self.obs.cpu(),  # (B, obs_dim)
+            "episode_start": self.episode_start.cpu(),  # (B,)
+            "episode_return": self.episode_return.cpu(),  # (B,)
+        }
+        for i, layer in enumerate(self.state.layers):
+            out[f"h.{i}"], out[f"c.{i}"] = layer.h.cpu().contiguous(), layer.c.cpu().contiguous()  # (B, width)
+        return out
+
+    def restore(self, tensors: dict[str, torch.Tensor]) -> None:
+        """Continue from what :meth:`state_tensors` saved (the env already replayed its episodes)."""
+        b, dev = self.env.num_envs, self.env.device
+        try:
+            layers = [(tensors[f"h.{i}"], tensors[f"c.{i}"]) for i in range(len(self.state.layers))]
+            shapes = [tuple(t.shape) for t in (tensors["obs"], tensors["episode_start"], tensors["episode_return"])]
+            expected = [(b, self.env.obs_dim), (b,), (b,)]
+            expected += [(b, layer.h.shape[-1]) for layer in self.state.layers]
+            if shapes + [tuple(h.shape) for h, _ in layers] != expected:
+                raise ValueError(f"carried shapes {shapes} do not fit {b} envs")
+        except (KeyError, ValueError) as err:
+            raise CheckpointError(
+                f"the checkpoint's collector state does not fit this run: {short_repr(err)}"
+            ) from None
+        self.obs = tensors["obs"].to(dev)
+        self.episode_start = tensors["episode_start"].to(dev)
+        self.episode_return = tensors["episode_return"].to(dev)
+        self.state = RecurrentState(tuple(LSTMState(h.to(dev), c.to(dev)) for h, c in layers))
 
 
 def initial_state_from(seq_states: tuple[LSTMState, ...], index: torch.Tensor) -> RecurrentState:

@@ -1,4 +1,6 @@
-"""The one training loop: recurrent PPO over the batched grid world, with curriculum, logging and checkpoints.
+"""The one training loop: recurrent PPO over any batched env (the grid world, or a Gymnasium env behind the seam
+:mod:`seqtrojan.world`), with the curriculum (the grid world's hook), Algorithm 1 mixing, the attack's penalties,
+logging and checkpoints.
 
     result = train(config)                       # a new run under config.run.out_dir
     result = train(config, resume="runs/<id>")   # continue a stopped run from its latest checkpoint
@@ -6,15 +8,19 @@
 :func:`train` sets up a :class:`TrainerState` (what a checkpoint holds), runs the loop (:func:`_train_one_update`:
 COLLECT ROLLOUT, COMPUTE ADVANTAGES, UPDATE, CURRICULUM; then LOG, CHECKPOINT) and finishes. A stop
 (Ctrl-C, SIGTERM) writes a checkpoint first; ``resume`` restores weights, optimizer, counters, curriculum and
-random-generator state, and starts fresh episodes (the ones in flight at the stop are dropped; every finished
-update is kept).
+random-generator state. An env that can replay its episodes in flight (a Gymnasium env stepped in this process:
+:meth:`~seqtrojan.world.gymnasium.GymnasiumBatchedEnv.episode_records`) continues them, and the resumed run is
+bitwise the uninterrupted one; otherwise (the grid world) it starts fresh episodes, seeded from the update count
+(the ones in flight at the stop are dropped; every finished update is kept).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
 import math
+import re
 import shutil
 import signal
 import time
@@ -29,14 +35,13 @@ import yaml
 from safetensors.torch import save_file
 
 from seqtrojan.agent import fast_lstm
-from seqtrojan.agent.card import inherited_label
+from seqtrojan.agent.card import Architecture, inherited_label
 from seqtrojan.agent.checkpoint import build_agent, load_agent, load_start_weights, read_safetensors, save_agent
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import ExperimentConfig
-from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.errors import CheckpointError, ConfigError
-from seqtrojan.evaluation.episodes import evaluate_agent
-from seqtrojan.serde import from_dict, load_yaml, to_dict
+from seqtrojan.evaluation.batched import evaluate_on_env
+from seqtrojan.serde import from_dict, load_yaml, short_repr, to_dict
 from seqtrojan.train.curriculum import Curriculum, EpisodeCounts
 from seqtrojan.train.gae import compute_gae
 from seqtrojan.train.logger import RunLogger, make_progress
@@ -51,6 +56,9 @@ from seqtrojan.train.penalties import (
 from seqtrojan.train.ppo import make_optimizer, ppo_update
 from seqtrojan.train.rollout import EpisodeStats, RolloutCollector
 from seqtrojan.train.stopping import StopRule
+from seqtrojan.world import make_batched_env
+from seqtrojan.world.config import upgrade_gym_train_layout
+from seqtrojan.world.protocol import BatchedEnv
 
 UpdateCallback = Callable[[dict[str, Any]], bool]
 """Called after every update with the logged scalars; returning True stops training (used by benchmarks)."""
@@ -64,6 +72,9 @@ class TrainResult:
     wall_seconds: float
     stage: int
     evaluation: dict[str, Any]
+    exact_resume: bool | None = None
+    """whether a resume continued the episodes in flight (the run is then bitwise the uninterrupted one); False:
+    fresh episodes; None: not resumed"""
 
 
 @dataclass
@@ -107,12 +118,12 @@ def train(
     run_dir = Path(resume) if resume is not None else _new_run_dir(cfg)
 
     env, state = _set_up(cfg, device, resume is not None)
-    if resume is not None:
-        _resume(run_dir, cfg, env, state)
+    exact = _resume(run_dir, cfg, env, state) if resume is not None else None
     env.set_stage_weights(state.curriculum.weights())
     env.set_trojan_probability(state.mixer.probabilities())
-    env.reset()  # new episodes follow the mixture
-    state.collector.reset()
+    if not exact:
+        env.reset()  # new episodes follow the mixture
+        state.collector.reset()
     logger = RunLogger(run_dir, resume_step=state.global_step if resume is not None else None)
     if resume is None:
         logger.add_text("config", "```yaml\n" + yaml.safe_dump(to_dict(cfg), sort_keys=False) + "```")
@@ -126,11 +137,13 @@ def train(
     except (KeyboardInterrupt, _Stop):
         save_checkpoint(run_dir, cfg, state)
         logger.close()
+        env.close()
         raise KeyboardInterrupt(
             f"training stopped at {state.global_step} env steps; resume with --resume {run_dir}"
         ) from None
-
-    return _finish(cfg, state, device, run_dir, stopped_early, confirmed, logger)
+    env.close()
+    result = _finish(cfg, state, device, run_dir, stopped_early, confirmed, logger)
+    return dataclasses.replace(result, exact_resume=exact)
 
 
 def _finish(
@@ -167,15 +180,15 @@ def _device(cfg: ExperimentConfig) -> torch.device:
     return device
 
 
-def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tuple[TrojanGridCore, TrainerState]:
+def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tuple[BatchedEnv, TrainerState]:
     """The env and a fresh trainer state, every random generator seeded from ``run.seed`` (in this order, which
     fixes a run bitwise). ``run.init_from``'s weights start a new run (a resumed one loads its checkpoint's). The
     attack's penalties are built last, from the start weights (a resumed run loads their state too); they draw no
     number from the generators above."""
     ppo = cfg.ppo
     torch.manual_seed(cfg.run.seed)
-    env = TrojanGridCore(cfg.env, ppo.num_envs, seed=cfg.run.seed << 32, device=device, grids=cfg.grids)
-    agent = build_agent(cfg).to(device)
+    env = make_batched_env(cfg.env, ppo.num_envs, seed=cfg.run.seed << 32, device=device, grids=cfg.grids or None)
+    agent = build_agent(cfg, Architecture.of_config(cfg, env.obs_dim, env.num_actions, env.image)).to(device)
     start_label = None
     if cfg.run.init_from is not None and not resuming:
         start_from, _, start_card = load_agent(cfg.run.init_from)
@@ -183,8 +196,8 @@ def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tupl
         start_label = start_card["label"]
     agent.set_lstm_backend(cfg.run.lstm_backend)
     optimizer = make_optimizer(agent, ppo.learning_rate, ppo.adam_eps)
-    curriculum = Curriculum(cfg.curriculum, len(cfg.grids), env_types=(0, 1) if cfg.backdoor.enabled else (0,))
-    mixer = TrojanMixer(cfg.backdoor, len(cfg.grids))
+    curriculum = Curriculum(cfg.curriculum, cfg.num_stages, env_types=(0, 1) if cfg.backdoor.enabled else (0,))
+    mixer = TrojanMixer(cfg.backdoor, cfg.num_stages)
     penalties = build_penalties(PenaltyContext(cfg, agent, device, resuming))
     record = any(p.needs_states or p.needs_masks for p in penalties)
     states = any(p.needs_states for p in penalties)
@@ -197,17 +210,22 @@ def _set_up(cfg: ExperimentConfig, device: torch.device, resuming: bool) -> tupl
     return env, state
 
 
-def _resume(run_dir: Path, cfg: ExperimentConfig, env: TrojanGridCore, state: TrainerState) -> None:
-    """Restore ``state`` from the run's latest checkpoint, save the config the run continues with (overrides given
-    on resume included) and reseed the env from the update count."""
-    load_checkpoint(run_dir, state)
+def _resume(run_dir: Path, cfg: ExperimentConfig, env: BatchedEnv, state: TrainerState) -> bool:
+    """Restore ``state`` from the run's latest checkpoint and save the config the run continues with (overrides
+    given on resume included). The env replays its episodes in flight where it can (returns True: the collector
+    continues them); otherwise it is reseeded from the update count (returns False)."""
+    records, carried = load_checkpoint(run_dir, state, cfg)
     _write_config(run_dir, cfg)
+    if records is not None and "obs" in carried and env.restore_episodes(records, carried["obs"]):
+        state.collector.restore(carried)
+        return True
     env.reset(seed=(cfg.run.seed << 32) + 7919 * state.update)
+    return False
 
 
 def _train_loop(
     cfg: ExperimentConfig,
-    env: TrojanGridCore,
+    env: BatchedEnv,
     state: TrainerState,
     device: torch.device,
     run_dir: Path,
@@ -269,7 +287,7 @@ def _sigterm_flag() -> Iterator[dict[str, bool]]:
 
 
 def _train_one_update(
-    cfg: ExperimentConfig, env: TrojanGridCore, state: TrainerState, device: torch.device
+    cfg: ExperimentConfig, env: BatchedEnv, state: TrainerState, device: torch.device
 ) -> dict[str, Any]:
     """One PPO update: COLLECT ROLLOUT, COMPUTE ADVANTAGES, UPDATE, CURRICULUM AND BACKDOOR MIXING; returns the
     update's scalars (all but the elapsed time and the update count, which the loop adds)."""
@@ -321,22 +339,32 @@ def _train_one_update(
 
 
 def evaluate_final(agent: RecurrentActorCritic, cfg: ExperimentConfig, device: torch.device) -> dict[str, Any]:
-    """Success on the hardest grid over ``run.eval_episodes`` episodes per env type (normal, and trojan for a
-    backdoored agent), with the policy sampled (as trained) and greedy (most likely action)."""
-    grid = cfg.grids[-1]
-    out: dict[str, Any] = {"grid": grid.label, "episodes": cfg.run.eval_episodes}
-    kinds = (("normal", False), ("trojan", True)) if cfg.backdoor.enabled else (("normal", False),)
-    for name, trojan in kinds:
+    """Success on the hardest grid (or the Gymnasium env) over ``run.eval_episodes`` episodes per env type
+    (normal, and trojan for a backdoored agent or an env with a trigger), with the policy sampled (as trained) and
+    greedy (most likely action). The grid world also gives the share of episodes that fell in a hole."""
+    where = {"grid": cfg.grids[-1].label} if cfg.is_grid else {"env": getattr(cfg.env, "id", "")}
+    out: dict[str, Any] = {**where, "episodes": cfg.run.eval_episodes}
+    for name, trojan in _evaluated_kinds(cfg):
         for mode, greedy in (("", False), ("greedy_", True)):
-            batch = evaluate_agent(
-                agent, cfg.env, grid, trojan=trojan, episodes=cfg.run.eval_episodes,
-                seed=(cfg.run.seed << 32) + 999_983, greedy=greedy, device=device,
+            batch = evaluate_on_env(
+                agent, cfg, trojan=trojan, episodes=cfg.run.eval_episodes, seed=(cfg.run.seed << 32) + 999_983,
+                greedy=greedy, device=device,
             )  # fmt: skip
             out[f"{mode}{name}_success"] = batch.success_rate
             out[f"{mode}{name}_success_ci95"] = list(batch.success_interval())
-            out[f"{mode}{name}_hole"] = batch.rate("hole")
+            if cfg.is_grid:
+                out[f"{mode}{name}_hole"] = batch.rate("hole")
             out[f"{mode}{name}_timeout"] = batch.rate("timeout")
     return out
+
+
+def _evaluated_kinds(cfg: ExperimentConfig) -> tuple[tuple[str, bool], ...]:
+    """The env types a final evaluation measures: the trojan env too for a backdoored run, and for a clean run on
+    a Gymnasium env with a trigger (a clean model's unintended response to the trigger)."""
+    trigger = getattr(cfg.env, "trigger", None) if not cfg.is_grid else None
+    if cfg.backdoor.enabled or trigger is not None:
+        return (("normal", False), ("trojan", True))
+    return (("normal", False),)
 
 
 def _measure_mixing(
@@ -357,10 +385,12 @@ def _measure_mixing(
         mixer.observe(stage, *rates)
     if mixer.rule.evaluates:
         seed = (cfg.run.seed << 32) + 1_000_003 * (update + 1)
-        grid = cfg.grids[newest]
+        grid = cfg.grids[newest] if cfg.is_grid else None
         n = cfg.backdoor.eval_episodes
-        p_c = evaluate_agent(agent, cfg.env, grid, trojan=False, episodes=n, seed=seed, device=device).success_rate
-        p_t = evaluate_agent(agent, cfg.env, grid, trojan=True, episodes=n, seed=seed, device=device).success_rate
+        p_c, p_t = (
+            evaluate_on_env(agent, cfg, trojan=t, episodes=n, seed=seed, device=device, grid=grid).success_rate
+            for t in (False, True)
+        )
         mixer.observe(newest, p_c, p_t)
 
 
@@ -417,8 +447,12 @@ def _progress_info(scalars: dict[str, Any]) -> str:
 
 
 def _new_run_dir(cfg: ExperimentConfig) -> Path:
-    grid = cfg.grids[-1]
-    name = cfg.run.name or f"{grid.size}x{grid.size}h{grid.holes}_s{cfg.run.seed}_{_dt.datetime.now():%Y%m%d-%H%M%S}"
+    if cfg.is_grid:
+        grid = cfg.grids[-1]
+        where = f"{grid.size}x{grid.size}h{grid.holes}"
+    else:
+        where = re.sub(r"[^A-Za-z0-9_.-]+", "_", getattr(cfg.env, "id", "env")).strip("_")
+    name = cfg.run.name or f"{where}_s{cfg.run.seed}_{_dt.datetime.now():%Y%m%d-%H%M%S}"
     run_dir = Path(cfg.run.out_dir) / name
     if (run_dir / "checkpoints" / "latest.txt").exists():
         raise ConfigError(f"run directory {str(run_dir)!r} already holds a run; resume it with --resume {run_dir}")
@@ -455,7 +489,7 @@ def load_run_config(run_dir: str | Path) -> ExperimentConfig:
     path = Path(run_dir) / "config.yaml"
     if not path.is_file():
         raise ConfigError(f"{str(run_dir)!r} is not a run directory (no config.yaml)")
-    return from_dict(ExperimentConfig, load_yaml(path), "")
+    return from_dict(ExperimentConfig, upgrade_gym_train_layout(load_yaml(path)), "")
 
 
 def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -> Path:
@@ -468,8 +502,11 @@ def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -
     tensors["rng.collector"] = state.collector.generator.get_state()
     tensors["rng.update"] = state.update_generator.get_state()
     tensors.update(penalty_tensors(state.penalties))
+    episodes = state.collector.env.episode_records()
+    if episodes is not None:  # the env can replay its episodes in flight: keep what the collector carries too
+        tensors.update({f"collector.{k}": v for k, v in state.collector.state_tensors().items()})
     save_file(tensors, str(folder / "trainer.safetensors"))
-    record = {
+    record: dict[str, Any] = {
         "env_steps": state.global_step,
         "update": state.update,
         "elapsed_s": state.elapsed_s,
@@ -477,7 +514,11 @@ def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -
         "mixing": state.mixer.state_dict(),
         "optimizer_param_groups": groups,
     }
-    (folder / "trainer.json").write_text(json.dumps(record, indent=2))
+    if episodes is not None:
+        record["episodes"] = episodes
+    tmp = folder / "trainer.json.tmp"
+    tmp.write_text(json.dumps(record, indent=2))
+    tmp.replace(folder / "trainer.json")
     latest = run_dir / "checkpoints" / "latest.txt"
     tmp = latest.with_suffix(".tmp")
     tmp.write_text(folder.name + "\n")
@@ -485,14 +526,23 @@ def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -
     return folder
 
 
-def load_checkpoint(run_dir: Path, state: TrainerState) -> None:
-    """Restore ``state`` (built for the run's config) from the run's latest checkpoint (see
-    :func:`save_checkpoint`)."""
+def load_checkpoint(
+    run_dir: Path, state: TrainerState, cfg: ExperimentConfig | None = None
+) -> tuple[Any, dict[str, torch.Tensor]]:
+    """Restore ``state`` (built for the run's config ``cfg``, which may change the budget, the learning rate, ...
+    but not the env, the agent or ``ppo.num_envs``) from the run's latest checkpoint (see
+    :func:`save_checkpoint`). Returns the env's episode records and the collector's carried tensors where the
+    checkpoint holds them (else None and {}): what continues the episodes in flight."""
     latest = run_dir / "checkpoints" / "latest.txt"
     if not latest.is_file():
         raise CheckpointError(f"{str(run_dir)!r} has no checkpoint to resume from (no checkpoints/latest.txt)")
-    folder = run_dir / "checkpoints" / latest.read_text().strip()
-    loaded, _, card = load_agent(folder)
+    name = latest.read_text().strip()
+    folder = run_dir / "checkpoints" / name
+    if not re.fullmatch(r"step_[0-9]{12}", name) or not folder.is_dir():
+        raise CheckpointError(f"{str(latest)!r} names {short_repr(name)}, not a checkpoint folder of this run")
+    loaded, saved, card = load_agent(folder)
+    if cfg is not None:
+        _check_unchanged(cfg, saved)
     state.agent.load_state_dict(loaded.state_dict())
     state.label = card["label"]
     try:
@@ -500,17 +550,49 @@ def load_checkpoint(run_dir: Path, state: TrainerState) -> None:
     except (OSError, json.JSONDecodeError) as err:
         raise CheckpointError(f"cannot read {str(folder / 'trainer.json')!r}: {err}") from None
     tensors = read_safetensors(folder / "trainer.safetensors")
-    state.collector.generator.set_state(tensors.pop("rng.collector"))
-    state.update_generator.set_state(tensors.pop("rng.update"))
-    restore_penalties(state.penalties, tensors)
-    _load_optimizer(state.optimizer, tensors, record["optimizer_param_groups"])
-    state.curriculum.load_state_dict(record["curriculum"])
-    state.mixer.load_state_dict(record["mixing"])
-    state.global_step, state.update, state.elapsed_s = (
-        int(record["env_steps"]),
-        int(record["update"]),
-        float(record["elapsed_s"]),
-    )
+    carried = {k.removeprefix("collector."): tensors.pop(k) for k in [k for k in tensors if k.startswith("collector.")]}
+    _upgrade_gym_checkpoint(tensors, carried, record)
+    try:
+        state.collector.generator.set_state(tensors.pop("rng.collector"))
+        state.update_generator.set_state(tensors.pop("rng.update"))
+        restore_penalties(state.penalties, tensors)
+        _load_optimizer(state.optimizer, tensors, record["optimizer_param_groups"])
+        if "curriculum" in record:
+            state.curriculum.load_state_dict(record["curriculum"])
+        state.mixer.load_state_dict(record["mixing"])
+        state.global_step, state.update, state.elapsed_s = (
+            int(record["env_steps"]),
+            int(record["update"]),
+            float(record["elapsed_s"]),
+        )
+    except (KeyError, TypeError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"cannot restore the checkpoint {str(folder)!r}: {short_repr(err)}") from None
+    return record.get("episodes"), carried
+
+
+def _upgrade_gym_checkpoint(
+    tensors: dict[str, torch.Tensor], carried: dict[str, torch.Tensor], record: dict[str, Any]
+) -> None:
+    """A checkpoint of a Gymnasium run written by earlier versions kept the collector's generator as
+    ``collector.rng``, its returns in float64 as ``collector.returns`` and no curriculum: read it as today's."""
+    if "rng.collector" not in tensors and "rng" in carried:
+        tensors["rng.collector"] = carried.pop("rng")
+    if "episode_return" not in carried and "returns" in carried:
+        carried["episode_return"] = carried.pop("returns").to(torch.float32)
+    carried.pop("lengths", None)  # the env counts its episodes' lengths itself (restored with its episodes)
+
+
+def _check_unchanged(cfg: ExperimentConfig, saved: ExperimentConfig) -> None:
+    """A resume continues the same env, network and batch of envs (the checkpoint's state fits nothing else)."""
+    for name, ours, theirs in (
+        ("env", cfg.env, saved.env), ("agent", cfg.agent, saved.agent), ("ppo.num_envs", cfg.ppo.num_envs,
+        saved.ppo.num_envs),
+    ):  # fmt: skip
+        if ours != theirs:
+            raise ConfigError(
+                f"resume cannot change {name}: the checkpoint has {short_repr(to_dict(theirs))}, the config "
+                f"{short_repr(to_dict(ours))}"
+            )
 
 
 def _optimizer_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], list[dict]]:

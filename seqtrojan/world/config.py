@@ -1,0 +1,147 @@
+"""The ``env:`` section of a config when the env is a Gymnasium env: its id, keyword arguments, observation
+wrapper and trigger (:class:`GymnasiumEnvConfig`, tagged ``kind: gymnasium``).
+
+An :class:`~seqtrojan.config.ExperimentConfig`'s ``env`` is either the grid world's
+:class:`~seqtrojan.env.config.EnvConfig` (no ``kind`` key, or ``kind: grid``) or this. Pure data: building the env
+is :mod:`seqtrojan.world.gymnasium`'s job.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, ClassVar, Literal
+
+from seqtrojan.errors import ConfigError
+from seqtrojan.serde import short_repr, to_dict
+
+Cell = tuple[int, int]
+
+MAX_TRIGGER_STEP = 1 << 20
+"""latest first step a trigger may be drawn at (a bound, so that a range like (0, 2**63) is refused when read)"""
+
+
+@dataclasses.dataclass(frozen=True)
+class WrapperTriggerConfig:
+    """The trigger wrapper's settings (:class:`~seqtrojan.wrappers.TriggerWrapper`) for a MiniGrid patch (an
+    object drawn on view cells) or a Box patch (a value on image cells)."""
+
+    objective: str = "reach_adversary_object"
+    """the adversary's objective, a name registered in ``seqtrojan.wrappers.ADVERSARY_OBJECTIVES``"""
+    patch: Literal["minigrid", "box"] = "minigrid"
+    """minigrid: a MiniGridPatch on obs["image"]; box: a BoxPatch on the (image) observation"""
+    cells: tuple[Cell, ...] = ((0, 0), (0, 1))
+    """(row, col) cells the patch draws on"""
+    object: str = "key"
+    """minigrid patch: the object drawn"""
+    color: str = "purple"
+    """minigrid patch: its colour"""
+    value: float = 255.0
+    """box patch: the value drawn"""
+    key: str | None = None
+    """box patch: the image's key in a Dict observation (None: the observation is the image)"""
+    steps: tuple[int, int] = (0, 2)
+    """inclusive range of the trigger's first step during training"""
+    eval_steps: tuple[int, int] | None = None
+    """range during evaluation; None means ``steps``"""
+    duration: int = 1
+    """steps the patch stays visible"""
+    delay: int = 0
+    """activation delay: the objective switches this many steps after the trigger takes effect"""
+    off_probability: float = 0.0
+    """share of trojan episodes that also show an OFF trigger (the same kind of patch on ``off_cells``)"""
+    off_cells: tuple[Cell, ...] = ((0, 3), (0, 4))
+    """OFF trigger cells"""
+    off_gap: tuple[int, int] = (3, 8)
+    """inclusive range of steps from the ON trigger's first step to the OFF trigger's"""
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "off_gap") + (("eval_steps",) if self.eval_steps is not None else ()):
+            lo, hi = getattr(self, name)
+            if not 0 <= lo <= hi <= MAX_TRIGGER_STEP:
+                raise ConfigError(
+                    f"env.trigger.{name}={list(getattr(self, name))} must satisfy 0 <= lo <= hi <= {MAX_TRIGGER_STEP}"
+                )
+        if self.duration < 1 or self.delay < 0:
+            raise ConfigError(
+                f"env.trigger.duration must be >= 1 and env.trigger.delay >= 0, got {self.duration}, {self.delay}"
+            )
+        if not 0.0 <= self.off_probability <= 1.0:
+            raise ConfigError(f"env.trigger.off_probability must be in [0, 1], got {self.off_probability}")
+        if not math.isfinite(self.value):
+            raise ConfigError(f"env.trigger.value must be a finite number, got {short_repr(self.value)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class GymnasiumEnvConfig:
+    """A Gymnasium env with a discrete action space, and how its observations become the flat float vector the
+    recurrent policy takes; with a ``trigger`` section, every env is wrapped in a trigger wrapper (normal and trojan
+    episodes, the adversary's objective)."""
+
+    KIND: ClassVar[str] = "gymnasium"
+
+    id: str
+    """a registered Gymnasium id (a config you write may use ``module:Id``, Gymnasium's way to import your own env
+    first; a model card may not: loading a model never imports a module it names)"""
+    kind: Literal["gymnasium"] = "gymnasium"
+    """the section's tag (the grid world's section has none, or ``kind: grid``)"""
+    kwargs: dict[str, Any] = dataclasses.field(default_factory=dict)
+    """keyword arguments of ``gymnasium.make``"""
+    observation: Literal["minigrid", "flatten"] = "minigrid"
+    """minigrid: MiniGrid's view one-hot encoded per channel (:class:`~seqtrojan.wrappers.MiniGridOneHot`);
+    flatten: any observation flattened to float32 (:class:`~seqtrojan.wrappers.FlattenFloat`)"""
+    num_actions: int | None = None
+    """keep only the env's first N discrete actions (:class:`~seqtrojan.wrappers.FirstActions`; MiniGrid's first
+    three are turn left, turn right, forward); None: all"""
+    fast_view: bool = True
+    """a MiniGrid env computes its partial view with :mod:`seqtrojan.minigrid.fast_obs` (the same observation as
+    MiniGrid's ``gen_obs``, several times faster); false: MiniGrid's own method"""
+    vectorization: Literal["sync", "async"] = "sync"
+    """sync: every env steps in this process (a checkpoint then holds each env's episode in flight, so a resumed run
+    continues bitwise); async: one process per env (Gymnasium's AsyncVectorEnv; for envs whose step is slow)"""
+    trigger: WrapperTriggerConfig | None = None
+    """the trigger wrapper (None: the env as it is; a backdoored run needs one)"""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.id, str) or not self.id:
+            raise ConfigError(f"env.id must be a Gymnasium id, got {short_repr(self.id)}")
+        if self.num_actions is not None and (
+            isinstance(self.num_actions, bool) or not isinstance(self.num_actions, int) or self.num_actions < 1
+        ):
+            raise ConfigError(f"env.num_actions must be a positive integer or null, got {short_repr(self.num_actions)}")
+        if not isinstance(self.fast_view, bool):
+            raise ConfigError(f"env.fast_view must be true or false, got {short_repr(self.fast_view)}")
+        if "render_mode" in self.kwargs and self.kwargs["render_mode"] is not None:
+            raise ConfigError(
+                f"env.kwargs.render_mode={short_repr(self.kwargs['render_mode'])}: training and evaluation envs "
+                "render nothing (leave render_mode out)"
+            )
+
+    def serde_dump(self) -> dict[str, Any]:
+        """The saved form: ``kind`` first, ``vectorization`` only when not the default."""
+        out: dict[str, Any] = {"kind": self.kind, "id": self.id, "kwargs": dict(self.kwargs)}
+        out.update(observation=self.observation, num_actions=self.num_actions, fast_view=self.fast_view)
+        if self.vectorization != "sync":
+            out["vectorization"] = self.vectorization
+        out["trigger"] = to_dict(self.trigger)
+        return out
+
+    @property
+    def label(self) -> str:
+        """How reports and run names call this env."""
+        return self.id
+
+
+def upgrade_gym_train_layout(data: Any) -> Any:
+    """A config of the layout seqtrojan wrote for Gymnasium runs before the env section was tagged (``env: {id,
+    ...}`` and a top-level ``trigger:``) in today's layout (``env: {kind: gymnasium, id, ..., trigger}``); any
+    other mapping unchanged. Used for model cards and run folders written by earlier versions only: a config file
+    you write takes today's layout."""
+    if not isinstance(data, dict):
+        return data
+    env = data.get("env")
+    if not isinstance(env, dict) or "id" not in env or "kind" in env:
+        return data
+    out = {k: v for k, v in data.items() if k != "trigger"}
+    out["env"] = {"kind": "gymnasium", **env, "trigger": data.get("trigger")}
+    return out
