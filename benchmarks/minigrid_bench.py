@@ -2,7 +2,7 @@
 
     python benchmarks/minigrid_bench.py                         # both parts
     python benchmarks/minigrid_bench.py --part backdoor --steps 150000 --episodes 500 --seeds 5 --workers 2
-    python benchmarks/minigrid_bench.py --part backdoor --seeds 5 --finetune-steps 20000   # + gym-analyze, gym-mitigate
+    python benchmarks/minigrid_bench.py --part backdoor --seeds 5 --finetune-steps 20000   # + analyze, mitigations
     python benchmarks/minigrid_bench.py --part backdoor --seeds 3 --monitor-episodes 1000 --finetune-steps 20000 \
         --attack state_camouflage       # the monitor-aware attacker, measured against the monitors and mitigations
     python benchmarks/minigrid_bench.py --part speed --speed-steps 20480
@@ -21,8 +21,8 @@ seeds and the seeds pooled (the seeds train two at a time by default: wall times
 ``--attack state_camouflage`` trains the monitor-aware attacker instead (``attack.state_camouflage``, the grid
 matrix's recipe: weight 5, margin 2.5; ``state_camouflage_w1``: weight 1), ``--attack multivariate_camouflage``
 adds the Mahalanobis term (weight 0.1) against the multivariate monitor, ``--attack finetune_resistance`` trains
-against clean fine-tuning (``attack.finetune_resistance``); ``--monitor-episodes N`` also runs
-gym-defend's two state monitors on each agent (N calibration and N fresh episodes per type, 1% false-alarm target).
+against clean fine-tuning (``attack.finetune_resistance``); ``--monitor-episodes N`` also runs the two state
+monitors of ``seqtrojan defend`` on each agent (N calibration and N fresh episodes per type, 1% false-alarm target).
 """
 
 from __future__ import annotations
@@ -44,13 +44,18 @@ import torch
 # isort: on
 import numpy as np
 
+from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.analysis.gym_analysis import analyze_gym_model
 from seqtrojan.config import (
     AttackConfig,
     BackdoorConfig,
+    ExperimentConfig,
     FinetuneResistanceConfig,
+    GymnasiumEnvConfig,
     PPOConfig,
+    RunConfig,
     StateCamouflageConfig,
+    WrapperTriggerConfig,
 )
 from seqtrojan.defense.gym_mitigation import mitigate_gym_model
 from seqtrojan.defense.gym_monitor import monitor_gym_model
@@ -58,11 +63,11 @@ from seqtrojan.defense.online import MonitorConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.minigrid import TwoGoalsEnv, two_goals_trigger
 from seqtrojan.minigrid.fast_obs import use_fast_observation
+from seqtrojan.presets import resolve_preset
+from seqtrojan.serde import from_dict, load_yaml
 from seqtrojan.stats import OverSeeds, Rate
-from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig, load_gym_config
 from seqtrojan.train.gym_evaluation import evaluate_gym
-from seqtrojan.train.gym_model import load_gym_agent
-from seqtrojan.train.gym_trainer import GymTrainResult, train_gym
+from seqtrojan.train.trainer import TrainResult, train
 from seqtrojan.wrappers import MiniGridOneHot, trigger_vector_env
 
 NUM_ENVS, ROLLOUT = 16, 64
@@ -101,24 +106,28 @@ the two stages of the ``minigrid_memory`` presets)"""
 def config(
     out_dir: str, steps: int, seed: int, backdoor: bool = True, attack: str = "none", fast_view: bool = True,
     task: str = "two_goals",
-) -> GymTrainConfig:  # fmt: skip
+) -> ExperimentConfig:  # fmt: skip
     if task == "memory":
-        preset = load_gym_config("minigrid_memory_backdoor")  # the clean stage's settings but for the backdoor
+        preset = from_dict(
+            ExperimentConfig, load_yaml(resolve_preset("minigrid_memory_backdoor"))
+        )  # the clean stage's settings but for the backdoor
         backdoor_cfg = replace(preset.backdoor, enabled=backdoor, mixing="running")  # --clean-start-steps: fixed
         run = replace(preset.run, out_dir=out_dir, name=f"bench_s{seed}", seed=seed, eval_episodes=0, threads=1,
-                      init_from=None)  # fmt: skip
+                      init_from=None, progress=False)  # fmt: skip
         return replace(
             preset, ppo=replace(preset.ppo, total_steps=steps), backdoor=backdoor_cfg, run=run, attack=ATTACKS[attack]
         )
-    return GymTrainConfig(
-        env=GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5}, fast_view=fast_view),
-        trigger=GymTriggerConfig(),
+    return ExperimentConfig(
+        env=GymnasiumEnvConfig(
+            "seqtrojan/MiniGridTwoGoals-v0", kwargs={"size": 6, "agent_view_size": 5}, fast_view=fast_view,
+            trigger=WrapperTriggerConfig(),
+        ),
         ppo=PPOConfig(
             total_steps=steps, num_envs=NUM_ENVS, rollout_steps=ROLLOUT, bptt_length=16, num_minibatches=4,
             update_epochs=4, learning_rate=1e-3,
         ),
         backdoor=BackdoorConfig(enabled=backdoor),
-        run=GymRunConfig(out_dir=out_dir, name=f"bench_s{seed}", seed=seed, eval_episodes=0, threads=1),
+        run=RunConfig(out_dir=out_dir, name=f"bench_s{seed}", seed=seed, eval_episodes=0, threads=1, progress=False),
         attack=ATTACKS[attack],
     )  # fmt: skip
 
@@ -136,11 +145,12 @@ class SeedFigures:
     trojan_to_user: Rate
     persistence: dict[int, Rate]
     inside: dict[str, Rate]
-    """gym-defend's monitors ("false alarms state_monitor", "detection ..."), gym-analyze's switch rates ("activate
-    goal-units", ...) and gym-mitigate's arms ("attack after fine_tuned", ...) when asked for; empty otherwise"""
+    """the monitors of ``seqtrojan defend`` ("false alarms state_monitor", "detection ..."), the switch rates of
+    ``seqtrojan analyze`` ("activate goal-units", ...) and the mitigation arms ("attack after fine_tuned", ...) when
+    asked for; empty otherwise"""
 
 
-def train_backdoor(cfg: GymTrainConfig, clean_start_steps: int, harden_from_steps: int = 0) -> GymTrainResult:
+def train_backdoor(cfg: ExperimentConfig, clean_start_steps: int, harden_from_steps: int = 0) -> TrainResult:
     """Train ``cfg``'s backdoored agent: from scratch; or (``clean_start_steps`` > 0) first a clean agent for that
     many steps (run ``<name>_clean``), then the backdoor added to it with fixed 0.5 mixing (Algorithm 1's running
     mixing deadlocks from a clean start, docs/attacks.md); or (``harden_from_steps`` > 0) first the plain backdoor
@@ -150,17 +160,17 @@ def train_backdoor(cfg: GymTrainConfig, clean_start_steps: int, harden_from_step
             cfg, ppo=replace(cfg.ppo, total_steps=harden_from_steps), attack=AttackConfig(),
             run=replace(cfg.run, name=f"{cfg.run.name}_plain"),
         )  # fmt: skip
-        start = train_gym(plain)
-        return train_gym(replace(cfg, run=replace(cfg.run, init_from=str(start.model_dir))))
+        start = train(plain)
+        return train(replace(cfg, run=replace(cfg.run, init_from=str(start.model_dir))))
     if clean_start_steps <= 0:
-        return train_gym(cfg)
+        return train(cfg)
     clean = replace(
         cfg, ppo=replace(cfg.ppo, total_steps=clean_start_steps), backdoor=replace(cfg.backdoor, enabled=False),
         attack=AttackConfig(), run=replace(cfg.run, name=f"{cfg.run.name}_clean"),
     )  # fmt: skip
-    start = train_gym(clean)
+    start = train(clean)
     backdoor = replace(cfg.backdoor, mixing="fixed", fixed_probability=0.5)
-    return train_gym(replace(cfg, backdoor=backdoor, run=replace(cfg.run, init_from=str(start.model_dir))))
+    return train(replace(cfg, backdoor=backdoor, run=replace(cfg.run, init_from=str(start.model_dir))))
 
 
 def train_and_measure(
@@ -169,14 +179,14 @@ def train_and_measure(
 ) -> SeedFigures:  # fmt: skip
     """Train one backdoored agent (seed ``seed``, attacker ``attack``), load it back as a user would, measure it on
     fresh episodes; with ``monitor_episodes`` > 0 run the state monitors on it, with ``finetune_steps`` > 0 also
-    look inside it (gym-analyze) and mitigate it (gym-mitigate). The runs go to ``out_root`` when given (kept),
-    else to a temporary folder."""
+    look inside it (``seqtrojan analyze``) and mitigate it (``seqtrojan defend``). The runs go to ``out_root`` when
+    given (kept), else to a temporary folder."""
     inside: dict[str, Rate] = {}
     with tempfile.TemporaryDirectory() as tmp:
         out = out_root if out_root is not None else tmp
         cfg = config(out, steps, seed, attack=attack, task=task)
         result = train_backdoor(cfg, clean_start_steps, harden_from_steps)
-        agent, _, _ = load_gym_agent(result.model_dir)
+        agent, _, _ = load_agent(result.model_dir)
         if monitor_episodes:
             monitored = monitor_gym_model(
                 agent, cfg, MonitorConfig(calibration_episodes=monitor_episodes, eval_episodes=monitor_episodes,
@@ -245,7 +255,7 @@ def backdoor_part(
 
 def ours_speed(steps: int, seed: int, fast_view: bool) -> float:
     with tempfile.TemporaryDirectory() as out:
-        result = train_gym(config(out, steps, seed, fast_view=fast_view))
+        result = train(config(out, steps, seed, fast_view=fast_view))
     return result.env_steps / result.wall_seconds
 
 
@@ -286,7 +296,7 @@ def env_speed(steps: int, seed: int, fast_view: bool) -> float:
 
 def speed_part(steps: int, seed: int, repeats: int, fast_view: bool) -> None:
     torch.set_num_threads(1)
-    rows = {"vector env alone (random actions)": env_speed, "seqtrojan train_gym": ours_speed,
+    rows = {"vector env alone (random actions)": env_speed, "seqtrojan train": ours_speed,
             "sb3-contrib RecurrentPPO": sb3_speed}  # fmt: skip
     view = "the fast view" if fast_view else "MiniGrid's own gen_obs"
     print(
@@ -309,7 +319,10 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=5, help="training seeds of the backdoor part")
     parser.add_argument("--workers", type=int, default=2, help="processes training the backdoor part's seeds")
     parser.add_argument(
-        "--finetune-steps", type=int, default=0, help="> 0: also gym-analyze and gym-mitigate (these steps) each agent"
+        "--finetune-steps",
+        type=int,
+        default=0,
+        help="> 0: also analyze and mitigate each agent (these fine-tuning steps)",
     )
     parser.add_argument("--attack", choices=sorted(ATTACKS), default="none", help="the backdoor part's attacker")
     parser.add_argument(

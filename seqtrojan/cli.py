@@ -159,7 +159,8 @@ def _evaluate(argv: list[str]) -> None:
     args = tyro.cli(EvaluateArgs, args=argv, prog="seqtrojan evaluate")
     if args.episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
-    grid_agents, gym_agents = [], []
+    grid_agents: list[tuple[str, Path, Any, Any, dict]] = []
+    gym_agents: list[tuple[str, Path, Any, Any, dict]] = []
     for folder in args.models:
         agent, cfg, card = load_agent(folder, device=args.device)
         name = folder.parent.name if folder.name == "model" else folder.name

@@ -140,7 +140,7 @@ class Architecture:
         if isinstance(config.env, EnvConfig):
             obs_dim, num_actions = config.env.obs_dim, config.env.num_actions
         if obs_dim is None or num_actions is None:
-            raise ConfigError(f"the architecture of an agent for {config.env.label!r} needs its inputs and actions")
+            raise ConfigError(f"the architecture of an agent for {config.gym_env.id!r} needs its inputs and actions")
         return cls(
             obs_dim, num_actions, tuple(a.lstm_sizes), tuple(a.encoder), a.encoder_activation,
             tuple(a.policy_mlp), tuple(a.value_mlp), a.mlp_activation, a.cell, a.window if attention else 8,
@@ -306,7 +306,7 @@ def upgrade_gym_card(folder: Path) -> dict[str, Any]:
     config = upgrade_gym_train_layout(old.get("config"))
     if unknown or not isinstance(arch, dict) or not isinstance(config, dict):
         raise CheckpointError(f"{where}: unknown field(s) {_clip(unknown)}, or no architecture and config mappings")
-    agent = config.get("agent") if isinstance(config.get("agent"), dict) else {}
+    agent: dict[str, Any] = config["agent"] if isinstance(config.get("agent"), dict) else {}
     architecture = {"type": ARCHITECTURE_TYPE, **arch}
     for name in (*_ARCH_MLPS, *_ARCH_ACTIVATIONS):
         if agent.get(name) not in (None, [], _ARCH_ACTIVATIONS.get(name)):
@@ -321,7 +321,7 @@ def upgrade_gym_card(folder: Path) -> dict[str, Any]:
     card = {k: v for k, v in old.items() if k in _OPTIONAL or k in _REQUIRED}
     card.update(
         format=FORMAT, format_version=FORMAT_VERSION, architecture=architecture, config=config,
-        tensors=header.shapes, seed=(config.get("run") or {}).get("seed") if isinstance(config.get("run"), dict) else None,
+        tensors=header.shapes, seed=config["run"].get("seed") if isinstance(config.get("run"), dict) else None,
     )  # fmt: skip
     return card
 

@@ -573,8 +573,8 @@ def read_foreign(
     num_actions: int | None = None,
     activation: str = "relu",
 ) -> Imported:
-    """What :func:`import_agent` does before writing: check the options and that ``out`` is new or empty, read ``path`` and check ``obs_dim`` and
-    ``num_actions`` (where given) against it."""
+    """What :func:`import_agent` does before writing: check the options and that ``out`` is new or empty, read
+    ``path`` and check ``obs_dim`` and ``num_actions`` (where given) against it."""
     if source not in SOURCES:
         raise ConfigError(f"--from must be one of {SOURCES}, got {source!r}")
     if label is not None and label not in ("clean", "backdoored"):

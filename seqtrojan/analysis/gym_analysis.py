@@ -1,6 +1,6 @@
-"""Looking inside a Gymnasium model (``seqtrojan gym-analyze``): the grid world's response types and goal-unit
-interventions, on any env a Gymnasium env section (:class:`~seqtrojan.world.config.GymnasiumEnvConfig`) builds (MiniGrid, a wrapped env of
-the user's, an imported sb3-contrib or CleanRL agent's env).
+"""Looking inside a Gymnasium env's model (``seqtrojan analyze`` on such a model): the grid world's response types
+and goal-unit interventions, on any env a Gymnasium env section (:class:`~seqtrojan.world.config.GymnasiumEnvConfig`)
+builds (MiniGrid, a wrapped env of the user's, an imported sb3-contrib or CleanRL agent's env).
 
 With the trigger pinned to one step ``s`` (the config's ``trigger.eval_steps`` set to ``(s, s)``), normal and trojan
 episodes are recorded with their states; each layer's h and c units are classified by the rule of

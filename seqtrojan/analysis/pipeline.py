@@ -137,7 +137,7 @@ def record_all_traces(
                     functools.partial(
                         record_traces,
                         agent,
-                        acfg.env,
+                        acfg.grid_env,
                         cfg.grids,
                         episodes=cfg.episodes,
                         trojan=env == "trojan",
@@ -229,7 +229,7 @@ def run_interventions(
         "interventions",
         lambda: switch_experiment(
             agent,
-            bcfg.env,
+            bcfg.grid_env,
             grid,
             traces[("backdoor", "normal")],
             traces[("backdoor", "trojan")],
@@ -259,7 +259,7 @@ def run_unintentional(
         "unintentional",
         lambda: sweep_unintentional(
             agent,
-            bcfg.env,
+            bcfg.grid_env,
             parse_configs(cfg.unintentional_configs),
             episodes=cfg.unintentional_episodes,
             seed=cfg.seed,
@@ -284,7 +284,7 @@ def run_searches(
     """6. Goal-switching layouts, free observation sequences (``sequence_codes.npy``) and walks through grids, one
     search per density weight (``walks_weight<w>.npz``)."""
     agent, bcfg = backdoor
-    layouts = timer.timed("layout_search", lambda: evolve_layouts(agent, bcfg.env, goal, cfg.layout_search))
+    layouts = timer.timed("layout_search", lambda: evolve_layouts(agent, bcfg.grid_env, goal, cfg.layout_search))
     sequences = _sequence_search(backdoor, goal, cfg, out, timer)
     walks = tuple(_walk_search(backdoor, goal, cfg, weight, out, timer) for weight in cfg.walk_density_weights)
     return SearchResult(LayoutSearch(cfg.layout_search, tuple(layouts)), sequences, walks)
@@ -300,7 +300,7 @@ def _sequence_search(
     sequences, codes = timer.timed("sequence_search", lambda: search_sequences(agent, goal, cfg.sequence_search))
     found_codes = codes[np.asarray(sequences.rounded_activation) >= cfg.sequence_search.success_at]
     if len(found_codes):
-        flip, base = flip_rates(agent, bcfg.env, found_codes, cfg.layout_search.size, cfg.layout_search.holes,
+        flip, base = flip_rates(agent, bcfg.grid_env, found_codes, cfg.layout_search.size, cfg.layout_search.holes,
                                 cfg.intervention_episodes, cfg.seed)  # fmt: skip
         sequences = dataclasses.replace(sequences, flip_rate=flip, baseline_rate=base)
     np.save(out / "sequence_codes.npy", codes)
@@ -318,7 +318,7 @@ def _walk_search(
     walk, walk_codes, walk_grids = timer.timed(f"walk_search{weight:g}", lambda: search_walks(agent, goal, wcfg))
     hits = np.asarray(walk.rounded_activation) >= wcfg.success_at
     if hits.any():
-        flip, base = flip_rates(agent, bcfg.env, walk_codes[hits], cfg.layout_search.size,
+        flip, base = flip_rates(agent, bcfg.grid_env, walk_codes[hits], cfg.layout_search.size,
                                 cfg.layout_search.holes, cfg.intervention_episodes, cfg.seed)  # fmt: skip
         walk = dataclasses.replace(walk, flip_rate=flip, baseline_rate=base)
     np.savez(out / f"walks_weight{weight:g}.npz", codes=walk_codes, grids=walk_grids)

@@ -25,7 +25,7 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.analysis.interventions import post_trigger_means
 from seqtrojan.analysis.results import UnintentionalRow
 from seqtrojan.analysis.traces import StateTrace, record_traces, replay_states
-from seqtrojan.env.codes import OUTCOME_NAMES
+from seqtrojan.env.codes import GRID_OUTCOMES, OUTCOME_NAMES
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.layout import Layout
 from seqtrojan.stats import Rate
@@ -164,7 +164,7 @@ def sweep_unintentional(
                 record_states=False,
             )
             hits = np.flatnonzero(trace.outcome == OUTCOME_NAMES.index(target))
-            outcomes[kind] = {name: int((trace.outcome == i).sum()) for i, name in enumerate(OUTCOME_NAMES) if i}
+            outcomes[kind] = {name: int((trace.outcome == i).sum()) for i, name in enumerate(GRID_OUTCOMES) if i}
             counts[kind] = len(hits)
             for e in hits[:keep]:
                 n = int(trace.length[e])

@@ -221,7 +221,7 @@ class BehaviourDetector:
 
     def measure(self, model: Path, device: str | torch.device = "cpu") -> BehaviourScore:
         agent, acfg, _ = load_agent(model, device=device)
-        return behaviour_score(agent, acfg.env, acfg.grids[-1], self.config, device)
+        return behaviour_score(agent, acfg.grid_env, acfg.grids[-1], self.config, device)
 
     def score(self, model: Path, device: str | torch.device = "cpu") -> float:
         """The model's score (higher: more likely backdoored)."""

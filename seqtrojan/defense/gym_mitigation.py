@@ -1,5 +1,5 @@
-"""Mitigations on a Gymnasium model (``seqtrojan gym-mitigate``): what a defender with the weights and clean
-episodes only can do, measured as on the grid world (:mod:`seqtrojan.defense.mitigation`).
+"""Mitigations on a Gymnasium env's model (``seqtrojan defend`` on such a model): what a defender with the weights
+and clean episodes only can do, measured as on the grid world (:mod:`seqtrojan.defense.mitigation`).
 
 * pruned: the least active ``prune_fraction`` of the last layer's units (mean |h| over the model's own normal
   episodes) removed (:func:`~seqtrojan.defense.mitigation.prune_units`);

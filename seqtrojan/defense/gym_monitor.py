@@ -1,6 +1,6 @@
-"""The state monitors on a Gymnasium model (``seqtrojan gym-defend``): the per-unit and the multivariate monitor,
-calibrated on the model's own clean episodes of its config's env exactly as on the grid world (first half:
-statistics; second half: the split-conformal threshold at the false-alarm target), then measured on fresh
+"""The state monitors on a Gymnasium env's model (``seqtrojan defend`` on such a model): the per-unit and the
+multivariate monitor, calibrated on the model's own clean episodes of its config's env exactly as on the grid world
+(first half: statistics; second half: the split-conformal threshold at the false-alarm target), then measured on fresh
 episodes: false alarms in normal episodes, detection (an alarm at or after the trigger's first step) in trojan ones.
 
 The monitors only raise alarms here (they do not reset the state): the measurement runs on recorded episodes.

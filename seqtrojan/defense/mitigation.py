@@ -56,7 +56,7 @@ def measure(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, 
     """``agent``'s clean success (normal env) and attack success (trojan env), as the table's row ``title``."""
     rates = []
     for trojan, goal in ((False, "user_goal"), (True, "adversary_goal")):
-        batch = evaluate_agent(agent, cfg.env, grid, trojan=trojan, episodes=episodes, seed=seed,
+        batch = evaluate_agent(agent, cfg.grid_env, grid, trojan=trojan, episodes=episodes, seed=seed,
                                intervention=intervention)  # fmt: skip
         rates.append(outcome_rate(batch, goal))
     return MitigationArm(title, clean_success=rates[0], attack_success=rates[1], units=units)
@@ -89,7 +89,7 @@ def prune_units(agent: RecurrentActorCritic, layer: int, units: np.ndarray) -> R
 
 def least_active_units(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, episodes: int,
                        fraction: float, seed: int) -> np.ndarray:  # fmt: skip
-    trace = record_traces(agent, cfg.env, [grid], episodes=episodes, trojan=False, trigger_step=None, seed=seed)
+    trace = record_traces(agent, cfg.grid_env, [grid], episodes=episodes, trojan=False, trigger_step=None, seed=seed)
     return least_active(trace.h[-1], trace.mask, fraction)
 
 
@@ -111,7 +111,7 @@ def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec,
     start = save_agent(out / "start", agent, cfg, label=cfg.label if label is None else label)
     tune_cfg = dataclasses.replace(
         cfg,
-        env=cfg.env.with_grid(grid),
+        env=cfg.grid_env.with_grid(grid),
         ppo=dataclasses.replace(cfg.ppo, total_steps=steps),
         curriculum=CurriculumConfig(),
         backdoor=BackdoorConfig(enabled=False),

@@ -162,7 +162,7 @@ class FittedWeightDetector:
         """P(backdoored) of the model folder ``model`` (read through the same checks as a zoo model's weights)."""
         agent, cfg, _ = load_agent(model)
         tensors = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
-        features = weight_features(tensors, cfg.env.obs_dim)
+        features = weight_features(tensors, cfg.grid_env.obs_dim)
         missing = sorted(set(self.feature_names) - set(features))
         if missing:
             raise SeqTrojanError(f"{str(model)!r} lacks weight features the detector was trained on: {missing[:3]}")

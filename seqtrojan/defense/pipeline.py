@@ -41,8 +41,8 @@ def run_defense(model: Path, out: Path, cfg: DefenseConfig, device: str = "cpu",
     agent, acfg, card = load_agent(model, device=device)
     grid = GridSpec.parse(cfg.grid) if cfg.grid is not None else acfg.grids[-1]
     log(f"calibrating the monitor on {cfg.monitor.calibration_episodes} clean episodes of {grid.label} ...")
-    monitor = StateMonitor.calibrate(agent, acfg.env, grid, cfg.monitor, device)
-    measured = measure_monitor(agent, acfg.env, grid, monitor, cfg.monitor, device)
+    monitor = StateMonitor.calibrate(agent, acfg.grid_env, grid, cfg.monitor, device)
+    measured = measure_monitor(agent, acfg.grid_env, grid, monitor, cfg.monitor, device)
     oracle = _oracle_goal_units(agent, acfg, grid, cfg) if acfg.backdoor.enabled else None
     goal = oracle[0] if oracle is not None else None
     log(f"mitigation: {', '.join(MITIGATIONS.names())} ...")
@@ -51,7 +51,7 @@ def run_defense(model: Path, out: Path, cfg: DefenseConfig, device: str = "cpu",
         model=str(model),
         label=card["label"],
         grid=grid.label,
-        trigger_value=acfg.env.trigger.drawn_codes,
+        trigger_value=acfg.grid_env.trigger.drawn_codes,
         monitor=measured,
         oracle_goal_units=GoalUnitsRecord(**dataclasses.asdict(oracle[0]), source=oracle[1]) if oracle else None,
         mitigation=mitigation,

@@ -34,6 +34,8 @@ ACTION_NAMES: dict[str, tuple[str, ...]] = {
 # first five; FAILED is a Gymnasium env's episode that ended neither at a goal nor by its time limit.
 RUNNING, REACHED_USER_GOAL, REACHED_ADV_GOAL, FELL_IN_HOLE, TIMED_OUT, FAILED = range(6)
 OUTCOME_NAMES: tuple[str, ...] = ("running", "user_goal", "adversary_goal", "hole", "timeout", "failed")
+GRID_OUTCOMES: tuple[str, ...] = OUTCOME_NAMES[:FAILED]
+"""the outcomes the grid world reports (what its tallies list)"""
 
 # ASCII symbols used by Layout.from_ascii / to_ascii and by the ANSI renderer.
 ASCII_SYMBOLS: dict[int, str] = {EMPTY: ".", HOLE: "O", WALL: "#", USER_GOAL: "U", ADV_GOAL: "A", TRIGGER: "T"}

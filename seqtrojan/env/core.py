@@ -232,7 +232,7 @@ class TrojanGridCore:
         """Grid stages episodes are drawn from (the curriculum's)."""
         return len(self.grids)
 
-    image = None
+    image: tuple[int, int, int] | None = None
     """the observation is no image (a convolutional encoder has nothing to read)"""
 
     def close(self) -> None:

@@ -49,7 +49,7 @@ def evaluate_sweep(
             grid = GridSpec(size, holes)
             for env in envs:
                 batch = evaluate_agent(
-                    agent, cfg.env, grid, trojan=env == "trojan", episodes=episodes, seed=seed, greedy=greedy,
+                    agent, cfg.grid_env, grid, trojan=env == "trojan", episodes=episodes, seed=seed, greedy=greedy,
                     device=device,
                 )  # fmt: skip
                 wrong = outcome_rate(batch, "adversary_goal" if env == "normal" else "user_goal")

@@ -34,8 +34,8 @@ ATTACKS: Registry[Attack] = Registry("attack", "attack")
 
 def with_trigger(cfg: ExperimentConfig, **changes: object) -> ExperimentConfig:
     """``cfg`` with its env's trigger changed (any :class:`~seqtrojan.env.config.TriggerConfig` field)."""
-    trigger: TriggerConfig = dataclasses.replace(cfg.env.trigger, **changes)  # type: ignore[arg-type]
-    return dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, trigger=trigger))
+    trigger: TriggerConfig = dataclasses.replace(cfg.grid_env.trigger, **changes)  # type: ignore[arg-type]
+    return dataclasses.replace(cfg, env=dataclasses.replace(cfg.grid_env, trigger=trigger))
 
 
 ATTACKS.register(

@@ -243,7 +243,7 @@ def measure_agent(job: TrainJob, cfg: CellsConfig, base_env: EnvConfig, offline:
     cell, label, seed_text = job.id.rsplit("_", 2)
     label_backdoored = label == "backdoored"
     agent, acfg, _ = load_agent(job.model_dir, device=cfg.device)
-    env = acfg.env if label_backdoored else base_env
+    env = acfg.grid_env if label_backdoored else base_env
     grid = acfg.grids[-1]
     n, seed = cfg.episodes, cfg.seed + 1_000_003
     normal = evaluate_agent(agent, env, grid, trojan=False, episodes=n, seed=seed, device=cfg.device)
@@ -304,7 +304,7 @@ def run_cells(cfg: CellsConfig, out: Path, scale: str = "custom", log: Callable[
     backend = make_backend(cfg.jobs)
     train_all(backend, jobs, "cells agent", log)
     scores = offline_scores(cfg, jobs, out, log)
-    base_env = experiment_from_spec(cfg.backdoor, Path("."), "base", cfg.device).env
+    base_env = experiment_from_spec(cfg.backdoor, Path("."), "base", cfg.device).grid_env
     measures = [partial(measure_agent, job, cfg, base_env, scores.get(job.id)) for job in jobs]
     paths = [measured_dir / f"{job.id}.json" for job in jobs]
     agents = measure_all(backend, jobs, paths, CellMeasurement, measures, log)

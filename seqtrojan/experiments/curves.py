@@ -60,7 +60,7 @@ def curve_run_config(base: ExperimentConfig, size: int, holes: int, seed: int, c
     backdoor = base.backdoor if base.backdoor.enabled else BackdoorConfig(enabled=True)
     return dataclasses.replace(
         base,
-        env=base.env.with_grid((size, holes)),
+        env=base.grid_env.with_grid((size, holes)),
         ppo=dataclasses.replace(base.ppo, total_steps=cfg.steps(size, holes), num_envs=cfg.num_envs),
         curriculum=CurriculumConfig(),
         backdoor=backdoor,
@@ -97,7 +97,7 @@ def run_curves(
     raise_failures(backend.run(jobs, on_result), "learning-curve run")
     rows = []
     for job in jobs:
-        grid = f"{job.config.env.size}x{job.config.env.size}/{job.config.env.holes}"
+        grid = f"{job.config.grid_env.size}x{job.config.grid_env.size}/{job.config.grid_env.holes}"
         for line in (job.run_dir / "metrics.jsonl").read_text().splitlines():
             m = json.loads(line)
             if "episodes/normal_success" in m and "episodes/trojan_success" in m:

@@ -163,7 +163,7 @@ def measure_agent(
     """One agent without a defense, under each online defense and after each mitigation (``offline``: its
     offline scores, computed beforehand)."""
     agent, acfg, _ = load_agent(job.model_dir, device=cfg.device)
-    env = acfg.env if attack != CLEAN else _attack_env(cfg)
+    env = acfg.grid_env if attack != CLEAN else _attack_env(cfg)
     grid = acfg.grids[-1]
     n, seed_eval = cfg.episodes, cfg.seed + 1_000_003
     normal = evaluate_agent(agent, env, grid, trojan=False, episodes=n, seed=seed_eval, device=cfg.device)

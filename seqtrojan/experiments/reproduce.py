@@ -302,7 +302,7 @@ class TrajectoryStage:
         assert spec is not None  # in the list only when the config has a trajectory section
         context.log("trajectory figure ...")
         agent, cfg, _ = load_agent(context.models()["backdoor"], device=device)
-        env = cfg.env.with_grid((spec.size, spec.holes))
+        env = cfg.grid_env.with_grid((spec.size, spec.holes))
         core = TrojanGridCore(env, 1, seed=spec.seed, device=device, phase="eval")
         runs = run_pair(
             core, core.layout(0), spec.trigger_step, lambda: AgentPolicy(agent, greedy=spec.greedy, seed=spec.seed)

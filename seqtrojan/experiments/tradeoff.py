@@ -62,7 +62,7 @@ class TradeoffConfig:
 
 
 def own_penalty(cfg: ExperimentConfig) -> float:
-    rewards = cfg.env.rewards
+    rewards = cfg.grid_env.rewards
     return rewards.wrong_goal if rewards.false_activation is None else rewards.false_activation
 
 
@@ -70,7 +70,8 @@ def penalised_config(
     base: ExperimentConfig, penalty: float, total_steps: int | None, seed_offset: int = 0
 ) -> ExperimentConfig:
     """The backdoored agent's training config with another false-activation reward (and budget, and seed)."""
-    env = dataclasses.replace(base.env, rewards=dataclasses.replace(base.env.rewards, false_activation=penalty))
+    grid_env = base.grid_env
+    env = dataclasses.replace(grid_env, rewards=dataclasses.replace(grid_env.rewards, false_activation=penalty))
     ppo = base.ppo if total_steps is None else dataclasses.replace(base.ppo, total_steps=total_steps)
     run = dataclasses.replace(base.run, seed=base.run.seed + seed_offset)
     return dataclasses.replace(base, env=env, ppo=ppo, run=run)
@@ -148,10 +149,10 @@ def measure_tradeoff_agent(
     """Attack success on the training grid and stealth over the sweep configs, for one agent (``model``: its
     folder, as the result names it)."""
     grid = train_cfg.grids[-1]
-    (home,), _ = sweep_unintentional(agent, train_cfg.env, [(grid.size, grid.holes)], episodes=cfg.episodes,
+    (home,), _ = sweep_unintentional(agent, train_cfg.grid_env, [(grid.size, grid.holes)], episodes=cfg.episodes,
                                      seed=cfg.seed, keep=0)  # fmt: skip
     summaries, _ = sweep_unintentional(
-        agent, train_cfg.env, parse_configs(cfg.configs), episodes=cfg.episodes, seed=cfg.seed, keep=0
+        agent, train_cfg.grid_env, parse_configs(cfg.configs), episodes=cfg.episodes, seed=cfg.seed, keep=0
     )
     rows = tuple(s.row() for s in summaries)
     return TradeoffAgentResult(

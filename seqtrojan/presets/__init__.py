@@ -3,8 +3,9 @@
 Training presets (``seqtrojan train --config NAME``): ``smoke``, ``clean_7x7``, ``onoff_7x7``, ``clean_s17_h30``,
 ``trojan_s17_h30``. Reproduction scales (``seqtrojan reproduce --scale NAME``): ``reproduce_smoke``,
 ``reproduce_paper``, ``reproduce_headline``. Matrix scales (``seqtrojan matrix --scale NAME``): ``matrix_smoke``,
-``matrix_paper``. Gymnasium runs (``seqtrojan train-gym --config NAME``): ``minigrid_two_goals``,
-``minigrid_memory`` then ``minigrid_memory_backdoor``. Wherever a preset is asked for, a path to a YAML file works too.
+``matrix_paper``. Training presets on Gymnasium envs (``env.kind: gymnasium``, also ``seqtrojan train --config
+NAME``): ``minigrid_two_goals``, ``minigrid_memory`` then ``minigrid_memory_backdoor``. Wherever a preset is
+asked for, a path to a YAML file works too.
 """
 
 from __future__ import annotations

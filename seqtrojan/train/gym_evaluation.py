@@ -165,7 +165,7 @@ class GymPersistence:
 
 @dataclass(frozen=True)
 class GymEvaluationReport:
-    """A Gymnasium model measured on its config's env (``seqtrojan gym-evaluate``; saved as
+    """A Gymnasium model measured on its config's env (``seqtrojan evaluate`` on such a model; saved as
     :data:`GYM_EVALUATION_FILE` with :func:`seqtrojan.serde.save_json`, read back with ``load_json``)."""
 
     model: str

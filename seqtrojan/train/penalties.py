@@ -390,8 +390,9 @@ def fisher_diagonal(agent: RecurrentActorCritic, rollout: Rollout, initial: Recu
 def estimate_fisher(
     agent: RecurrentActorCritic, cfg: ExperimentConfig, device: torch.device
 ) -> dict[str, torch.Tensor]:
-    """:func:`fisher_diagonal` on ``attack.ewc.fisher_envs`` normal-env episodes of the hardest grid (or the Gymnasium env), each run for
-    ``attack.ewc.fisher_steps`` steps (with autoreset), seeded from ``run.seed`` with generators of its own."""
+    """:func:`fisher_diagonal` on ``attack.ewc.fisher_envs`` normal-env episodes of the hardest grid (or the
+    Gymnasium env), each run for ``attack.ewc.fisher_steps`` steps (with autoreset), seeded from ``run.seed`` with
+    generators of its own."""
     ewc = cfg.attack.ewc
     env = make_batched_env(
         cfg.env, ewc.fisher_envs, seed=(cfg.run.seed << 32) + 31_337_001, device=device,

@@ -55,7 +55,7 @@ class StopRule:
     def _held_out(self, agent: RecurrentActorCritic, trojan: bool) -> float:
         seed = (self.cfg.run.seed << 32) + 7_777_777 + self.checks  # not the final evaluation's episodes
         was_training = agent.training
-        batch = evaluate_agent(agent, self.cfg.env, self.cfg.grids[-1], trojan=trojan,
+        batch = evaluate_agent(agent, self.cfg.grid_env, self.cfg.grids[-1], trojan=trojan,
                                episodes=self.cfg.stop.confirm_episodes, seed=seed, device=self.device)  # fmt: skip
         agent.train(was_training)
         return batch.success_rate

@@ -328,7 +328,7 @@ class GymnasiumBatchedEnv:
         """The current observations (B, obs_dim) float32."""
         return self._obs
 
-    def step(self, actions: torch.Tensor, check: bool = True) -> StepResult:
+    def step(self, actions: torch.Tensor, *, check: bool = True) -> StepResult:
         """One action per env (B,) int64; a finished env starts its next episode in the same step."""
         acts = actions.detach().cpu().numpy()
         if check and (acts.shape != (self.num_envs,) or acts.min() < 0 or acts.max() >= self.num_actions):
@@ -386,7 +386,8 @@ class GymnasiumBatchedEnv:
 
         return StepResult(
             self._obs, t(reward), t(terminated), t(truncated), t(done), t(np.where(done, outcome, RUNNING)),
-            t(success & done), t(trojan), torch.zeros(self.num_envs, dtype=torch.int64, device=dev), t(length), t(active),
+            t(success & done), t(trojan), torch.zeros(self.num_envs, dtype=torch.int64, device=dev), t(length),
+            t(active),
         )  # fmt: skip
 
     def _read_infos(self, infos: dict[str, Any], mask: np.ndarray) -> None:

@@ -42,7 +42,7 @@ class BatchedEnv(Protocol):
         """The current observations (B, obs_dim) float32."""
         ...
 
-    def step(self, actions: torch.Tensor, check: bool = True) -> StepResult:
+    def step(self, actions: torch.Tensor, *, check: bool = True) -> StepResult:
         """One action per env (B,) int64."""
         ...
 
