@@ -456,6 +456,10 @@ class RunConfig:
             )
         if self.checkpoint_every < 1:
             raise ConfigError(f"run.checkpoint_every must be a positive integer, got {self.checkpoint_every}")
+        if isinstance(self.eval_episodes, bool) or not isinstance(self.eval_episodes, int) or self.eval_episodes < 0:
+            raise ConfigError(f"run.eval_episodes must be an integer >= 0, got {short_repr(self.eval_episodes)}")
+        if self.threads is not None and (isinstance(self.threads, bool) or not 1 <= self.threads <= 1024):
+            raise ConfigError(f"run.threads must be an integer in [1, 1024] or null, got {short_repr(self.threads)}")
 
 
 _DEVICE = re.compile(r"cpu|cuda(?::[0-9]+)?")

@@ -172,17 +172,60 @@ def test_train_finds_a_shipped_preset_by_name_from_any_folder(tmp_path):
     assert card["config"]["env"]["size"] == 5 and card["config"]["ppo"]["num_envs"] == 64  # smoke's, not defaults
 
 
-def test_train_gym_trains_a_minigrid_preset_and_needs_a_config(tmp_path, capsys):
-    argv = ["train-gym", "--config", "minigrid_two_goals", "--ppo.total-steps", "2048", "--run.out-dir",
-            str(tmp_path), "--run.name", "tiny", "--run.eval-episodes", "8"]  # fmt: skip
+def test_one_cli_for_every_env_from_an_empty_folder(tmp_path, capsys, monkeypatch):
+    """A MiniGrid preset through the same commands as the grid world: train, evaluate, analyze, defend."""
+    monkeypatch.chdir(tmp_path)
+    argv = ["train", "--config", "minigrid_two_goals", "--ppo.total-steps", "2048", "--run.out-dir", "R",
+            "--run.name", "mg", "--run.eval-episodes", "8", "--run.no-progress"]  # fmt: skip
     assert main(argv) == 0
     out = capsys.readouterr().out
-    assert "trojan episodes: success" in out and (tmp_path / "tiny" / "model" / "gym_card.json").exists()
-    assert main(["train-gym"]) == 2
-    assert (
-        "needs --config PRESET|FILE (shipped: minigrid_memory, minigrid_memory_backdoor, minigrid_two_goals)"
-        in capsys.readouterr().err
-    )
+    assert "success on seqtrojan/MiniGridTwoGoals-v0 (trojan env, 8 episodes)" in out
+    card = json.loads((tmp_path / "R" / "mg" / "model" / "card.json").read_text())
+    assert card["format"] == "seqtrojan-model" and card["config"]["env"]["kind"] == "gymnasium"
+    assert not (tmp_path / "R" / "mg" / "model" / "gym_card.json").exists()
+    assert main(["evaluate", "--models", "R/mg/model", "--episodes", "6", "--out", "E"]) == 0
+    assert "persistence k=5" in capsys.readouterr().out
+    report = json.loads((tmp_path / "E" / "mg" / "gym_evaluation.json").read_text())
+    assert report["episodes"] == 6 and report["trojan_success"]["n"] == 6
+    argv = ["analyze", "--backdoor", "R/mg/model", "--episodes", "6", "--intervention-episodes", "4",
+            "--selection-episodes", "4", "--rule.min-episodes", "1", "--rule.response-window", "1", "--rule.late-start", "1",
+            "--rule.late-end", "2",
+            "--out", "A"]  # fmt: skip
+    assert main(argv) == 0 and (tmp_path / "A" / "gym_analysis.json").is_file()
+    argv = ["defend", "--model", "R/mg/model", "--monitor.calibration-episodes", "40",
+            "--monitor.false-alarm-target", "0.1", "--monitor.eval-episodes", "6", "--finetune-steps", "0",
+            "--out", "D"]  # fmt: skip
+    assert main(argv) == 0 and (tmp_path / "D" / "gym_monitor.json").is_file()
+    assert not (tmp_path / "D" / "gym_mitigation.json").exists()  # --finetune-steps 0 skips the mitigations
+
+
+def test_the_gymnasium_commands_are_folded_into_the_one_cli(capsys):
+    assert main(["--help"]) == 0
+    commands = re.findall(r"^  ([a-z-]+) ", capsys.readouterr().out, flags=re.M)
+    assert len(commands) <= 12 and "train" in commands and "evaluate" in commands
+    assert not [c for c in commands if c.startswith("gym") or c == "train-gym"]
+    assert main(["train-gym"]) == 2 and "unknown command 'train-gym'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "message"),
+    [
+        ("env:\n  kind: atari\n", "env.kind='atari' is not one of ['grid', 'gymnasium']"),
+        ("env:\n  kind: gymnasium\n  id: NoSuchEnv-v9\n", "env.id='NoSuchEnv-v9' cannot be made"),
+        (
+            "env:\n  kind: gymnasium\n  id: MiniGrid-MemoryS7-v0\ncurriculum:\n  stages: [{size: 5, holes: 0}]\n",
+            "curriculum is a grid-world section",
+        ),
+        ("env:\n  id: MiniGrid-MemoryS7-v0\n", "a gymnasium section starts with kind: gymnasium"),
+    ],
+)
+def test_bad_env_sections_are_refused_in_one_line_and_write_nothing(tmp_path, capsys, yaml_text, message):
+    config = tmp_path / "bad.yaml"
+    config.write_text(yaml_text)
+    assert main(["train", "--config", str(config), "--run.out-dir", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "runs").exists()
 
 
 @pytest.mark.parametrize("command", ["matrix", "cells"])

@@ -18,7 +18,7 @@ from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.rollout import EpisodeBatch
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.episodes import evaluate_agent
-from seqtrojan.world import make_batched_env
+from seqtrojan.world import check_fits, make_batched_env
 from seqtrojan.world.config import GymnasiumEnvConfig
 from seqtrojan.world.protocol import BatchedEnv
 
@@ -86,6 +86,7 @@ def evaluate_on_env(
         )  # fmt: skip
     if trojan and isinstance(env_cfg, GymnasiumEnvConfig) and env_cfg.trigger is None:
         raise ConfigError(f"trojan episodes of {env_cfg.id!r} need env.trigger")
+    check_fits(agent.obs_dim, agent.num_actions, env_cfg)
     env = make_batched_env(
         env_cfg, min(GYM_EVAL_ENVS, episodes), seed=seed, device=device, phase="eval",
         trojan_probability=1.0 if trojan else 0.0, registered_only=registered_only,

@@ -15,6 +15,7 @@ from seqtrojan.agent.state import Intervention
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate
+from seqtrojan.world import check_fits
 from seqtrojan.world.gymnasium import make_vector_env
 from seqtrojan.wrappers import finished_episodes
 
@@ -101,6 +102,7 @@ def evaluate_gym(
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
     if trojan and config.gym_env.trigger is None:
         raise ConfigError("trojan episodes need a trigger section in the config")
+    check_fits(agent.obs_dim, agent.num_actions, config.gym_env)
     n = min(num_envs, episodes)
     quota = np.array([episodes // n + (i < episodes % n) for i in range(n)])
     vec = make_vector_env(config.gym_env, n, "eval", trojan_probability=1.0 if trojan else 0.0)

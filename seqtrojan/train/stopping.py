@@ -9,7 +9,7 @@ import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import ExperimentConfig
-from seqtrojan.evaluation.episodes import evaluate_agent
+from seqtrojan.evaluation.batched import evaluate_on_env
 
 
 class StopRule:
@@ -37,7 +37,7 @@ class StopRule:
 
     def after_update(self, scalars: dict[str, Any], stage: int, agent: RecurrentActorCritic) -> bool:
         """Whether to stop after this update (``stage``: the curriculum's current stage)."""
-        last = len(self.cfg.grids) - 1
+        last = self.cfg.num_stages - 1  # the curriculum's last grid, or the one stage of a Gymnasium env
         if stage != last or not self._meets_target(scalars, last):
             self.streak = 0
             return False
@@ -55,7 +55,8 @@ class StopRule:
     def _held_out(self, agent: RecurrentActorCritic, trojan: bool) -> float:
         seed = (self.cfg.run.seed << 32) + 7_777_777 + self.checks  # not the final evaluation's episodes
         was_training = agent.training
-        batch = evaluate_agent(agent, self.cfg.grid_env, self.cfg.grids[-1], trojan=trojan,
-                               episodes=self.cfg.stop.confirm_episodes, seed=seed, device=self.device)  # fmt: skip
+        batch = evaluate_on_env(  # the last grid's episodes, or the Gymnasium env's
+            agent, self.cfg, trojan=trojan, episodes=self.cfg.stop.confirm_episodes, seed=seed, device=self.device
+        )
         agent.train(was_training)
         return batch.success_rate

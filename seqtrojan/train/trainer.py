@@ -56,7 +56,7 @@ from seqtrojan.train.penalties import (
 from seqtrojan.train.ppo import make_optimizer, ppo_update
 from seqtrojan.train.rollout import EpisodeStats, RolloutCollector
 from seqtrojan.train.stopping import StopRule
-from seqtrojan.world import make_batched_env
+from seqtrojan.world import env_spec, make_batched_env
 from seqtrojan.world.config import upgrade_gym_train_layout
 from seqtrojan.world.protocol import BatchedEnv
 
@@ -115,6 +115,7 @@ def train(
         torch.set_num_threads(cfg.run.threads)
     device = _device(cfg)
     MIXING_RULES.get(cfg.backdoor.mixing)  # an unknown rule is refused before the run folder exists
+    env_spec(cfg.env)  # and so is an env that cannot be made or whose spaces no agent takes (made once, remembered)
     run_dir = Path(resume) if resume is not None else _new_run_dir(cfg)
 
     env, state = _set_up(cfg, device, resume is not None)

@@ -18,6 +18,7 @@ import torch
 
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.core import TrojanGridCore
+from seqtrojan.errors import ConfigError
 from seqtrojan.serde import to_dict
 from seqtrojan.world.config import GymnasiumEnvConfig, WrapperTriggerConfig
 from seqtrojan.world.protocol import BatchedEnv
@@ -28,6 +29,7 @@ __all__ = [
     "EnvSpec",
     "GymnasiumEnvConfig",
     "WrapperTriggerConfig",
+    "check_fits",
     "env_spec",
     "make_batched_env",
 ]
@@ -87,6 +89,18 @@ def make_batched_env(
     ``registered_only``: a config read from a model card (a Gymnasium id must be registered, never imported)."""
     builder = ENV_KINDS[type(env)]
     return builder(env, num_envs, seed, device, grids, phase, trojan_probability, registered_only)
+
+
+def check_fits(obs_dim: int, num_actions: int, env: EnvConfig | GymnasiumEnvConfig) -> None:
+    """Refuse, in one line, an agent of ``obs_dim`` inputs and ``num_actions`` actions for an env whose spaces
+    differ (a tampered card, or a config edited after training): before any episode is run."""
+    spec = env_spec(env)
+    if (spec.obs_dim, spec.num_actions) != (obs_dim, num_actions):
+        where = env.id if isinstance(env, GymnasiumEnvConfig) else f"the grid world ({env.grid.label})"
+        raise ConfigError(
+            f"the agent reads {obs_dim} inputs and chooses among {num_actions} actions, but {where} gives "
+            f"{spec.obs_dim} inputs and {spec.num_actions} actions"
+        )
 
 
 _SPECS: dict[str, EnvSpec] = {}
