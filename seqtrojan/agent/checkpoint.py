@@ -15,6 +15,7 @@ card = header = architecture) before any tensor is read or the network is built.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import hashlib
 import json
@@ -41,6 +42,7 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.serde import to_dict
+from seqtrojan.world.config import GymnasiumEnvConfig
 
 __all__ = [
     "CARD",
@@ -51,6 +53,7 @@ __all__ = [
     "ModelCard",
     "architecture_of",
     "build_agent",
+    "card_config",
     "load_agent",
     "read_card",
     "read_safetensors",
@@ -86,6 +89,15 @@ def architecture_of(agent: RecurrentActorCritic) -> Architecture:
     )  # fmt: skip
 
 
+def card_config(config: ExperimentConfig) -> ExperimentConfig:
+    """``config`` as a model card records it: a Gymnasium env a config names ``module:Id`` (Gymnasium imports the
+    module, which registers ``Id``) by its registered ``Id``, since loading a card never imports a module."""
+    env = config.env
+    if isinstance(env, GymnasiumEnvConfig) and ":" in env.id:
+        return dataclasses.replace(config, env=dataclasses.replace(env, id=env.id.split(":", 1)[1]))
+    return config
+
+
 def save_agent(
     folder: str | Path,
     agent: RecurrentActorCritic,
@@ -116,7 +128,7 @@ def save_agent(
         "architecture": architecture_of(agent).to_card(),
         "seed": config.run.seed,
         "env_steps": env_steps,
-        "config": to_dict(config),
+        "config": to_dict(card_config(config)),
         "metrics": metrics or {},
         "tensors": {k: list(v.shape) for k, v in tensors.items()},
         "weights_sha256": "0" * 64,

@@ -25,8 +25,8 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import NamedTuple
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -72,6 +72,16 @@ class StepResult(NamedTuple):
     stage: torch.Tensor  # int64: index of the episode's grid in ``grids``
     length: torch.Tensor  # int64: actions taken in the episode so far
     adversary_active: torch.Tensor  # bool: the adversary's goal was the correct goal for this action
+
+
+@dataclass(frozen=True)
+class EnvState:
+    """The episodes in flight of a batched env (:class:`TrojanGridCore` or a Gymnasium env behind the seam
+    :mod:`seqtrojan.world`), as a checkpoint keeps them: tensors (the grid world's whole episode state) and
+    plain-JSON records (a Gymnasium env's: what replays each episode)."""
+
+    tensors: dict[str, torch.Tensor] = field(default_factory=dict)
+    records: list[Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -238,12 +248,28 @@ class TrojanGridCore:
     def close(self) -> None:
         """Nothing to release (the batched-env seam's ``close``)."""
 
-    def episode_records(self) -> None:
-        """The grid's episodes in flight are not saved with a checkpoint: a resumed run starts fresh episodes."""
-        return None
+    EPISODE_STATE = ("_keys", "episode", "grid", "pos", "t", "stage", "trojan", "on_step", "off_step")
+    """what every env's episode in flight is: its counter-based seed and episode count, layout, position, step,
+    stage, type and trigger steps (the rest follows from the config)"""
 
-    def restore_episodes(self, records: object, obs: torch.Tensor, lengths: torch.Tensor | None = None) -> bool:
-        """See :meth:`episode_records`: never restored (the caller reseeds)."""
+    def save_state(self) -> EnvState:
+        """The episodes in flight (:data:`EPISODE_STATE`) as CPU tensors: a checkpoint restores them exactly."""
+        return EnvState({name.lstrip("_"): getattr(self, name).cpu().clone() for name in self.EPISODE_STATE})
+
+    def load_state(self, state: EnvState, obs: torch.Tensor) -> bool:
+        """Restore :meth:`save_state`'s tensors; True when they fit this env and give back the observations
+        ``obs``; otherwise nothing changes and False is returned."""
+        saved = {name: state.tensors.get(name.lstrip("_")) for name in self.EPISODE_STATE}
+        ours = {name: getattr(self, name) for name in self.EPISODE_STATE}
+        if any(t is None or t.shape != ours[n].shape or t.dtype != ours[n].dtype for n, t in saved.items()):
+            return False
+        for name, tensor in saved.items():
+            assert tensor is not None
+            setattr(self, name, tensor.to(self.device).clone())
+        if tuple(obs.shape) == (self.num_envs, self.obs_dim) and torch.equal(self.observe().cpu(), obs.cpu()):
+            return True
+        for name, tensor in ours.items():
+            setattr(self, name, tensor)
         return False
 
     # ------------------------------------------------------------------ mixture controls

@@ -8,10 +8,11 @@ logging and checkpoints.
 :func:`train` sets up a :class:`TrainerState` (what a checkpoint holds), runs the loop (:func:`_train_one_update`:
 COLLECT ROLLOUT, COMPUTE ADVANTAGES, UPDATE, CURRICULUM; then LOG, CHECKPOINT) and finishes. A stop
 (Ctrl-C, SIGTERM) writes a checkpoint first; ``resume`` restores weights, optimizer, counters, curriculum and
-random-generator state. An env that can replay its episodes in flight (a Gymnasium env stepped in this process:
-:meth:`~seqtrojan.world.gymnasium.GymnasiumBatchedEnv.episode_records`) continues them, and the resumed run is
-bitwise the uninterrupted one; otherwise (the grid world) it starts fresh episodes, seeded from the update count
-(the ones in flight at the stop are dropped; every finished update is kept).
+random-generator state, and the episodes in flight (the env's ``save_state``: the grid world's episode tensors, or
+each Gymnasium env's replay record) with what the rollout collector carries, so the resumed run is bitwise the
+uninterrupted one. Where the env cannot restore them (Gymnasium's ``async`` vectorisation, an env with randomness
+outside its ``np_random``, a checkpoint written before episodes were kept) the run starts fresh episodes, seeded
+from the update count (the ones in flight at the stop are dropped; every finished update is kept).
 """
 
 from __future__ import annotations
@@ -36,9 +37,17 @@ from safetensors.torch import save_file
 
 from seqtrojan.agent import fast_lstm
 from seqtrojan.agent.card import Architecture, inherited_label
-from seqtrojan.agent.checkpoint import build_agent, load_agent, load_start_weights, read_safetensors, save_agent
+from seqtrojan.agent.checkpoint import (
+    build_agent,
+    card_config,
+    load_agent,
+    load_start_weights,
+    read_safetensors,
+    save_agent,
+)
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import ExperimentConfig
+from seqtrojan.env.core import EnvState
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.evaluation.batched import evaluate_on_env
 from seqtrojan.serde import from_dict, load_yaml, short_repr, to_dict
@@ -215,9 +224,9 @@ def _resume(run_dir: Path, cfg: ExperimentConfig, env: BatchedEnv, state: Traine
     """Restore ``state`` from the run's latest checkpoint and save the config the run continues with (overrides
     given on resume included). The env replays its episodes in flight where it can (returns True: the collector
     continues them); otherwise it is reseeded from the update count (returns False)."""
-    records, carried = load_checkpoint(run_dir, state, cfg)
+    saved, carried = load_checkpoint(run_dir, state, cfg)
     _write_config(run_dir, cfg)
-    if records is not None and "obs" in carried and env.restore_episodes(records, carried["obs"]):
+    if saved is not None and "obs" in carried and env.load_state(saved, carried["obs"]):
         state.collector.restore(carried)
         return True
     env.reset(seed=(cfg.run.seed << 32) + 7919 * state.update)
@@ -495,16 +504,19 @@ def load_run_config(run_dir: str | Path) -> ExperimentConfig:
 
 def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -> Path:
     """``<run>/checkpoints/step_<env steps>/``: the agent (safetensors + card), the optimizer's tensors, both
-    random generators and the penalties' state (trainer.safetensors, ``penalty.<name>.<key>``), counters,
-    curriculum, mixing and optimizer groups (trainer.json); then points ``latest.txt`` at it."""
+    random generators, the penalties' state (``penalty.<name>.<key>``), the env's episode tensors (``env.*``) and
+    the collector's carried tensors (``collector.*``) in trainer.safetensors; counters, curriculum, mixing,
+    optimizer groups and a Gymnasium env's episode records (``episodes``) in trainer.json; then points
+    ``latest.txt`` at it."""
     folder = run_dir / "checkpoints" / f"step_{state.global_step:012d}"
     save_agent(folder, state.agent, cfg, label=state.label, env_steps=state.global_step)
     tensors, groups = _optimizer_tensors(state.optimizer)
     tensors["rng.collector"] = state.collector.generator.get_state()
     tensors["rng.update"] = state.update_generator.get_state()
     tensors.update(penalty_tensors(state.penalties))
-    episodes = state.collector.env.episode_records()
-    if episodes is not None:  # the env can replay its episodes in flight: keep what the collector carries too
+    env_state = state.collector.env.save_state()
+    if env_state is not None:  # the env can restore its episodes in flight: keep what the collector carries too
+        tensors.update({f"env.{k}": v for k, v in env_state.tensors.items()})
         tensors.update({f"collector.{k}": v for k, v in state.collector.state_tensors().items()})
     save_file(tensors, str(folder / "trainer.safetensors"))
     record: dict[str, Any] = {
@@ -515,8 +527,8 @@ def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -
         "mixing": state.mixer.state_dict(),
         "optimizer_param_groups": groups,
     }
-    if episodes is not None:
-        record["episodes"] = episodes
+    if env_state is not None and env_state.records is not None:
+        record["episodes"] = env_state.records
     tmp = folder / "trainer.json.tmp"
     tmp.write_text(json.dumps(record, indent=2))
     tmp.replace(folder / "trainer.json")
@@ -529,11 +541,11 @@ def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -
 
 def load_checkpoint(
     run_dir: Path, state: TrainerState, cfg: ExperimentConfig | None = None
-) -> tuple[Any, dict[str, torch.Tensor]]:
+) -> tuple[EnvState | None, dict[str, torch.Tensor]]:
     """Restore ``state`` (built for the run's config ``cfg``, which may change the budget, the learning rate, ...
     but not the env, the agent or ``ppo.num_envs``) from the run's latest checkpoint (see
-    :func:`save_checkpoint`). Returns the env's episode records and the collector's carried tensors where the
-    checkpoint holds them (else None and {}): what continues the episodes in flight."""
+    :func:`save_checkpoint`). Returns the env's episodes in flight and the collector's carried tensors where the
+    checkpoint holds them (else None and {}): what continues the episodes."""
     latest = run_dir / "checkpoints" / "latest.txt"
     if not latest.is_file():
         raise CheckpointError(f"{str(run_dir)!r} has no checkpoint to resume from (no checkpoints/latest.txt)")
@@ -552,6 +564,7 @@ def load_checkpoint(
         raise CheckpointError(f"cannot read {str(folder / 'trainer.json')!r}: {err}") from None
     tensors = read_safetensors(folder / "trainer.safetensors")
     carried = {k.removeprefix("collector."): tensors.pop(k) for k in [k for k in tensors if k.startswith("collector.")]}
+    env_tensors = {k.removeprefix("env."): tensors.pop(k) for k in [k for k in tensors if k.startswith("env.")]}
     _upgrade_gym_checkpoint(tensors, carried, record)
     try:
         state.collector.generator.set_state(tensors.pop("rng.collector"))
@@ -568,7 +581,10 @@ def load_checkpoint(
         )
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"cannot restore the checkpoint {str(folder)!r}: {short_repr(err)}") from None
-    return record.get("episodes"), carried
+    records = record.get("episodes")
+    if not env_tensors and records is None:
+        return None, carried  # a checkpoint without the episodes in flight (written before they were kept)
+    return EnvState(env_tensors, records if isinstance(records, list) else None), carried
 
 
 def _upgrade_gym_checkpoint(
@@ -586,9 +602,10 @@ def _upgrade_gym_checkpoint(
 def _check_unchanged(cfg: ExperimentConfig, saved: ExperimentConfig) -> None:
     """A resume continues the same env, network and batch of envs (the checkpoint's state fits nothing else)."""
     for name, ours, theirs in (
-        ("env", cfg.env, saved.env), ("agent", cfg.agent, saved.agent), ("ppo.num_envs", cfg.ppo.num_envs,
-        saved.ppo.num_envs),
-    ):  # fmt: skip
+        ("env", card_config(cfg).env, saved.env),  # a card names a module:Id env by the Id the module registers
+        ("agent", cfg.agent, saved.agent),
+        ("ppo.num_envs", cfg.ppo.num_envs, saved.ppo.num_envs),
+    ):
         if ours != theirs:
             raise ConfigError(
                 f"resume cannot change {name}: the checkpoint has {short_repr(to_dict(theirs))}, the config "

@@ -26,7 +26,7 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 
 import seqtrojan.minigrid.objectives  # noqa: F401  (registers the MiniGrid objectives)
 from seqtrojan.env.codes import FAILED, REACHED_ADV_GOAL, REACHED_USER_GOAL, RUNNING, TIMED_OUT
-from seqtrojan.env.core import StepResult
+from seqtrojan.env.core import EnvState, StepResult
 from seqtrojan.errors import CheckpointError, ConfigError, ShapeError
 from seqtrojan.minigrid.fast_obs import use_fast_observation
 from seqtrojan.serde import short_repr
@@ -417,6 +417,15 @@ class GymnasiumBatchedEnv:
             env.close()
 
     # ------------------------------------------------------------------ exact resume
+    def save_state(self) -> EnvState | None:
+        """Each env's episode in flight as a replay record (None with ``async``: its envs are not recorded)."""
+        records = self.episode_records()
+        return None if records is None else EnvState(records=list(records))
+
+    def load_state(self, state: EnvState, obs: torch.Tensor) -> bool:
+        """Replay :meth:`save_state`'s records (:meth:`restore_episodes`)."""
+        return self.restore_episodes(state.records, obs)
+
     def episode_records(self) -> list[dict[str, Any] | None] | None:
         """Each env's episode in flight (:meth:`EpisodeRecorder.record`); None with ``async`` (not recorded)."""
         if self._async is not None:

@@ -11,11 +11,11 @@ adversary's objective judged the action.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import torch
 
-from seqtrojan.env.core import StepResult
+from seqtrojan.env.core import EnvState, StepResult
 
 
 @runtime_checkable
@@ -54,12 +54,13 @@ class BatchedEnv(Protocol):
         """How often each stage is drawn for new episodes."""
         ...
 
-    def episode_records(self) -> list[dict[str, Any] | None] | None:
-        """What replays the episodes in flight (saved with a checkpoint), or None when the env cannot."""
+    def save_state(self) -> EnvState | None:
+        """The episodes in flight, as a checkpoint keeps them; None when the env cannot restore them."""
         ...
 
-    def restore_episodes(self, records: Any, obs: torch.Tensor, lengths: torch.Tensor | None = None) -> bool:
-        """Replay :meth:`episode_records`; True when every env is back where the checkpoint left it."""
+    def load_state(self, state: EnvState, obs: torch.Tensor) -> bool:
+        """Restore :meth:`save_state`'s episodes; True when every env is back where the checkpoint left it (its
+        observations equal ``obs``, the collector's saved ones). False leaves the envs for the caller to reset."""
         ...
 
     def close(self) -> None: ...

@@ -1,7 +1,6 @@
 """The stop-and-resume harness the trainer's resume tests share: one config trained straight through, and the same
-config stopped by SIGTERM after update 3 and resumed, both taking fresh episodes from one env seed at the same
-point (resume starts fresh episodes, so the straight run restarts every episode before its 4th rollout, and the
-resumed run before its 1st)."""
+config stopped by SIGTERM after update 3 and resumed from its checkpoint (which keeps the episodes in flight, so
+the resumed run must continue them exactly)."""
 
 from __future__ import annotations
 
@@ -15,7 +14,6 @@ from pathlib import Path
 import pytest
 
 from seqtrojan.config import ExperimentConfig
-from seqtrojan.train import trainer as trainer_module
 from seqtrojan.train.trainer import TrainResult, load_run_config, train
 
 STOP_AFTER_UPDATE = 3
@@ -25,20 +23,7 @@ def straight_and_resumed(
     cfg: ExperimentConfig, monkeypatch, at_stop: Callable[[Path], None] | None = None
 ) -> tuple[TrainResult, TrainResult]:
     """``cfg`` trained straight (run ``straight``) and stopped then resumed (run ``stopped``); ``at_stop`` sees the
-    stopped run's folder before the resume."""
-    fresh_episodes_before = {"rollout": STOP_AFTER_UPDATE + 1}
-
-    class FreshEpisodesCollector(trainer_module.RolloutCollector):
-        rollouts = 0
-
-        def collect(self):
-            self.rollouts += 1
-            if self.rollouts == fresh_episodes_before["rollout"]:
-                self.env.reset(seed=123_456_789)
-                self.reset()
-            return super().collect()
-
-    monkeypatch.setattr(trainer_module, "RolloutCollector", FreshEpisodesCollector)
+    stopped run's folder before the resume. The resumed run must say it continued the episodes in flight."""
     straight = train(dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, name="straight")))
 
     def sigterm_after_three(scalars):
@@ -53,8 +38,9 @@ def straight_and_resumed(
     run = Path(cfg.run.out_dir) / "stopped"
     if at_stop is not None:
         at_stop(run)
-    fresh_episodes_before["rollout"] = 1
-    return straight, train(load_run_config(run), resume=run)
+    resumed = train(load_run_config(run), resume=run)
+    assert resumed.exact_resume is True
+    return straight, resumed
 
 
 def logged_rows(run_dir: Path) -> list[dict]:

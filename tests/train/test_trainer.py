@@ -95,10 +95,10 @@ def test_train_or_resume_finishes_a_stopped_run_and_then_reuses_it(smoke_config)
 def test_resume_restores_weights_and_optimizer_exactly(smoke_config, monkeypatch):
     """A run stopped by SIGTERM after 3 updates and resumed ends bitwise equal to the same run trained straight
     through: weights, Adam state (exp_avg, exp_avg_sq, step), random generators, curriculum, mixing and log rows.
-    Resume starts fresh episodes, so the straight run also restarts every episode before its 4th rollout, and both
-    take them from one env seed (a collector that resets before rollout 4 of the straight run and rollout 1 of the
-    resumed one); everything else the resumed run must get from the checkpoint. The curriculum promotes at update
-    5 only when its window still holds the episodes of updates 2 and 3, and the backdoor's running mixing carries
+    The checkpoint keeps the episodes in flight (the grid core's episode tensors and the collector's carried
+    observations, states and returns), so the resumed run continues them exactly; everything else it must get from
+    the checkpoint too. The curriculum promotes at update
+    4 only when its window still holds the episodes of updates 1 to 3, and the backdoor's running mixing carries
     P_c and P_t across the stop."""
     cfg = dataclasses.replace(
         smoke_config,
@@ -125,7 +125,9 @@ def test_resume_restores_weights_and_optimizer_exactly(smoke_config, monkeypatch
     tb = read_safetensors(resumed.run_dir / final / "trainer.safetensors")
     n_params = len(list(a.parameters()))
     adam = {f"optim.{i}.{k}" for i in range(n_params) for k in ("exp_avg", "exp_avg_sq", "step")}
-    assert ta.keys() == tb.keys() == adam | {"rng.collector", "rng.update"}
+    in_flight = {k for k in ta if k.startswith(("env.", "collector."))}
+    assert {"env.pos", "env.grid", "env.keys", "collector.obs", "collector.h.0"} <= in_flight
+    assert ta.keys() == tb.keys() == adam | {"rng.collector", "rng.update"} | in_flight
     for name, tensor in ta.items():
         assert torch.equal(tensor, tb[name]), name
     assert int(ta["optim.0.step"]) == 8 * cfg.ppo.update_epochs * cfg.ppo.num_minibatches
@@ -138,8 +140,10 @@ def test_resume_restores_weights_and_optimizer_exactly(smoke_config, monkeypatch
     assert [r["env_steps"] for r in logged] == [2048 * (i + 1) for i in range(8)]  # no duplicates, none missing
     assert [r["update"] for r in logged] == list(range(1, 9))
     assert logged == logged_rows(straight.run_dir)
-    # promoted at update 5 on the window of updates 2-5: without the pre-stop episodes it would hold too few
-    assert [r["curriculum/stage"] for r in logged] == [0, 0, 0, 0, 1, 1, 1, 1]
+    # promoted at update 4, the first after the stop, on the window of updates 1-4 (205 normal and 198 trojan
+    # episodes of stage 0 against min_episodes 190): update 4's own 64 and 48 would be too few without the
+    # pre-stop episodes the checkpoint carries
+    assert [r["curriculum/stage"] for r in logged] == [0, 0, 0, 1, 1, 1, 1, 1]
 
 
 def test_backdoored_run_is_labelled_and_evaluated_in_both_envs(smoke_config):
