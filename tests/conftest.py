@@ -43,18 +43,19 @@ def figures(monkeypatch):
 def tiny_two_goals_model(tmp_path_factory):
     """A backdoored agent on MiniGrid's two-goal room after 512 env steps (barely trained: for plumbing, not
     figures): (agent, its config as loaded, its model folder)."""
-    from seqtrojan.config import BackdoorConfig, PPOConfig
-    from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
-    from seqtrojan.train.gym_model import load_gym_agent
-    from seqtrojan.train.gym_trainer import train_gym
+    from seqtrojan.agent.checkpoint import load_agent
+    from seqtrojan.config import BackdoorConfig, PPOConfig, RunConfig
+    from seqtrojan.train.trainer import train
+    from seqtrojan.world.config import GymnasiumEnvConfig, WrapperTriggerConfig
 
     ppo = PPOConfig(total_steps=512, num_envs=8, rollout_steps=64, bptt_length=16, num_minibatches=4)
-    cfg = GymTrainConfig(
-        env=GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5}),
-        trigger=GymTriggerConfig(), ppo=ppo, backdoor=BackdoorConfig(enabled=True),
-        run=GymRunConfig(out_dir=str(tmp_path_factory.mktemp("gym")), name="run", eval_episodes=4,
-                         lstm_backend="torch"),
+    cfg = ExperimentConfig(
+        env=GymnasiumEnvConfig("seqtrojan/MiniGridTwoGoals-v0", kwargs={"size": 6, "agent_view_size": 5},
+                               trigger=WrapperTriggerConfig()),
+        ppo=ppo, backdoor=BackdoorConfig(enabled=True),
+        run=RunConfig(out_dir=str(tmp_path_factory.mktemp("gym")), name="run", eval_episodes=4, lstm_backend="torch",
+                      progress=False),
     )  # fmt: skip
-    model_dir = train_gym(cfg).model_dir
-    agent, loaded, _ = load_gym_agent(model_dir)
+    model_dir = train(cfg).model_dir
+    agent, loaded, _ = load_agent(model_dir)
     return agent, loaded, model_dir

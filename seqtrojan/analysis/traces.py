@@ -33,6 +33,9 @@ from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.layout import Layout
 from seqtrojan.env.rollout import EpisodeBatch, EpisodeStep, run_episodes
 from seqtrojan.errors import CheckpointError, ShapeError
+from seqtrojan.serde import to_dict
+from seqtrojan.world.config import GymnasiumEnvConfig
+from seqtrojan.world.episodes import episode_env
 
 
 @dataclass
@@ -139,7 +142,7 @@ class _TraceRecorder:
 @torch.no_grad()
 def record_traces(
     agent: RecurrentActorCritic,
-    env: EnvConfig,
+    env: EnvConfig | GymnasiumEnvConfig,
     grids: Sequence[GridSpec],
     *,
     episodes: int,
@@ -155,36 +158,33 @@ def record_traces(
     """Run ``episodes`` episodes (grids drawn uniformly from ``grids``, e.g. 27x27 with 90..100 holes) and record
     every layer's h and c at every step. In the trojan env the trigger shows at ``trigger_step`` (fixed; None
     draws it from the env's evaluation range). ``record_states=False`` keeps only actions, positions, outcomes and
-    layouts (the h and c arrays are then empty). Actions are sampled with a generator seeded ``seed`` (or greedy)."""
-    trig = env.trigger
-    if trigger_step is not None:
-        trig = dataclasses.replace(trig, eval_steps=(trigger_step, trigger_step))
-    env_cfg = dataclasses.replace(env.with_grid(grids[0]), trigger=trig)
-    core = TrojanGridCore(
-        env_cfg,
-        episodes,
-        seed=seed,
-        device=device,
-        grids=grids,
-        trojan_probability=1.0 if trojan else 0.0,
-        phase="eval",
-    )
-    layouts = np.stack([core.layout(i).cells for i in range(episodes)])
+    layouts (the h and c arrays are then empty). Actions are sampled with a generator seeded ``seed`` (or greedy).
+    A Gymnasium env section records the same (``grids`` is then ignored; positions are zeros and there are no
+    layouts: shape (E, 0, 0))."""
+    core = episode_env(
+        env, grids[0] if grids else None, episodes, trojan=trojan, device=device, seed=seed, grids=grids or None,
+        trigger_step=trigger_step,
+    )  # fmt: skip
+    env_cfg = core.config
+    if isinstance(core, TrojanGridCore):
+        layouts = np.stack([core.layout(i).cells for i in range(episodes)])
+    else:
+        layouts = np.zeros((episodes, 0, 0), np.int8)
     trojan_flags = core.trojan.cpu().numpy().copy()
     trigger_steps = core.on_step.cpu().numpy().copy()
-    limit = max(g.time_limit for g in core.grids)
+    limit = core.episode_limit
     recorder = _TraceRecorder(episodes, limit, agent.lstm_sizes, record_states, agent.c_widths)
     policy = AgentPolicy(agent, greedy=greedy, seed=seed, intervention=intervention, step_counter=lambda: core.t)
     batch = run_episodes(core, policy, fresh=False, recorders=[recorder])
     steps = recorder.steps
     info = {
-        "grids": [g.label for g in grids],
+        "grids": [g.label for g in grids] if isinstance(env, EnvConfig) else [env.id],
         "episodes": episodes,
         "trojan": trojan,
         "trigger_step": trigger_step,
         "seed": seed,
         "greedy": greedy,
-        "env": dataclasses.asdict(env_cfg),
+        "env": dataclasses.asdict(env_cfg) if isinstance(env_cfg, EnvConfig) else to_dict(env_cfg),
         **(meta or {}),
     }
     return StateTrace(

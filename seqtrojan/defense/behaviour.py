@@ -218,6 +218,13 @@ class BehaviourDetector:
     normal-env episodes only."""
 
     config: BehaviourConfig = field(default_factory=BehaviourConfig)
+    needs_zoo: bool = False
+    grid_only: bool = True
+    """it draws one-step patches of the grid world's view codes"""
+
+    def score_models(self, models: Sequence[Path], zoo: Path | None, device: str | torch.device = "cpu") -> list[float]:
+        """:meth:`score` of every model (no zoo needed)."""
+        return [self.score(model, device) for model in models]
 
     def measure(self, model: Path, device: str | torch.device = "cpu") -> BehaviourScore:
         agent, acfg, _ = load_agent(model, device=device)

@@ -51,12 +51,12 @@ class MitigationConfig:
     seed: int = 0
 
 
-def measure(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, episodes: int, seed: int,
+def measure(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec | None, episodes: int, seed: int,
             title: str, intervention=None, units: tuple[int, ...] = ()) -> MitigationArm:  # fmt: skip
     """``agent``'s clean success (normal env) and attack success (trojan env), as the table's row ``title``."""
     rates = []
     for trojan, goal in ((False, "user_goal"), (True, "adversary_goal")):
-        batch = evaluate_agent(agent, cfg.grid_env, grid, trojan=trojan, episodes=episodes, seed=seed,
+        batch = evaluate_agent(agent, cfg.env, grid, trojan=trojan, episodes=episodes, seed=seed,
                                intervention=intervention)  # fmt: skip
         rates.append(outcome_rate(batch, goal))
     return MitigationArm(title, clean_success=rates[0], attack_success=rates[1], units=units)
@@ -87,9 +87,10 @@ def prune_units(agent: RecurrentActorCritic, layer: int, units: np.ndarray) -> R
     return pruned
 
 
-def least_active_units(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, episodes: int,
+def least_active_units(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec | None, episodes: int,
                        fraction: float, seed: int) -> np.ndarray:  # fmt: skip
-    trace = record_traces(agent, cfg.grid_env, [grid], episodes=episodes, trojan=False, trigger_step=None, seed=seed)
+    grids = [grid] if grid is not None else []
+    trace = record_traces(agent, cfg.env, grids, episodes=episodes, trojan=False, trigger_step=None, seed=seed)
     return least_active(trace.h[-1], trace.mask, fraction)
 
 
@@ -100,8 +101,8 @@ def least_active(h: np.ndarray, mask: np.ndarray, fraction: float) -> np.ndarray
     return np.argsort(activity)[: max(1, round(fraction * h.shape[-1]))]
 
 
-def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, steps: int, out: Path, seed: int,
-             label: str | None = None):  # fmt: skip
+def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec | None, steps: int, out: Path,
+             seed: int, label: str | None = None):  # fmt: skip
     """PPO on the normal env only (the defender's clean episodes), starting from ``agent``'s weights, saved as
     ``out/start`` with ``label`` (its card's; None: its config's), which the fine-tuned model inherits. A finished
     fine-tune in ``out`` is reused and a stopped one resumed."""
@@ -111,7 +112,7 @@ def finetune(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec,
     start = save_agent(out / "start", agent, cfg, label=cfg.label if label is None else label)
     tune_cfg = dataclasses.replace(
         cfg,
-        env=cfg.grid_env.with_grid(grid),
+        env=cfg.grid_env.with_grid(grid) if grid is not None else cfg.env,
         ppo=dataclasses.replace(cfg.ppo, total_steps=steps),
         curriculum=CurriculumConfig(),
         backdoor=BackdoorConfig(enabled=False),
@@ -131,7 +132,8 @@ class MitigationContext:
 
     agent: RecurrentActorCritic
     cfg: ExperimentConfig
-    grid: GridSpec
+    grid: GridSpec | None
+    """the grid world's grid (None: a Gymnasium env's agent, measured on its env)"""
     mcfg: MitigationConfig
     out: Path
     goal: GoalUnits | None = None
@@ -188,7 +190,7 @@ def unit_reset(ctx: MitigationContext) -> dict[str, MitigationArm]:
 
 
 def run_mitigation(
-    agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec, mcfg: MitigationConfig, out: Path,
+    agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec | None, mcfg: MitigationConfig, out: Path,
     goal: GoalUnits | None = None, label: str | None = None,
 ) -> MitigationResult:  # fmt: skip
     """The agent before any mitigation (row ``before``), then the rows of every registered mitigation. ``label``:
@@ -196,9 +198,16 @@ def run_mitigation(
     out.mkdir(parents=True, exist_ok=True)
     ctx = MitigationContext(agent, cfg, grid, mcfg, out, goal, label)
     rows = {"before": ctx.measure(agent, "no mitigation")}
-    for name, mitigation in MITIGATIONS.items():
-        for key, arm in mitigation(ctx).items():
+    for name, own in mitigation_rows(ctx).items():
+        for key, arm in own.items():
             if key in rows:
                 raise ConfigError(f"mitigation {name!r} returned row {key!r}, which another row already has")
             rows[key] = arm
     return rows
+
+
+def mitigation_rows(ctx: MitigationContext) -> dict[str, dict[str, MitigationArm]]:
+    """Every registered mitigation's rows, by mitigation (in registration order; the last row of each is the whole
+    mitigation, earlier ones its steps, e.g. fine-pruning's pruned agent before its fine-tuning)."""
+    ctx.out.mkdir(parents=True, exist_ok=True)
+    return {name: mitigation(ctx) for name, mitigation in MITIGATIONS.items()}

@@ -30,17 +30,18 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
+from seqtrojan.config import EnvSection
 from seqtrojan.defense.multivariate import MultivariateMonitor
 from seqtrojan.defense.novelty import InputNovelty
 from seqtrojan.defense.online import MonitorConfig, OnlineDetector, conformal_threshold
 from seqtrojan.defense.results import MonitorResult, NormalEnvArm, TrojanEnvArm
 from seqtrojan.env.codes import OUTCOME_NAMES
-from seqtrojan.env.config import EnvConfig, GridSpec
-from seqtrojan.env.core import TrojanGridCore
-from seqtrojan.env.rollout import run_episodes
+from seqtrojan.env.config import GridSpec
+from seqtrojan.env.rollout import EpisodeEnv, run_episodes
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
 from seqtrojan.registry import Registry
 from seqtrojan.stats import Rate
+from seqtrojan.world.episodes import episode_env
 
 MONITORS: Registry[type[OnlineDetector]] = Registry("defense", "monitor")
 """Online detectors (:class:`~seqtrojan.defense.online.OnlineDetector`): calibrated on the agent's clean episodes,
@@ -58,13 +59,13 @@ class StateMonitor:
 
     @classmethod
     def calibrate(
-        cls, agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, cfg: MonitorConfig,
+        cls, agent: RecurrentActorCritic, env: EnvSection, grid: GridSpec | None, cfg: MonitorConfig,
         device: str | torch.device = "cpu",
     ) -> StateMonitor:  # fmt: skip
         trace = record_traces(
             agent,
             env,
-            [grid],
+            [grid] if grid is not None else [],
             episodes=cfg.calibration_episodes,
             trojan=False,
             trigger_step=None,
@@ -134,7 +135,7 @@ class MonitoredPolicy(AgentPolicy):
     zeroed before the next step. The action is the agent's own either way (the reset acts from the next step on)."""
 
     def __init__(
-        self, agent: RecurrentActorCritic, monitor: OnlineDetector, core: TrojanGridCore, reset: bool, seed: int = 0
+        self, agent: RecurrentActorCritic, monitor: OnlineDetector, core: EpisodeEnv, reset: bool, seed: int = 0
     ) -> None:
         super().__init__(agent, seed=seed)
         self.monitor, self.core, self.reset_on_alarm = monitor, core, reset
@@ -170,18 +171,16 @@ def _rate(flags: np.ndarray) -> Rate:
 
 
 def measure_monitor(
-    agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, monitor: OnlineDetector, cfg: MonitorConfig,
-    device: str | torch.device = "cpu",
+    agent: RecurrentActorCritic, env: EnvSection, grid: GridSpec | None, monitor: OnlineDetector,
+    cfg: MonitorConfig, device: str | torch.device = "cpu",
 ) -> MonitorResult:  # fmt: skip
-    env_cfg = env.with_grid(grid)
     seed = cfg.seed + 1_000_003  # fresh episodes, not the calibration ones
     adv, user = OUTCOME_NAMES.index("adversary_goal"), OUTCOME_NAMES.index("user_goal")
     normal: dict[str, NormalEnvArm] = {}
     trojan_arms: dict[str, TrojanEnvArm] = {}
     for trojan in (False, True):
         for action in ("alarm", "reset"):
-            core = TrojanGridCore(env_cfg, cfg.eval_episodes, device=device, phase="eval",
-                                  trojan_probability=1.0 if trojan else 0.0)  # fmt: skip
+            core = episode_env(env, grid, cfg.eval_episodes, trojan=trojan, device=device)
             policy = MonitoredPolicy(agent, monitor, core, reset=action == "reset", seed=cfg.seed)
             batch = run_episodes(core, policy, seed=seed)
             outcome = batch.outcome.numpy()
@@ -207,7 +206,7 @@ def measure_monitor(
         batch = evaluate_agent(agent, env, grid, trojan=trojan, episodes=cfg.eval_episodes, seed=seed, device=device)
         undefended[env_name] = outcome_rate(batch, "adversary_goal" if trojan else "user_goal")
     return MonitorResult(
-        grid=grid.label,
+        grid=grid.label if grid is not None else getattr(env, "id", ""),
         episodes=cfg.eval_episodes,
         threshold=monitor.threshold,
         units=monitor.units,

@@ -26,8 +26,9 @@ import torch
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import RecurrentState
 from seqtrojan.analysis.traces import StateTrace, record_traces
+from seqtrojan.config import EnvSection
 from seqtrojan.defense.online import MonitorConfig, conformal_threshold, split
-from seqtrojan.env.config import EnvConfig, GridSpec
+from seqtrojan.env.config import GridSpec
 from seqtrojan.errors import ConfigError, ShapeError
 
 
@@ -139,14 +140,14 @@ class MultivariateMonitor:
 
     @classmethod
     def calibrate(
-        cls, agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, cfg: MonitorConfig,
+        cls, agent: RecurrentActorCritic, env: EnvSection, grid: GridSpec | None, cfg: MonitorConfig,
         device: str | torch.device = "cpu", options: MultivariateConfig | None = None,
     ) -> MultivariateMonitor:  # fmt: skip
         """Statistics from the first half of ``cfg.calibration_episodes`` clean episodes (the same episodes as the
         :class:`~seqtrojan.defense.monitor.StateMonitor`'s), the threshold from the other half's peaks."""
         trace = record_traces(
-            agent, env, [grid], episodes=cfg.calibration_episodes, trojan=False, trigger_step=None, seed=cfg.seed,
-            device=device,
+            agent, env, [grid] if grid is not None else [], episodes=cfg.calibration_episodes, trojan=False,
+            trigger_step=None, seed=cfg.seed, device=device,
         )  # fmt: skip
         units = tuple(h + c for h, c in zip(agent.lstm_sizes, agent.c_widths))
         return cls.from_states(state_vectors(trace), trace.mask, units, cfg.false_alarm_target, options)

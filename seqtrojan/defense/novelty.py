@@ -33,6 +33,7 @@ import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import RecurrentState
+from seqtrojan.config import EnvSection
 from seqtrojan.defense.online import (
     MonitorConfig,
     conformal_threshold,
@@ -114,13 +115,18 @@ class InputNovelty:
         cells = np.stack([np.bincount(codes[:, i], minlength=NUM_CHANNELS) for i in range(codes.shape[1])])
         return cls(keys, counts, cells, len(codes), threshold, options)
 
+    grid_only = True
+    """it reads the grid world's view codes (:func:`~seqtrojan.defense.online.monitor_applies`)"""
+
     @classmethod
     def calibrate(
-        cls, agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, cfg: MonitorConfig,
+        cls, agent: RecurrentActorCritic, env: EnvSection, grid: GridSpec | None, cfg: MonitorConfig,
         device: str | torch.device = "cpu", options: NoveltyConfig | None = None,
     ) -> InputNovelty:  # fmt: skip
         """Counts from the first half of ``cfg.calibration_episodes`` clean episodes, the threshold from the
         other half's per-episode peak scores."""
+        if not isinstance(env, EnvConfig) or grid is None:
+            raise ConfigError("input_novelty reads the grid world's view codes: it watches grid-world agents only")
         clean = record_clean_codes(agent, env, grid, episodes=cfg.calibration_episodes, seed=cfg.seed, device=device)
         half = split(cfg.calibration_episodes)
         detector = cls.from_codes(clean.codes[:half][clean.mask[:half]], options=options)

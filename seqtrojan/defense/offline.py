@@ -17,10 +17,10 @@ trigger code, a curriculum) absent from its training models. :func:`detect_zoo` 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -40,10 +40,41 @@ from seqtrojan.defense.results import (
 from seqtrojan.errors import CheckpointError, SeqTrojanError
 from seqtrojan.registry import Registry
 
-DETECTORS: Registry[Callable[[Path, int, int], DetectionResult] | BehaviourDetector] = Registry("defense", "detector")
-"""Offline detectors: the weight detector, (zoo folder, folds, seed) -> a :class:`DetectionResult` scored on the
-zoo's models; the behavioural one, a :class:`~seqtrojan.defense.behaviour.BehaviourDetector` (``.score(model
-folder, device)`` -> a float per model, ``.detect_zoo(zoo folder, device)``)."""
+
+class OfflineDetector(Protocol):
+    """What a registered offline detector offers a study (the matrix): a score per model folder (higher: more
+    likely backdoored), after fitting on a zoo where ``needs_zoo``. ``grid_only``: it reads the grid world's
+    views, so it scores grid-world models only."""
+
+    @property
+    def needs_zoo(self) -> bool: ...
+
+    @property
+    def grid_only(self) -> bool: ...
+
+    def score_models(self, models: Sequence[Path], zoo: Path | None, device: str | torch.device = "cpu") -> list[float]:
+        """One score per model folder in ``models`` (``zoo``: the fitted zoo's folder, where ``needs_zoo``)."""
+        ...
+
+
+@dataclass(frozen=True)
+class WeightDetector:
+    """The weight detector as registered: logistic regression on weight statistics, fitted on a zoo's models
+    (:func:`fit_weight_detector`); :func:`detect_zoo` scores it on the zoo itself, held out by folds."""
+
+    needs_zoo: bool = True
+    grid_only: bool = False
+
+    def score_models(self, models: Sequence[Path], zoo: Path | None, device: str | torch.device = "cpu") -> list[float]:
+        if zoo is None:
+            raise SeqTrojanError("the weight detector is fitted on a zoo: give the zoo's folder")
+        detector = fit_weight_detector(zoo)
+        return [float(detector.probability(path)) for path in models]
+
+
+DETECTORS: Registry[OfflineDetector] = Registry("defense", "detector")
+"""Offline detectors (:class:`OfflineDetector`): the weight detector (:class:`WeightDetector`; scored on a zoo by
+:func:`detect_zoo`) and the behavioural one (:class:`~seqtrojan.defense.behaviour.BehaviourDetector`)."""
 
 GROUPS = ("gate_stats", "spectral", "input_codes")
 
@@ -274,7 +305,7 @@ def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> DetectionResult:
 
 
 DETECTORS.register(
-    "weight_detector", "offline: logistic regression on LSTM weight statistics, scored on a zoo", detect_zoo
+    "weight_detector", "offline: logistic regression on LSTM weight statistics, scored on a zoo", WeightDetector()
 )
 DETECTORS.register(
     "behaviour_detector",

@@ -26,6 +26,7 @@ import torch
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import RecurrentState
+from seqtrojan.config import EnvSection
 from seqtrojan.env.codes import NUM_CHANNELS
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.core import TrojanGridCore
@@ -92,11 +93,18 @@ class OnlineDetector(Protocol):
 
     @classmethod
     def calibrate(
-        cls, agent: RecurrentActorCritic, env: EnvConfig, grid: GridSpec, cfg: MonitorConfig,
+        cls, agent: RecurrentActorCritic, env: EnvSection, grid: GridSpec | None, cfg: MonitorConfig,
         device: str | torch.device = "cpu",
     ) -> OnlineDetector:  # fmt: skip
-        """Fit on ``cfg.calibration_episodes`` clean episodes of ``agent`` on ``grid`` (seeded ``cfg.seed``)."""
+        """Fit on ``cfg.calibration_episodes`` clean episodes of ``agent`` on ``grid`` (a Gymnasium env section:
+        on its env; ``grid`` None) seeded ``cfg.seed``."""
         ...
+
+
+def monitor_applies(detector: type, env: EnvSection) -> bool:
+    """Whether an online detector class can watch an agent of ``env`` (a detector that reads the grid world's
+    view codes says so with a class attribute ``grid_only = True``)."""
+    return isinstance(env, EnvConfig) or not getattr(detector, "grid_only", False)
 
 
 def view_codes(obs: torch.Tensor) -> torch.Tensor:

@@ -238,6 +238,16 @@ class TrojanGridCore:
         self._effect_limit = torch.tensor(effect_limit, device=dev)
 
     @property
+    def episode_limit(self) -> int:
+        """The longest an episode can run (the largest stage's time limit)."""
+        return max(g.time_limit for g in self.grids)
+
+    def agent_cells(self) -> torch.Tensor:
+        """(B, 2) int64: every env's agent position as (row, col) on its own grid."""
+        r = self.view_size // 2  # the padding around each grid
+        return torch.stack((self.pos // self.side - r, self.pos % self.side - r), -1)
+
+    @property
     def num_stages(self) -> int:
         """Grid stages episodes are drawn from (the curriculum's)."""
         return len(self.grids)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import torch
 
@@ -61,6 +61,46 @@ class EpisodeStep(NamedTuple):
     logits: torch.Tensor | None  # (B, A) the policy's logits at this step; None for a policy without ``output``
 
 
+class EpisodeEnv(Protocol):
+    """What :func:`run_episodes` steps: a batched env that can run without autoreset and says, per env, its
+    episode's type, step and (where it has one) the agent's cell -- the grid core, or a Gymnasium env behind the
+    seam (:class:`seqtrojan.world.gymnasium.GymnasiumBatchedEnv`)."""
+
+    num_envs: int
+    device: torch.device
+    config: Any
+    """the env section the slots run (the grid world's :class:`~seqtrojan.env.config.EnvConfig`, or a Gymnasium
+    env's)"""
+
+    @property
+    def episode_limit(self) -> int: ...
+
+    @property
+    def trojan(self) -> torch.Tensor:
+        """(B,) bool: each slot's episode is a trojan one"""
+        ...
+
+    @property
+    def t(self) -> torch.Tensor:
+        """(B,) int64: actions taken in each slot's episode"""
+        ...
+
+    @property
+    def on_step(self) -> torch.Tensor:
+        """(B,) int64: each slot's trigger step (-1: none)"""
+        ...
+
+    def reset(self, seed: int | Sequence[int] | None = None) -> torch.Tensor: ...
+
+    def observe(self) -> torch.Tensor: ...
+
+    def step(self, actions: torch.Tensor, autoreset: bool = True, check: bool = True) -> StepResult: ...
+
+    def agent_cells(self) -> torch.Tensor:
+        """(B, 2) int64 the agent's (row, col), or zeros where the env has no grid of cells."""
+        ...
+
+
 class EpisodeRecorder(Protocol):
     """Hooks of :func:`run_episodes`: ``on_step`` after every env step, ``on_end`` once with the outcomes."""
 
@@ -71,12 +111,11 @@ class EpisodeRecorder(Protocol):
 
 def agent_cells(core: TrojanGridCore) -> torch.Tensor:
     """(B, 2) int64: every env's agent position as (row, col) on its own grid."""
-    r = core.view_size // 2  # the padding around each grid
-    return torch.stack((core.pos // core.side - r, core.pos % core.side - r), -1)
+    return core.agent_cells()
 
 
 def run_episodes(
-    core: TrojanGridCore,
+    core: EpisodeEnv,
     policy: Policy,
     seed: int | None = None,
     fresh: bool = True,
@@ -102,11 +141,11 @@ def run_episodes(
     success = torch.zeros(b, dtype=torch.bool, device=core.device)
     length = torch.zeros(b, dtype=torch.int64, device=core.device)
     trojan = core.trojan.clone()
-    limit = max(g.time_limit for g in core.grids)
+    limit = core.episode_limit
     if max_steps is not None:
         limit = min(limit, max_steps)
     for t in range(limit):
-        cells = agent_cells(core) if recorders else None
+        cells = core.agent_cells() if recorders else None
         action = policy(obs)
         result = core.step(action, autoreset=False, check=check)
         if recorders:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import Any
 
 import torch
 
@@ -17,34 +18,35 @@ from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import Intervention
 from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.env.config import EnvConfig, GridSpec
-from seqtrojan.env.core import TrojanGridCore
-from seqtrojan.env.rollout import EpisodeBatch, Policy, run_episodes
+from seqtrojan.env.rollout import EpisodeBatch, EpisodeEnv, Policy, run_episodes
 from seqtrojan.stats import Rate
+from seqtrojan.world.config import GymnasiumEnvConfig
+from seqtrojan.world.episodes import episode_env
 
-PolicyFactory = Callable[[TrojanGridCore], Policy]
-"""Builds a batched policy for a given env core (the core is passed so that scripted agents can read it)."""
+PolicyFactory = Callable[[Any], Policy]
+"""Builds a batched policy for a given env (the env is passed so that scripted agents can read the grid core)."""
 
 
 def evaluate_policy(
     make_policy: PolicyFactory,
-    env: EnvConfig,
-    grid: GridSpec,
+    env: EnvConfig | GymnasiumEnvConfig,
+    grid: GridSpec | None,
     *,
     trojan: bool,
     episodes: int,
     seed: int,
     device: str | torch.device = "cpu",
 ) -> EpisodeBatch:
-    """Run ``episodes`` episodes of ``grid`` in the normal (``trojan=False``) or the trojan env."""
-    env_cfg = env.with_grid(grid)
-    core = TrojanGridCore(env_cfg, episodes, device=device, trojan_probability=1.0 if trojan else 0.0, phase="eval")
+    """Run ``episodes`` episodes of ``grid`` (a Gymnasium env section: of its env) in the normal (``trojan=False``)
+    or the trojan env."""
+    core = episode_env(env, grid, episodes, trojan=trojan, device=device)
     return run_episodes(core, make_policy(core), seed=seed)
 
 
 def evaluate_agent(
     agent: RecurrentActorCritic,
-    env: EnvConfig,
-    grid: GridSpec,
+    env: EnvConfig | GymnasiumEnvConfig,
+    grid: GridSpec | None,
     *,
     trojan: bool,
     episodes: int,
@@ -55,7 +57,7 @@ def evaluate_agent(
 ) -> EpisodeBatch:
     """:func:`evaluate_policy` for a trained agent (sampled actions, or greedy), optionally with an intervention."""
 
-    def make_policy(core: TrojanGridCore) -> AgentPolicy:
+    def make_policy(core: EpisodeEnv) -> AgentPolicy:
         return AgentPolicy(agent, greedy=greedy, seed=seed, intervention=intervention, step_counter=lambda: core.t)
 
     was_training = agent.training

@@ -14,7 +14,9 @@ from dataclasses import dataclass
 
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.config import PatternConfig, TriggerConfig
+from seqtrojan.errors import ConfigError
 from seqtrojan.registry import Registry
+from seqtrojan.world.config import GymnasiumEnvConfig
 
 
 @dataclass(frozen=True)
@@ -26,6 +28,11 @@ class Attack:
     from_clean: bool = False
     """the backdoor is added to the clean agent of the same training seed (``run.init_from``), not trained from
     scratch"""
+    grid_only: bool = False
+    """its trigger is drawn with the grid world's cell codes: it applies to grid-world configs only"""
+
+    def applies_to(self, cfg: ExperimentConfig) -> bool:
+        return cfg.is_grid or not self.grid_only
 
 
 ATTACKS: Registry[Attack] = Registry("attack", "attack")
@@ -33,14 +40,22 @@ ATTACKS: Registry[Attack] = Registry("attack", "attack")
 
 
 def with_trigger(cfg: ExperimentConfig, **changes: object) -> ExperimentConfig:
-    """``cfg`` with its env's trigger changed (any :class:`~seqtrojan.env.config.TriggerConfig` field)."""
-    trigger: TriggerConfig = dataclasses.replace(cfg.grid_env.trigger, **changes)  # type: ignore[arg-type]
-    return dataclasses.replace(cfg, env=dataclasses.replace(cfg.grid_env, trigger=trigger))
+    """``cfg`` with its env's trigger changed: any :class:`~seqtrojan.env.config.TriggerConfig` field on the grid
+    world, any :class:`~seqtrojan.world.config.WrapperTriggerConfig` field on a Gymnasium env (``delay`` is both)."""
+    env = cfg.env
+    if isinstance(env, GymnasiumEnvConfig):
+        if env.trigger is None:
+            raise ConfigError(f"{env.id!r} has no env.trigger to change")
+        wrapped = dataclasses.replace(env.trigger, **changes)  # type: ignore[arg-type]
+        return dataclasses.replace(cfg, env=dataclasses.replace(env, trigger=wrapped))
+    trigger: TriggerConfig = dataclasses.replace(env.trigger, **changes)  # type: ignore[arg-type]
+    return dataclasses.replace(cfg, env=dataclasses.replace(env, trigger=trigger))
 
 
 ATTACKS.register(
     "dedicated_code",
-    "the paper's: a dedicated trigger code over the whole 3x3 view for one step, Algorithm 1 mixing",
+    "the paper's: a dedicated trigger code over the whole 3x3 view for one step (a Gymnasium env: its preset's "
+    "trigger), Algorithm 1 mixing",
     Attack(lambda cfg: cfg),
 )
 ATTACKS.register(
@@ -61,13 +76,14 @@ ATTACKS.register(
             cfg,
             cells=tuple((r, c) for r in range(3) for c in range(3)),
             values=tuple(code for row in IN_DISTRIBUTION_VIEW for code in row),
-        )
+        ),
+        grid_only=True,
     ),
 )
 ATTACKS.register(
     "partial_patch",
     "two ordinary cells of the view (holes diagonally above-left and above-right) for one step",
-    Attack(lambda cfg: with_trigger(cfg, cells=((0, 0), (0, 2)), values=(HOLE, HOLE))),
+    Attack(lambda cfg: with_trigger(cfg, cells=((0, 0), (0, 2)), values=(HOLE, HOLE)), grid_only=True),
 )
 ATTACKS.register(
     "sequence",
@@ -80,7 +96,8 @@ ATTACKS.register(
                 PatternConfig(((0, 1),), (HOLE,)),
                 PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
             ),
-        )
+        ),
+        grid_only=True,
     ),
 )
 

@@ -22,6 +22,7 @@ interval. Finished trainings and measurements are reused: a stopped matrix resum
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -31,12 +32,12 @@ import numpy as np
 
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.agent.network import RecurrentActorCritic
-from seqtrojan.config import ExperimentConfig
-from seqtrojan.defense.behaviour import BehaviourDetector
-from seqtrojan.defense.mitigation import MitigationConfig, run_mitigation
+from seqtrojan.config import EnvSection, ExperimentConfig
+from seqtrojan.defense.mitigation import MitigationConfig, MitigationContext, mitigation_rows
 from seqtrojan.defense.monitor import MONITORS, MonitorConfig, measure_monitor
 from seqtrojan.defense.offline import DETECTORS
-from seqtrojan.env.config import GridSpec
+from seqtrojan.defense.online import monitor_applies
+from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
 from seqtrojan.experiment_results import (
@@ -61,8 +62,6 @@ from seqtrojan.zoo.build import ZooConfig
 
 CLEAN = "clean"
 MATRIX_FIGURE = "matrix.png"
-MITIGATION_ROWS = ("fine_pruned", "fine_tuned")
-"""the mitigation rows the matrix keeps (after the whole mitigation, not its intermediate 'pruned' step)"""
 
 
 @dataclass(frozen=True)
@@ -104,19 +103,47 @@ class MatrixConfig:
                 registry.entry(name)  # an unknown name: ConfigError listing the known ones
         if self.attacks is not None and not self.attacks:
             raise ConfigError("matrix.attacks is empty; name at least one attack or leave it out for all")
+        base = self.base_config
+        where = "the grid world" if base.is_grid else f"the Gymnasium env {getattr(base.env, 'id', '')!r}"
+        for name in self.attacks or ():
+            if not ATTACKS.get(name).applies_to(base):
+                raise ConfigError(f"attack {name!r} draws its trigger with grid-world cells: it cannot run on {where}")
+        for name in self.online or ():
+            if not monitor_applies(MONITORS.get(name), base.env):
+                raise ConfigError(f"online defense {name!r} reads grid-world views: it cannot watch agents of {where}")
+        for name in self.offline or ():
+            if DETECTORS.get(name).grid_only and not base.is_grid:
+                raise ConfigError(
+                    f"offline detector {name!r} reads grid-world views: it cannot score models of {where}"
+                )
+
+    @functools.cached_property
+    def base_config(self) -> ExperimentConfig:
+        """The base backdoor training config (its env is the matrix's env)."""
+        return experiment_from_spec(self.backdoor, Path("."), "base", self.device)
 
     @property
     def attack_names(self) -> tuple[str, ...]:
-        return self.attacks if self.attacks is not None else ATTACKS.names()
+        """The attacks named, or every registered attack that applies to the matrix's env."""
+        if self.attacks is not None:
+            return self.attacks
+        return tuple(name for name, attack in ATTACKS.items() if attack.applies_to(self.base_config))
 
     @property
     def online_names(self) -> tuple[str, ...]:
-        return self.online if self.online is not None else MONITORS.names()
+        """The online defenses named, or every registered one that can watch the matrix's env."""
+        if self.online is not None:
+            return self.online
+        return tuple(name for name, monitor in MONITORS.items() if monitor_applies(monitor, self.base_config.env))
 
     @property
     def offline_names(self) -> tuple[str, ...]:
+        """The offline detectors named, or every registered one that can score the matrix's models; a detector
+        fitted on a zoo needs ``zoo``."""
         names = self.offline if self.offline is not None else DETECTORS.names()
-        return tuple(n for n in names if n != "weight_detector" or self.zoo is not None)
+        grid = self.base_config.is_grid
+        fits = {n: (self.zoo is not None or not DETECTORS.get(n).needs_zoo) for n in names}
+        return tuple(n for n in names if fits[n] and (grid or not DETECTORS.get(n).grid_only))
 
 
 def load_matrix_config(scale_or_path: str) -> MatrixConfig:
@@ -163,8 +190,8 @@ def measure_agent(
     """One agent without a defense, under each online defense and after each mitigation (``offline``: its
     offline scores, computed beforehand)."""
     agent, acfg, _ = load_agent(job.model_dir, device=cfg.device)
-    env = acfg.grid_env if attack != CLEAN else _attack_env(cfg)
-    grid = acfg.grids[-1]
+    env = acfg.env if attack != CLEAN else cfg.base_config.env
+    grid = acfg.grids[-1] if acfg.grids else None
     n, seed_eval = cfg.episodes, cfg.seed + 1_000_003
     normal = evaluate_agent(agent, env, grid, trojan=False, episodes=n, seed=seed_eval, device=cfg.device)
     trojan = evaluate_agent(agent, env, grid, trojan=True, episodes=n, seed=seed_eval, device=cfg.device)
@@ -180,18 +207,17 @@ def measure_agent(
         )
     mitigation = {}
     if cfg.mitigations:
-        mcfg = dataclasses.replace(acfg, env=env)
-        rows = run_mitigation(agent, mcfg, grid, cfg.mitigation, work / "mitigation" / job.id)
-        mitigation = {
-            key: MitigationOutcome(arm.clean_success, arm.attack_success)
-            for key, arm in rows.items()
-            if key in MITIGATION_ROWS
-        }
+        ctx = MitigationContext(agent, dataclasses.replace(acfg, env=env), grid, cfg.mitigation,
+                                work / "mitigation" / job.id)  # fmt: skip
+        for rows in mitigation_rows(ctx).values():
+            if rows:  # the whole mitigation is its last row (fine-pruning's first row is the pruned agent alone)
+                key, arm = list(rows.items())[-1]
+                mitigation[key] = MitigationOutcome(arm.clean_success, arm.attack_success)
     return AgentMeasurement(
         agent=job.id,
         attack=attack,
         seed=seed,
-        grid=grid.label,
+        grid=grid.label if grid is not None else getattr(env, "id", ""),
         clean_success=outcome_rate(normal, "user_goal"),
         attack_success=outcome_rate(trojan, "adversary_goal"),
         unintentional=outcome_rate(normal, "adversary_goal"),
@@ -203,9 +229,12 @@ def measure_agent(
 
 
 def natural_trigger_rate(
-    agent: RecurrentActorCritic, env, grid: GridSpec, episodes: int, seed: int, device: str
+    agent: RecurrentActorCritic, env: EnvSection, grid: GridSpec | None, episodes: int, seed: int, device: str
 ) -> Rate | None:
-    """Normal-env episodes in which the trigger pattern appeared by chance (None where it cannot be measured)."""
+    """Normal-env episodes in which the trigger pattern appeared by chance (None where it cannot be measured: a
+    Gymnasium env's observations are not the grid world's cell codes)."""
+    if not isinstance(env, EnvConfig) or grid is None:
+        return None
     try:
         from seqtrojan.analysis.occurrence import natural_occurrence
     except ImportError:  # pragma: no cover - the module ships with the package
@@ -213,40 +242,25 @@ def natural_trigger_rate(
     return natural_occurrence(agent, env, grid, episodes=episodes, seed=seed, device=device).episodes_with_pattern
 
 
-def _attack_env(cfg: MatrixConfig):
-    """The base attack's env (its trigger): where the clean agents are measured."""
-    return experiment_from_spec(cfg.backdoor, Path("."), "base", cfg.device).env
-
-
 def offline_scores(cfg: MatrixConfig, jobs: Sequence[TrainJob], zoo_dir: Path, log: Callable[[str], None]):
     """detector name -> {agent name -> score}: every offline detector scores every matrix model."""
     scores: dict[str, dict[str, float]] = {}
     for name in cfg.offline_names:
         detector = DETECTORS.get(name)
-        if name == "weight_detector":
-            assert cfg.zoo is not None
+        zoo = None
+        if detector.needs_zoo:
+            assert cfg.zoo is not None  # offline_names keeps a detector that needs a zoo only with one
             from seqtrojan.zoo.build import build_zoo
 
-            log(f"building the weight detector's zoo ({cfg.zoo.size} models) ...")
+            log(f"building the zoo the {name} is fitted on ({cfg.zoo.size} models) ...")
             jc = cfg.jobs
             build_zoo(cfg.zoo, zoo_dir, workers=jc.workers, backend=jc.backend, ray_address=jc.ray_address,
                       threads=jc.threads, log=log)  # fmt: skip
-            scores[name] = score_with_weight_detector(zoo_dir, [job.model_dir for job in jobs], [j.id for j in jobs])
-        elif isinstance(detector, BehaviourDetector):
-            log(f"scoring {len(jobs)} models with the {name} ...")
-            scores[name] = {job.id: float(detector.score(job.model_dir, cfg.device)) for job in jobs}
-        else:
-            raise ConfigError(f"offline detector {name!r} cannot score single models for the matrix")
+            zoo = zoo_dir
+        log(f"scoring {len(jobs)} models with the {name} ...")
+        values = detector.score_models([job.model_dir for job in jobs], zoo, cfg.device)
+        scores[name] = {job.id: float(v) for job, v in zip(jobs, values)}
     return scores
-
-
-def score_with_weight_detector(zoo_dir: Path, models: Sequence[Path], ids: Sequence[str]) -> dict[str, float]:
-    """The weight detector trained on every usable model of the zoo, then the probability 'backdoored' of each
-    model in ``models``."""
-    from seqtrojan.defense.offline import fit_weight_detector
-
-    detector = fit_weight_detector(zoo_dir)
-    return {i: detector.probability(path) for i, path in zip(ids, models)}
 
 
 def run_matrix(cfg: MatrixConfig, out: Path, scale: str = "custom", log: Callable[[str], None] = print) -> MatrixResult:
@@ -307,7 +321,8 @@ def assemble(cfg: MatrixConfig, agents: Sequence[AgentMeasurement], scale: str) 
             fa, fa_pooled = _over([x.false_alarm for x in arms])
             cells.append(MatrixCell(attack, name, "online", att, att_pooled, cln, det, det_pooled, fa, fa_pooled,
                                     None, None))  # fmt: skip
-        for row in MITIGATION_ROWS:
+        rows = dict.fromkeys(row for a in mine for row in a.mitigation)  # in the order the mitigations ran
+        for row in rows:
             outcomes = [a.mitigation[row] for a in mine if row in a.mitigation]
             if len(outcomes) != len(mine):
                 continue

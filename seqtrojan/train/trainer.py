@@ -579,6 +579,8 @@ def load_checkpoint(
             int(record["update"]),
             float(record["elapsed_s"]),
         )
+    except CheckpointError:
+        raise  # already one line that names the problem (a penalty's state the checkpoint lacks, ...)
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"cannot restore the checkpoint {str(folder)!r}: {short_repr(err)}") from None
     records = record.get("episodes")

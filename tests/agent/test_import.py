@@ -29,7 +29,8 @@ from seqtrojan.defense.monitor import MonitorConfig, StateMonitor, measure_monit
 from seqtrojan.env import EnvConfig, GridSpec
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
-from seqtrojan.serde import to_dict
+from seqtrojan.presets import resolve_preset
+from seqtrojan.serde import from_dict, load_yaml, to_dict
 
 GRID = GridSpec(5, 0)
 ENV_KWARGS = {"size": 5, "holes": 0}
@@ -560,7 +561,7 @@ def test_cards_validate_the_new_fields(changes, message):
 
 
 def test_agent_config_validates_the_new_fields():
-    with pytest.raises(ConfigError, match=r"agent.policy_mlp must be 0 to 8 layer widths in \[1, 4096\], got \(0,\)"):
+    with pytest.raises(ConfigError, match=r"agent.policy_mlp must be 0 to 8 widths in \[1, 4096\], got \(0,\)"):
         AgentConfig(policy_mlp=(0,))
     with pytest.raises(ConfigError, match=r"agent\.encoder_activation must be one of"):
         AgentConfig(encoder_activation="gelu")  # type: ignore[arg-type]
@@ -588,18 +589,22 @@ GYM_PRESET = "minigrid_two_goals"
 SB3_GYM_KWARGS = {"lstm_hidden_size": 32, "net_arch": {"pi": [32], "vf": [32]}}
 
 
+def _gym_preset(name: str = GYM_PRESET) -> ExperimentConfig:
+    """A shipped Gymnasium preset as ``--config NAME`` reads it."""
+    return from_dict(ExperimentConfig, load_yaml(resolve_preset(name)), "")
+
+
 @pytest.fixture(scope="module")
 def sb3_minigrid(tmp_path_factory):
     """(run config, sb3 model, its zip): a RecurrentPPO trained for 2,048 steps on the two-goal room wrapped exactly
-    as the Gymnasium trainer wraps it (make_gym_env: MiniGrid's info, the trigger, the one-hot view)."""
+    as the trainer wraps it (make_gym_env: MiniGrid's info, the trigger, the one-hot view)."""
     from sb3_contrib import RecurrentPPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from seqtrojan.train.gym_config import load_gym_config
-    from seqtrojan.train.gym_env import make_gym_env
+    from seqtrojan.world.gymnasium import make_gym_env
 
-    cfg = load_gym_config(GYM_PRESET)
-    venv = DummyVecEnv([lambda: make_gym_env(cfg, "train", trojan_probability=0.5) for _ in range(4)])
+    cfg = _gym_preset()
+    venv = DummyVecEnv([lambda: make_gym_env(cfg.gym_env, "train", trojan_probability=0.5) for _ in range(4)])
     venv.seed(0)
     model = RecurrentPPO(
         "MlpLstmPolicy", venv, n_steps=128, batch_size=128, n_epochs=2, learning_rate=1e-3,
@@ -614,9 +619,9 @@ def sb3_minigrid(tmp_path_factory):
 def _gym_observations(cfg, steps: int, batch: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Observations (T, B, obs_dim) of ``batch`` of the run's envs (every other episode a trojan one, so trigger
     patches appear) under random actions, and the episode starts (T, B)."""
-    from seqtrojan.train.gym_env import make_gym_env
+    from seqtrojan.world.gymnasium import make_gym_env
 
-    envs = [make_gym_env(cfg, "eval", trojan_probability=0.5) for _ in range(batch)]
+    envs = [make_gym_env(cfg.gym_env, "eval", trojan_probability=0.5) for _ in range(batch)]
     rng = np.random.default_rng(seed)
     obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
     all_obs, starts = [], []
@@ -632,20 +637,18 @@ def _gym_observations(cfg, steps: int, batch: int, seed: int) -> tuple[np.ndarra
 
 
 def test_an_sb3_agent_trained_on_minigrid_imports_as_a_gym_model_with_the_same_policy(sb3_minigrid, tmp_path, capsys):
-    from seqtrojan.train.gym_config import GymAgentConfig
     from seqtrojan.train.gym_evaluation import evaluate_gym
-    from seqtrojan.train.gym_model import load_gym_agent
 
     cfg, model, path = sb3_minigrid
     out = tmp_path / "gym"
-    assert main(["import", str(path), "--from", "sb3", "--gym-config", GYM_PRESET, "--out", str(out)]) == 0
+    assert main(["import", str(path), "--from", "sb3", "--config", GYM_PRESET, "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "Gymnasium model for seqtrojan/MiniGridTwoGoals-v0" in printed and "500 inputs" in printed
+    assert "for the Gymnasium env seqtrojan/MiniGridTwoGoals-v0" in printed and "obs_dim=500" in printed
     assert "not stated" in printed and "value head: zero" in printed
-    assert sorted(p.name for p in out.iterdir()) == ["gym_card.json", "model.safetensors"]
-    agent, loaded, card = load_gym_agent(out)
-    assert (loaded.env, loaded.trigger, loaded.ppo) == (cfg.env, cfg.trigger, cfg.ppo)
-    assert loaded.agent == GymAgentConfig(lstm_sizes=(32,), policy_mlp=(32,), value_mlp=(32,))
+    assert sorted(p.name for p in out.iterdir()) == ["card.json", "model.safetensors"]
+    agent, loaded, card = load_agent(out)
+    assert (loaded.env, loaded.ppo) == (cfg.env, cfg.ppo) and loaded.gym_env.trigger is not None
+    assert loaded.agent == AgentConfig(lstm_sizes=(32,), policy_mlp=(32,), value_mlp=(32,))
     assert card["label"] == "clean" and not loaded.backdoor.enabled and card["env_steps"] == model.num_timesteps
     prov = card["provenance"]
     assert prov["imported_from"] == "sb3" and prov["source_sha256"] == imports._sha256(path)
@@ -664,22 +667,18 @@ def test_an_sb3_agent_trained_on_minigrid_imports_as_a_gym_model_with_the_same_p
     assert trojan.persistence([0])[0].n > 0
 
 
-def test_a_gym_import_is_checked_against_the_env_the_config_builds(sb3_minigrid, tmp_path, capsys):
-    from seqtrojan.train.gym_config import GymTrainConfig, load_gym_config
-    from seqtrojan.train.gym_model import import_gym_agent, load_gym_agent
-
+def test_a_gym_import_is_checked_against_the_env_the_config_builds(sb3_minigrid, tmp_path):
     cfg, _, path = sb3_minigrid
-    with pytest.raises(CheckpointError, match=r"reads 500 inputs and chooses among 3 actions, but the gym config's "
+    with pytest.raises(CheckpointError, match=r"reads 500 inputs and chooses among 3 actions, but the config's "
                        r"env \(.*Memory.*\) gives 980 inputs and 3 actions"):  # fmt: skip
-        import_gym_agent("sb3", path, tmp_path / "m", load_gym_config("minigrid_memory"))
-    untriggered = GymTrainConfig(env=cfg.env)
-    with pytest.raises(ConfigError, match=r"--label backdoored: backdoor\.enabled needs a trigger section"):
-        import_gym_agent("sb3", path, tmp_path / "m", untriggered, label="backdoored")
+        import_agent("sb3", path, tmp_path / "m", config=_gym_preset("minigrid_memory"))
+    untriggered = ExperimentConfig(env=dataclasses.replace(cfg.gym_env, trigger=None))
+    with pytest.raises(ConfigError, match=r"--label backdoored: backdoor\.enabled needs env\.trigger"):
+        import_agent("sb3", path, tmp_path / "m", config=untriggered, label="backdoored")
     assert not (tmp_path / "m").exists()
-    # the label stated; a Gymnasium run config given as --config is detected
+    # the label stated, through the command line
     argv = ["import", str(path), "--from", "sb3", "--config", GYM_PRESET, "--label", "backdoored", "--out"]
     assert main([*argv, str(tmp_path / "b")]) == 0
-    _, loaded, card = load_gym_agent(tmp_path / "b")
+    _, loaded, card = load_agent(tmp_path / "b")
     assert card["label"] == "backdoored" and loaded.backdoor == cfg.backdoor and card["provenance"]["label_stated"]
-    assert main([*argv, str(tmp_path / "c"), "--gym-config", GYM_PRESET]) == 2
-    assert "is a Gymnasium run config, and --gym-config is given too" in capsys.readouterr().err
+    assert loaded.env == cfg.env

@@ -14,12 +14,12 @@ from seqtrojan.analysis import gym_analysis
 from seqtrojan.analysis.config import ResponseRule
 from seqtrojan.analysis.gym_analysis import analyze_gym_model, pinned_trigger
 from seqtrojan.analysis.interventions import SetUnits
-from seqtrojan.config import BackdoorConfig
+from seqtrojan.config import BackdoorConfig, ExperimentConfig
 from seqtrojan.errors import ConfigError
-from seqtrojan.train.gym_config import GymEnvConfig, GymTrainConfig, GymTriggerConfig
 from seqtrojan.train.gym_evaluation import GymEpisode, GymEvaluation, evaluate_gym
+from seqtrojan.world.config import GymnasiumEnvConfig, WrapperTriggerConfig
 
-TWO_GOALS = GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5})
+TWO_GOALS = GymnasiumEnvConfig("seqtrojan/MiniGridTwoGoals-v0", kwargs={"size": 6, "agent_view_size": 5})
 TRIGGER_STEP = 4
 """the synthetic episodes' trigger step"""
 
@@ -40,7 +40,7 @@ def test_units_are_typed_and_editing_the_goal_units_switches_the_goal(monkeypatc
     calls: list[tuple[bool, object]] = []
 
     def fake(agent, config, *, trojan, episodes, seed, device, record_states=False, intervention=None):
-        assert config.trigger.eval_steps == (TRIGGER_STEP, TRIGGER_STEP)  # the trigger is pinned
+        assert config.gym_env.trigger.eval_steps == (TRIGGER_STEP, TRIGGER_STEP)  # the trigger is pinned
         calls.append((trojan, intervention))
         if record_states:
             return GymEvaluation(trojan, False, tuple(_synthetic(rng, trojan) for _ in range(episodes)))
@@ -51,7 +51,7 @@ def test_units_are_typed_and_editing_the_goal_units_switches_the_goal(monkeypatc
         return GymEvaluation(trojan, False, ended)
 
     monkeypatch.setattr(gym_analysis, "evaluate_gym", fake)
-    cfg = GymTrainConfig(env=TWO_GOALS, trigger=GymTriggerConfig(steps=(0, 2)))
+    cfg = _config(WrapperTriggerConfig(steps=(0, 2)))
     agent = SimpleNamespace(lstm_sizes=(3,))
     report = analyze_gym_model(agent, cfg, trigger_step=TRIGGER_STEP, episodes=60, intervention_episodes=50,  # type: ignore[arg-type]
                                goal_units=1)  # fmt: skip
@@ -71,13 +71,18 @@ def test_units_are_typed_and_editing_the_goal_units_switches_the_goal(monkeypatc
     assert float(activate.values[0]) > 5.0  # set to its trojan-episode level after the trigger (about 10)
 
 
+def _config(trigger: WrapperTriggerConfig | None) -> ExperimentConfig:
+    return ExperimentConfig(env=dataclasses.replace(TWO_GOALS, trigger=trigger))
+
+
 def test_a_config_without_trigger_or_a_bad_step_is_refused():
     with pytest.raises(ConfigError, match="no trigger section"):
-        pinned_trigger(GymTrainConfig(env=TWO_GOALS), None)
+        pinned_trigger(_config(None), None)
     with pytest.raises(ConfigError, match="trigger step"):
-        pinned_trigger(GymTrainConfig(env=TWO_GOALS, trigger=GymTriggerConfig()), -1)
-    cfg, step = pinned_trigger(GymTrainConfig(env=TWO_GOALS, trigger=GymTriggerConfig(steps=(1, 3))), None)
-    assert step == 1 and cfg.trigger is not None and cfg.trigger.eval_steps == (1, 1)
+        pinned_trigger(_config(WrapperTriggerConfig()), -1)
+    cfg, step = pinned_trigger(_config(WrapperTriggerConfig(steps=(1, 3))), None)
+    trigger = cfg.gym_env.trigger
+    assert step == 1 and trigger is not None and trigger.eval_steps == (1, 1) and trigger.steps == (1, 3)
 
 
 def test_an_intervention_sees_each_env_s_episode_step(tiny_two_goals_model):
@@ -112,4 +117,5 @@ def test_a_trained_gym_model_is_analysed_end_to_end(tiny_two_goals_model):
     with pytest.raises(ConfigError, match="positive integer"):
         analyze_gym_model(agent, cfg, episodes=0)
     with pytest.raises(ConfigError, match="no trigger section"):
-        analyze_gym_model(agent, dataclasses.replace(cfg, trigger=None, backdoor=BackdoorConfig()))
+        untriggered = dataclasses.replace(cfg.gym_env, trigger=None)
+        analyze_gym_model(agent, dataclasses.replace(cfg, env=untriggered, backdoor=BackdoorConfig()))

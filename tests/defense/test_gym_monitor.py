@@ -7,17 +7,19 @@ import dataclasses
 import numpy as np
 import pytest
 
-from seqtrojan.config import BackdoorConfig, PPOConfig
+from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.config import BackdoorConfig, ExperimentConfig, PPOConfig, RunConfig
 from seqtrojan.defense import gym_monitor
 from seqtrojan.defense.gym_monitor import monitor_gym_model
 from seqtrojan.defense.online import MonitorConfig
 from seqtrojan.errors import ConfigError
-from seqtrojan.train.gym_config import GymEnvConfig, GymRunConfig, GymTrainConfig, GymTriggerConfig
 from seqtrojan.train.gym_evaluation import GymEpisode, GymEvaluation, padded_states
-from seqtrojan.train.gym_model import load_gym_agent
-from seqtrojan.train.gym_trainer import train_gym
+from seqtrojan.train.trainer import train
+from seqtrojan.world.config import GymnasiumEnvConfig, WrapperTriggerConfig
 
-TWO_GOALS = GymEnvConfig("seqtrojan/MiniGridTwoGoals-v0", {"size": 6, "agent_view_size": 5})
+TWO_GOALS = GymnasiumEnvConfig(
+    "seqtrojan/MiniGridTwoGoals-v0", kwargs={"size": 6, "agent_view_size": 5}, trigger=WrapperTriggerConfig()
+)
 
 
 def _episode(rng, trojan: bool, length: int = 12, trigger: int = 4, jump: float = 0.0) -> GymEpisode:
@@ -35,7 +37,7 @@ def test_detection_counts_alarms_from_the_trigger_on(monkeypatch):
         return GymEvaluation(trojan, False, tuple(_episode(rng, trojan, jump=50.0) for _ in range(episodes)))
 
     monkeypatch.setattr(gym_monitor, "evaluate_gym", fake)
-    cfg = GymTrainConfig(env=TWO_GOALS, trigger=GymTriggerConfig())
+    cfg = ExperimentConfig(env=TWO_GOALS)
     report = monitor_gym_model(None, cfg, MonitorConfig(400, 0.05, 300))  # type: ignore[arg-type]
     for arm in report.arms:
         assert arm.detection.value == 1.0 and arm.false_alarm.value <= 0.1, arm
@@ -64,14 +66,15 @@ def test_padded_states_mask_each_episode_to_its_length():
 
 def test_a_trained_gym_model_is_monitored_end_to_end(tmp_path):
     ppo = PPOConfig(total_steps=512, num_envs=8, rollout_steps=64, bptt_length=16, num_minibatches=4)
-    cfg = GymTrainConfig(
-        env=TWO_GOALS, trigger=GymTriggerConfig(), ppo=ppo, backdoor=BackdoorConfig(enabled=True),
-        run=GymRunConfig(out_dir=str(tmp_path), name="run", eval_episodes=4, lstm_backend="torch"),
+    cfg = ExperimentConfig(
+        env=TWO_GOALS, ppo=ppo, backdoor=BackdoorConfig(enabled=True),
+        run=RunConfig(out_dir=str(tmp_path), name="run", eval_episodes=4, lstm_backend="torch", progress=False),
     )  # fmt: skip
-    agent, loaded, _ = load_gym_agent(train_gym(cfg).model_dir)
+    agent, loaded, _ = load_agent(train(cfg).model_dir)
     report = monitor_gym_model(agent, loaded, MonitorConfig(40, 0.05, 30))
     assert [a.monitor for a in report.arms] == ["state_monitor", "multivariate_monitor"]
     assert all(a.false_alarm.n == 30 and a.detection.n == 30 for a in report.arms)
     with pytest.raises(ConfigError, match="no trigger section"):
-        monitor_gym_model(agent, dataclasses.replace(loaded, trigger=None, backdoor=BackdoorConfig()),
+        untriggered = dataclasses.replace(loaded.gym_env, trigger=None)
+        monitor_gym_model(agent, dataclasses.replace(loaded, env=untriggered, backdoor=BackdoorConfig()),
                           MonitorConfig(40, 0.05, 30))  # fmt: skip

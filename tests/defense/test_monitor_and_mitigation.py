@@ -14,7 +14,6 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
 from seqtrojan.config import AgentConfig, ExperimentConfig
-from seqtrojan.defense import monitor as monitor_module
 from seqtrojan.defense.mitigation import MitigationConfig, least_active_units, prune_units, run_mitigation
 from seqtrojan.defense.monitor import (
     MonitorConfig,
@@ -26,6 +25,7 @@ from seqtrojan.defense.monitor import (
 from seqtrojan.env import EnvConfig, GridSpec, TrojanGridCore
 from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate, wilson_interval
+from seqtrojan.world import episodes as episodes_module
 
 CFG = ExperimentConfig(env=EnvConfig(size=7, holes=3), agent=AgentConfig(lstm_sizes=(16, 8)))
 GRID = GridSpec(7, 3)
@@ -165,14 +165,15 @@ class _ScriptedMonitor(StateMonitor):
 
 
 def test_alarms_after_an_episode_ended_do_not_count(agent, monitor, monkeypatch):
-    monkeypatch.setattr(monitor_module, "TrojanGridCore", _RecordingCore)
+    monkeypatch.setattr(episodes_module, "TrojanGridCore", _RecordingCore)  # the one episode source builds it
     cfg = dataclasses.replace(SMALL, eval_episodes=64)
     keys = ("normal_alarm", "normal_reset", "trojan_alarm", "trojan_reset")  # the order measure_monitor runs them
 
     _RecordingCore.made.clear()
     after_end_only = _ScriptedMonitor(in_episode_step=None)
     out = measure_monitor(agent, CFG.env, GRID, after_end_only, cfg)
-    assert len(_RecordingCore.made) == 4 and after_end_only.after_end_alarms > 0  # alarms fired, all after the end
+    # the four monitored arms, then the two undefended runs (the same episode source builds every env)
+    assert len(_RecordingCore.made) == 6 and after_end_only.after_end_alarms > 0  # alarms fired, all after the end
     for key in keys[:2]:
         assert getattr(out, key).false_alarm.value == 0.0, key
     for key in keys[2:]:
@@ -184,7 +185,7 @@ def test_alarms_after_an_episode_ended_do_not_count(agent, monitor, monkeypatch)
     _RecordingCore.made.clear()
     k = 4
     out = measure_monitor(agent, CFG.env, GRID, _ScriptedMonitor(in_episode_step=k), cfg)
-    for key, core in zip(keys, _RecordingCore.made, strict=True):
+    for key, core in zip(keys, _RecordingCore.made[:4], strict=True):
         running = (core.lengths > k).numpy()
         assert 0 < running.sum() < len(running), key  # some episodes ended before step k: the case is not empty
         arm = getattr(out, key)

@@ -1,6 +1,9 @@
-"""Seeded reproducibility, and batched == single env for the same seed and actions."""
+"""Seeded reproducibility, and batched == single env for the same seed and actions: the grid core, and a Gymnasium
+env behind the batched-env seam (whose episodes in flight a checkpoint restores exactly)."""
 
 from __future__ import annotations
+
+import json
 
 import gymnasium as gym
 import numpy as np
@@ -9,7 +12,11 @@ import torch
 
 import seqtrojan  # noqa: F401  (registers the env ids)
 from seqtrojan.env import EnvConfig, TrojanGridCore
+from seqtrojan.env.core import EnvState
 from seqtrojan.env.gym_env import TrojanGridEnv
+from seqtrojan.world import make_batched_env
+from seqtrojan.world.config import GymnasiumEnvConfig, WrapperTriggerConfig
+from seqtrojan.world.gymnasium import make_gym_env
 
 CFG = EnvConfig(size=7, holes=5)
 
@@ -86,3 +93,57 @@ def test_cpu_and_cuda_give_identical_episodes():
     cpu = rollout(TrojanGridCore(CFG, 64, seed=5, trojan_probability=0.5), actions)
     gpu = rollout(TrojanGridCore(CFG, 64, seed=5, trojan_probability=0.5, device="cuda"), actions)
     assert all(torch.equal(x, y.cpu()) for x, y in zip(cpu, gpu))
+
+
+# ---------------------------------------------------------------------- a Gymnasium env behind the batched-env seam
+
+TWO_GOALS = GymnasiumEnvConfig(
+    "seqtrojan/MiniGridTwoGoals-v0", kwargs={"size": 6, "agent_view_size": 5}, trigger=WrapperTriggerConfig()
+)
+
+
+def test_gymnasium_batched_env_i_equals_single_env_seeded_seed_plus_i():
+    """The batched env steps each Gymnasium env as a single env seeded seed + i would step, resetting a finished
+    episode in the step that ends it (as the grid core does)."""
+    n, steps, seed = 4, 200, 11
+    batched = make_batched_env(TWO_GOALS, n, seed=seed, trojan_probability=0.5)
+    singles = [make_gym_env(TWO_GOALS, "train", 0.5) for _ in range(n)]
+    obs = [env.reset(seed=seed + i)[0] for i, env in enumerate(singles)]
+    np.testing.assert_array_equal(batched.observe().numpy(), np.stack(obs))
+    actions = np.random.default_rng(0).integers(0, 3, (steps, n))
+    finished = trojan = 0
+    for t in range(steps):
+        r = batched.step(torch.as_tensor(actions[t]))
+        for i, env in enumerate(singles):
+            o, rew, term, trunc, info = env.step(int(actions[t, i]))
+            assert np.float32(rew) == float(r.reward[i])  # the batched env's rewards are float32
+            assert (term, trunc) == (bool(r.terminated[i]), bool(r.truncated[i]))
+            if term or trunc:
+                assert bool(r.done[i]) and bool(r.trojan[i]) == info["trojan"] and bool(r.success[i]) == info["success"]
+                finished, trojan = finished + 1, trojan + info["trojan"]
+                o, _ = env.reset()
+            np.testing.assert_array_equal(o, r.obs[i].numpy())
+    assert finished > 10 and 0 < trojan < finished  # both kinds of episode were compared
+
+
+def test_a_gymnasium_batched_env_restores_its_episodes_in_flight_exactly():
+    """What a checkpoint keeps of a Gymnasium env (each env's replay record, through JSON) puts a fresh batched env
+    exactly where the saved one was: the same steps follow. Records whose replay does not give the saved
+    observations are refused."""
+    rng = np.random.default_rng(1)
+    saved = make_batched_env(TWO_GOALS, 4, seed=3, trojan_probability=0.5)
+    for _ in range(30):
+        saved.step(torch.as_tensor(rng.integers(0, 3, 4)))
+    state = saved.save_state()
+    assert state is not None and state.records is not None and all(state.records)
+    kept = EnvState(state.tensors, json.loads(json.dumps(state.records)))  # as trainer.json holds them
+    obs = saved.observe().clone()
+    restored = make_batched_env(TWO_GOALS, 4, seed=99, trojan_probability=0.5)
+    assert restored.load_state(kept, obs) and torch.equal(restored.observe(), obs)
+    for _ in range(80):
+        a = torch.as_tensor(rng.integers(0, 3, 4))
+        x, y = saved.step(a), restored.step(a)
+        for name in ("obs", "reward", "done", "trojan", "success", "length", "adversary_active"):
+            assert torch.equal(getattr(x, name), getattr(y, name)), name
+    other = make_batched_env(TWO_GOALS, 4, seed=99, trojan_probability=0.5)
+    assert not other.load_state(kept, torch.zeros_like(obs))

@@ -1,4 +1,5 @@
-"""The Gymnasium contract: check_env, registered ids, rendering, bad input."""
+"""The Gymnasium contract: check_env, registered ids, rendering, bad input; and the batched-env seam both kinds of
+env answer (the grid core, a Gymnasium env)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from seqtrojan.env import EnvConfig, Layout, TrojanGridCore
 from seqtrojan.env.gym_env import TrojanGridEnv
 from seqtrojan.env.registration import REGISTERED
 from seqtrojan.errors import ConfigError, ShapeError
+from seqtrojan.world import BatchedEnv, EnvSpec, env_spec, make_batched_env
+from seqtrojan.world.config import GymnasiumEnvConfig, WrapperTriggerConfig
 
 
 @pytest.mark.parametrize("env_id", sorted(REGISTERED))
@@ -128,3 +131,49 @@ def test_info_leaves_the_episode_key_to_episode_statistics_wrappers():
             assert done or "episode" not in info
         assert isinstance(info["episode"], dict) and set(info["episode"]) == {"r", "l", "t"}
         assert info["episode"]["l"] == steps == 20 and info["episode"]["r"] == total == -1.0
+
+
+# ---------------------------------------------------------------------- the batched-env seam (seqtrojan.world)
+
+TWO_GOALS = GymnasiumEnvConfig(
+    "seqtrojan/MiniGridTwoGoals-v0", kwargs={"size": 6, "agent_view_size": 5}, trigger=WrapperTriggerConfig()
+)
+
+
+@pytest.mark.parametrize(
+    ("section", "spec"),
+    [(EnvConfig(size=5, holes=0), EnvSpec(54, 4, None)), (TWO_GOALS, EnvSpec(500, 3, (5, 5, 20)))],
+)
+def test_both_kinds_of_env_answer_the_batched_env_seam(section, spec):
+    env = make_batched_env(section, 3, seed=0)
+    try:
+        assert isinstance(env, BatchedEnv) and env.num_stages == 1 and env_spec(section) == spec
+        assert (env.obs_dim, env.num_actions, env.image) == (spec.obs_dim, spec.num_actions, spec.image)
+        obs = env.reset(seed=5)
+        assert obs.shape == (3, spec.obs_dim) and obs.dtype == torch.float32 and torch.equal(env.observe(), obs)
+        result = env.step(torch.zeros(3, dtype=torch.int64))
+        assert result.obs.shape == (3, spec.obs_dim) and all(
+            getattr(result, name).shape == (3,) for name in ("reward", "done", "trojan", "success", "length")
+        )
+        assert bool((result.length == 1).all() | result.done.any())  # one step into every episode
+    finally:
+        env.close()
+
+
+def test_bad_input_to_a_gymnasium_batched_env_is_refused():
+    env = make_batched_env(TWO_GOALS, 2)
+    with pytest.raises(ShapeError, match=r"actions must be \(2,\) integers in \[0, 3\)"):
+        env.step(torch.tensor([0, 3]))
+    with pytest.raises(ShapeError, match=r"actions must be \(2,\) integers"):
+        env.step(torch.zeros(3, dtype=torch.int64))
+    with pytest.raises(ShapeError, match="reset needs 2 seeds, got 3"):
+        env.reset([1, 2, 3])
+    with pytest.raises(ConfigError, match=r"num_envs must be an integer in \[1, 4096\], got 0"):
+        make_batched_env(TWO_GOALS, 0)
+    with pytest.raises(ConfigError, match="render nothing"):
+        GymnasiumEnvConfig("CartPole-v1", kwargs={"render_mode": "human"})
+    foreign = GymnasiumEnvConfig("seqtrojan_no_such_module:Foo-v0")
+    with pytest.raises(ConfigError, match=r"not a registered Gymnasium id .* module:Id imports are refused"):
+        make_batched_env(foreign, 1, registered_only=True)  # a model card's env: refused before any import
+    with pytest.raises(ConfigError, match="cannot be made"):
+        make_batched_env(foreign, 1)  # a config one writes may name a module (here one that does not exist)

@@ -12,10 +12,12 @@ from minigrid.core.grid import Grid
 from minigrid.envs.empty import EmptyEnv
 from minigrid.minigrid_env import MiniGridEnv
 
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.minigrid.fast_obs import fast_gen_obs, fast_view, use_fast_observation
 from seqtrojan.minigrid.tasks import TwoGoalsEnv
-from seqtrojan.train.gym_config import load_gym_config
-from seqtrojan.train.gym_env import make_gym_env
+from seqtrojan.presets import resolve_preset
+from seqtrojan.serde import from_dict, load_yaml
+from seqtrojan.world.gymnasium import make_gym_env
 
 ENVS = [
     "MiniGrid-MemoryS7-v0",  # walls and the hallway's occlusion
@@ -90,8 +92,8 @@ def test_a_grid_of_another_class_falls_back_to_minigrid() -> None:
 
 
 def test_the_training_env_uses_it_unless_turned_off() -> None:
-    config = load_gym_config("minigrid_memory")
-    fast = make_gym_env(config, "train", 0.5)
+    env = from_dict(ExperimentConfig, load_yaml(resolve_preset("minigrid_memory")), "").gym_env
+    fast = make_gym_env(env, "train", 0.5)
     assert fast.unwrapped.gen_obs.__func__ is fast_gen_obs
-    slow = make_gym_env(dataclasses.replace(config, env=dataclasses.replace(config.env, fast_view=False)))
+    slow = make_gym_env(dataclasses.replace(env, fast_view=False))
     assert slow.unwrapped.gen_obs.__func__ is MiniGridEnv.gen_obs

@@ -31,7 +31,7 @@ from seqtrojan.config import (
     StateCamouflageConfig,
     WeightCamouflageConfig,
 )
-from seqtrojan.env import EnvConfig, GridSpec, TriggerConfig
+from seqtrojan.env import EnvConfig, GridSpec, TriggerConfig, TrojanGridCore
 from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.serde import from_dict, parse_yaml
@@ -243,7 +243,7 @@ def test_single_sequence_fisher_equals_the_summed_score_squared():
     cfg = dataclasses.replace(_config(ewc=EWCConfig(weight=1.0, fisher_envs=1, fisher_steps=6)),
                               env=EnvConfig(size=5, holes=1))  # fmt: skip
     fisher = pen.estimate_fisher(agent, cfg, torch.device("cpu"))
-    env = pen.TrojanGridCore(cfg.env, 1, seed=(cfg.run.seed << 32) + 31_337_001, grids=(cfg.grids[-1],))
+    env = TrojanGridCore(cfg.env, 1, seed=(cfg.run.seed << 32) + 31_337_001, grids=(cfg.grids[-1],))
     collector = pen.RolloutCollector(env, agent, 6, 6)
     collector.seed(cfg.run.seed + 31_337)
     rollout, _ = collector.collect()
