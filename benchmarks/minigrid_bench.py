@@ -57,9 +57,9 @@ from seqtrojan.config import (
     StateCamouflageConfig,
     WrapperTriggerConfig,
 )
-from seqtrojan.defense.gym_mitigation import mitigate_gym_model
-from seqtrojan.defense.gym_monitor import monitor_gym_model
-from seqtrojan.defense.online import MonitorConfig
+from seqtrojan.defense.mitigation import MitigationConfig, run_mitigation
+from seqtrojan.defense.monitor import MONITORS, measure_monitor
+from seqtrojan.defense.online import MonitorConfig, monitor_applies
 from seqtrojan.errors import ConfigError
 from seqtrojan.minigrid import TwoGoalsEnv, two_goals_trigger
 from seqtrojan.minigrid.fast_obs import use_fast_observation
@@ -188,19 +188,26 @@ def train_and_measure(
         result = train_backdoor(cfg, clean_start_steps, harden_from_steps)
         agent, _, _ = load_agent(result.model_dir)
         if monitor_episodes:
-            monitored = monitor_gym_model(
-                agent, cfg, MonitorConfig(calibration_episodes=monitor_episodes, eval_episodes=monitor_episodes,
-                                          seed=seed),
-            )  # fmt: skip
-            for arm in monitored.arms:
-                inside |= {f"false alarms {arm.monitor}": arm.false_alarm, f"detection {arm.monitor}": arm.detection}
+            mcfg = MonitorConfig(calibration_episodes=monitor_episodes, eval_episodes=monitor_episodes, seed=seed)
+            for name, detector in MONITORS.items():
+                if monitor_applies(detector, cfg.env):
+                    measured = measure_monitor(
+                        agent, cfg.env, None, detector.calibrate(agent, cfg.env, None, mcfg), mcfg
+                    )
+                    inside |= {
+                        f"false alarms {name}": measured.normal_alarm.false_alarm,
+                        f"detection {name}": measured.trojan_alarm.detected,
+                    }
         if finetune_steps:
             report = analyze_gym_model(agent, cfg, episodes=episodes, intervention_episodes=episodes, seed=seed)
             inside |= {f"{s.direction} {s.edited}": s.switched for s in report.switches}
-            mitigated = mitigate_gym_model(agent, cfg, Path(out) / f"mitigate_s{seed}", finetune_steps=finetune_steps,
-                                           episodes=episodes, seed=seed)  # fmt: skip
-            for arm in mitigated.arms[1:]:
-                inside |= {f"attack after {arm.name}": arm.attack_success, f"clean after {arm.name}": arm.clean_success}
+            mitigation = MitigationConfig(
+                finetune_steps=finetune_steps, calibration_episodes=200, eval_episodes=episodes, seed=seed
+            )
+            rows = run_mitigation(agent, cfg, None, mitigation, Path(out) / f"mitigate_s{seed}")
+            for name, arm in rows.items():
+                if name != "before":
+                    inside |= {f"attack after {name}": arm.attack_success, f"clean after {name}": arm.clean_success}
     eval_seed = 12_345
     normal = evaluate_gym(agent, cfg, trojan=False, episodes=episodes, seed=eval_seed)
     trojan = evaluate_gym(agent, cfg, trojan=True, episodes=episodes, seed=eval_seed)

@@ -260,18 +260,22 @@ class MatrixArgs(StudyArgs):
 
     scale: str = "smoke"
     """a shipped scale ('smoke': minutes; 'paper'; see seqtrojan/presets/matrix_*.yaml) or a matrix YAML file"""
+    config: str | None = None
+    """a matrix preset by name, any env (matrix_smoke, matrix_paper, matrix_minigrid_smoke) or a YAML file; used
+    instead of --scale"""
     out: Path | None = None
-    """output folder (default: results/matrix_<scale>)"""
+    """output folder (default: results/matrix_<scale or preset>)"""
     attacks: str | None = None
-    """comma-separated attack names (default: the scale file's, or every registered attack)"""
+    """comma-separated attack names (default: the file's, or every registered attack that applies to its env)"""
 
 
 def _matrix(argv: list[str]) -> None:
     from seqtrojan.experiments.matrix import load_matrix_config, run_matrix
 
     args = tyro.cli(MatrixArgs, args=argv, prog="seqtrojan matrix")
-    config = _with_study_options(load_matrix_config(args.scale), args, "attacks", args.attacks)
-    scale = Path(args.scale).stem.removeprefix("matrix_")
+    chosen = args.config if args.config is not None else args.scale
+    config = _with_study_options(load_matrix_config(chosen), args, "attacks", args.attacks)
+    scale = Path(chosen).stem.removeprefix("matrix_")
     out = args.out or Path("results") / f"matrix_{scale}"
     result = run_matrix(config, out, scale=scale)
     for a in result.attacks:
@@ -419,9 +423,6 @@ def _analyze_gymnasium(argv: list[str]) -> None:
 
 
 def _defend(argv: list[str]) -> None:
-    if _is_gymnasium_model(argv, "--model"):
-        _defend_gymnasium(argv)
-        return
     from seqtrojan.defense.pipeline import DEFENSE_FILE, DefenseConfig, run_defense
 
     @dataclasses.dataclass
@@ -429,8 +430,7 @@ def _defend(argv: list[str]) -> None:
         """Run the online state monitor and the mitigations (fine-pruning, fine-tuning, unit reset) on a model."""
 
         model: Path
-        """the model folder to defend (a Gymnasium env's model takes other options: seqtrojan defend --model MODEL
-        --help)"""
+        """the model folder to defend (a grid-world model or a Gymnasium env's)"""
         out: Path = Path("results/defense")
         config: DefenseConfig = dataclasses.field(default_factory=DefenseConfig)
         device: str = "cpu"
@@ -447,64 +447,6 @@ def _defend(argv: list[str]) -> None:
     for name, m in result.mitigation.items():
         print(f"  {name:<24} attack {m.attack_success.value:.3f}  clean {m.clean_success.value:.3f}")
     print(f"wrote {args.out}/{DEFENSE_FILE}")
-
-
-def _defend_gymnasium(argv: list[str]) -> None:
-    from seqtrojan.agent.checkpoint import load_agent
-    from seqtrojan.defense.gym_mitigation import GYM_MITIGATION_FILE, mitigate_gym_model
-    from seqtrojan.defense.gym_monitor import GYM_MONITOR_FILE, monitor_gym_model
-    from seqtrojan.defense.online import MonitorConfig
-    from seqtrojan.serde import save_json
-
-    @dataclasses.dataclass
-    class DefendGymnasiumArgs:
-        """The defenses on the model of a Gymnasium env: the state monitors (per-unit and multivariate), calibrated
-        on its own clean episodes at the false-alarm target, then false alarms and detection on fresh episodes
-        (gym_monitor.json); and the mitigations a defender with the weights and clean episodes can apply: pruning
-        the least active units of the last layer, fine-pruning, fine-tuning on normal episodes, each with clean and
-        attack success on fresh episodes (gym_mitigation.json). 95% intervals throughout."""
-
-        model: Path
-        """the model folder"""
-        monitor: MonitorConfig = dataclasses.field(default_factory=lambda: MonitorConfig(500, 0.01, 500))
-        """calibration and evaluation episodes, false-alarm target, seed"""
-        finetune_steps: int = 100_000
-        """env steps of PPO on normal episodes (with the model's own PPO settings); 0 skips the mitigations"""
-        prune_fraction: float = 0.25
-        """share of the last layer's units pruned (the least active on normal episodes)"""
-        calibration_episodes: int = 200
-        """normal episodes that measure each unit's activity"""
-        episodes: int = 500
-        """fresh episodes per type and mitigation arm"""
-        seed: int = 0
-        """seeds the fine-tuning, the envs and action sampling of the mitigations"""
-        out: Path = Path("results/defense")
-        """folder for gym_monitor.json, gym_mitigation.json and the fine-tuning runs (a finished one is reused)"""
-        device: str = "cpu"
-        """torch device of the network (the envs step on the CPU)"""
-
-    args = tyro.cli(DefendGymnasiumArgs, args=argv, prog="seqtrojan defend")
-    if args.finetune_steps < 0:
-        raise ConfigError(f"--finetune-steps must be >= 0, got {args.finetune_steps}")
-    agent, cfg, card = load_agent(args.model)
-    agent = agent.to(args.device)
-    label = str(card.get("label", ""))
-    report = monitor_gym_model(agent, cfg, args.monitor, model=str(args.model), label=label, device=args.device)
-    print(f"model: {args.model} ({report.label}, {report.env_id}); false-alarm target {report.false_alarm_target}")
-    for arm in report.arms:
-        print(f"{arm.monitor:<22} false alarms {arm.false_alarm.text()}  detection {arm.detection.text()}")
-    args.out.mkdir(parents=True, exist_ok=True)
-    print(f"wrote {save_json(report, args.out / GYM_MONITOR_FILE)}")
-    if args.finetune_steps == 0:
-        return
-    mitigated = mitigate_gym_model(
-        agent, cfg, args.out, model=str(args.model), finetune_steps=args.finetune_steps,
-        prune_fraction=args.prune_fraction, calibration_episodes=args.calibration_episodes, episodes=args.episodes,
-        seed=args.seed, device=args.device, label=card.get("label"),
-    )  # fmt: skip
-    for m in mitigated.arms:
-        print(f"{m.name:<12} clean success {m.clean_success.text()}  attack success {m.attack_success.text()}")
-    print(f"wrote {save_json(mitigated, args.out / GYM_MITIGATION_FILE)}")
 
 
 def _zoo(argv: list[str]) -> None:

@@ -188,15 +188,16 @@ def test_one_cli_for_every_env_from_an_empty_folder(tmp_path, capsys, monkeypatc
     report = json.loads((tmp_path / "E" / "mg" / "gym_evaluation.json").read_text())
     assert report["episodes"] == 6 and report["trojan_success"]["n"] == 6
     argv = ["analyze", "--backdoor", "R/mg/model", "--episodes", "6", "--intervention-episodes", "4",
-            "--selection-episodes", "4", "--rule.min-episodes", "1", "--rule.response-window", "1", "--rule.late-start", "1",
-            "--rule.late-end", "2",
-            "--out", "A"]  # fmt: skip
+            "--selection-episodes", "4", "--rule.min-episodes", "1", "--rule.response-window", "1",
+            "--rule.late-start", "1", "--rule.late-end", "2", "--out", "A"]  # fmt: skip
     assert main(argv) == 0 and (tmp_path / "A" / "gym_analysis.json").is_file()
-    argv = ["defend", "--model", "R/mg/model", "--monitor.calibration-episodes", "40",
-            "--monitor.false-alarm-target", "0.1", "--monitor.eval-episodes", "6", "--finetune-steps", "0",
-            "--out", "D"]  # fmt: skip
-    assert main(argv) == 0 and (tmp_path / "D" / "gym_monitor.json").is_file()
-    assert not (tmp_path / "D" / "gym_mitigation.json").exists()  # --finetune-steps 0 skips the mitigations
+    argv = ["defend", "--model", "R/mg/model", "--config.monitor.calibration-episodes", "40",
+            "--config.monitor.false-alarm-target", "0.1", "--config.monitor.eval-episodes", "6",
+            "--config.mitigation.finetune-steps", "0", "--config.mitigation.calibration-episodes", "8",
+            "--config.mitigation.eval-episodes", "6", "--config.oracle-episodes", "10", "--out", "D"]  # fmt: skip
+    assert main(argv) == 0
+    defense = json.loads((tmp_path / "D" / "defense.json").read_text())
+    assert defense["grid"] == "seqtrojan/MiniGridTwoGoals-v0" and set(defense["mitigation"]) == {"before", "pruned"}
 
 
 def test_the_gymnasium_commands_are_folded_into_the_one_cli(capsys):

@@ -147,8 +147,10 @@ class MatrixConfig:
 
 
 def load_matrix_config(scale_or_path: str) -> MatrixConfig:
-    """A shipped scale's matrix config (``matrix_<scale>.yaml``) or a YAML file."""
-    path = resolve_preset(scale_or_path if scale_or_path.endswith(".yaml") else f"matrix_{scale_or_path}.yaml")
+    """A shipped matrix preset by scale (``smoke`` for ``matrix_smoke.yaml``) or by name (``matrix_minigrid_smoke``),
+    or a YAML file."""
+    named = scale_or_path if scale_or_path.startswith("matrix_") else f"matrix_{scale_or_path}"
+    path = resolve_preset(scale_or_path if scale_or_path.endswith(".yaml") else f"{named}.yaml")
     return from_dict(MatrixConfig, load_yaml(path), "")
 
 

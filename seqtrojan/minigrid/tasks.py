@@ -34,6 +34,8 @@ from seqtrojan.wrappers.trigger import TriggerWrapper
 OBJECTS: dict[str, Callable[[str], WorldObj]] = {"goal": Goal, "ball": Ball, "key": Key, "box": Box}
 """the objects a TwoGoalsEnv can use as goals"""
 
+_FORWARD = int(Actions.forward)
+
 DEFAULT_TRIGGER_CELLS: tuple[Cell, ...] = ((0, 0), (0, 1))
 """the trigger's view cells: the two leftmost of the farthest row"""
 
@@ -112,11 +114,10 @@ class TwoGoalsEnv(MiniGridEnv):
         self.mission = self._gen_mission()
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
-        ahead = self.grid.get(*self.front_pos)
-        forward = int(action) == Actions.forward
-        reached = (
-            "user" if forward and ahead is self._user else "adversary" if forward and ahead is self._adversary else ""
-        )
+        reached = ""
+        if int(action) == _FORWARD:  # the object ahead is reached (looked up before the move)
+            ahead = self.grid.get(*self.front_pos)
+            reached = "user" if ahead is self._user else "adversary" if ahead is self._adversary else ""
         obs, _, _, truncated, info = super().step(action)
         reward = self._reward() if reached == "user" else 0.0
         info.update(reached=reached, step_count=self.step_count, max_steps=self.max_steps)
@@ -127,13 +128,19 @@ class MiniGridInfo(gym.Wrapper):
     """Adds ``step_count`` and ``max_steps`` (and, for MiniGrid's Memory task, ``reached``: "user" at the matching
     object, "adversary" at the other, else "") to a MiniGrid env's step info."""
 
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self._memory = isinstance(env.unwrapped, MemoryEnv)
+
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
         obs, reward, terminated, truncated, info = self.env.step(action)
-        base = self.env.unwrapped
+        base: Any = self.env.unwrapped
         info = dict(info)
-        info.setdefault("step_count", getattr(base, "step_count", 0))
-        info.setdefault("max_steps", getattr(base, "max_steps", 0))
-        if isinstance(base, MemoryEnv):
+        if "step_count" not in info:
+            info["step_count"] = getattr(base, "step_count", 0)
+        if "max_steps" not in info:
+            info["max_steps"] = getattr(base, "max_steps", 0)
+        if self._memory:
             pos = tuple(int(x) for x in base.agent_pos)
             info["reached"] = "user" if pos == base.success_pos else "adversary" if pos == base.failure_pos else ""
         return obs, reward, terminated, truncated, info

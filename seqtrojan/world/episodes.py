@@ -58,6 +58,8 @@ def episode_env(
         )
     from seqtrojan.world.gymnasium import GymnasiumBatchedEnv
 
+    if env.vectorization != "sync":  # the episode loop steps envs without resetting them: in this process
+        env = dataclasses.replace(env, vectorization="sync")
     batched = GymnasiumBatchedEnv(env, episodes, 0, device, phase="eval", trojan_probability=p)
     batched.reset(seed)
     return batched

@@ -48,6 +48,8 @@ MAX_OBS_DIM = 1 << 20
 """most inputs a Gymnasium env's flat observation may have (a bound checked before any buffer is allocated)"""
 MAX_ACTIONS = 64
 """most discrete actions an agent may choose among (the model card's bound)"""
+MAX_EPISODE_STEPS = 10_000
+"""the episode loop's bound for an env with no time limit of its own"""
 MAX_ENVS = 4096
 """most Gymnasium envs one batched env holds (each is a Python object, or a process with ``async``)"""
 
@@ -298,8 +300,11 @@ class GymnasiumBatchedEnv:
         self.triggers = [find_trigger(env) for env in self.envs]
         self.has_trigger = config.trigger is not None or any(t is not None for t in self.triggers)
         self.lengths = np.zeros(num_envs, dtype=np.int64)
+        self._ended = np.zeros(num_envs, dtype=bool)  # without autoreset: the env's episode has ended (not stepped)
         self._trojan = np.zeros(num_envs, dtype=bool)  # the episode in flight is a trojan one (async: from infos)
         self._active = np.zeros(num_envs, dtype=bool)  # the adversary's objective judges the next action (async)
+        self._last_rows: list[Any] = []
+        self._limit: int | None = None
         self._obs = self.reset(seed)
 
     def _factory(self, trojan_probability: float):
@@ -321,6 +326,7 @@ class GymnasiumBatchedEnv:
             rows = [env.reset(seed=s)[0] for env, s in zip(self.envs, seeds)]
             obs = self._stack(rows)
         self.lengths[:] = 0
+        self._ended[:] = False
         self._obs = self._tensor(obs)
         return self._obs
 
@@ -328,33 +334,82 @@ class GymnasiumBatchedEnv:
         """The current observations (B, obs_dim) float32."""
         return self._obs
 
-    def step(self, actions: torch.Tensor, *, check: bool = True) -> StepResult:
-        """One action per env (B,) int64; a finished env starts its next episode in the same step."""
+    def step(self, actions: torch.Tensor, autoreset: bool = True, check: bool = True) -> StepResult:
+        """One action per env (B,) int64; a finished env starts its next episode in the same step, or (``autoreset``
+        false: the episode loop's one episode per env) stays finished, no longer stepped, its results ignored."""
         acts = actions.detach().cpu().numpy()
         if check and (acts.shape != (self.num_envs,) or acts.min() < 0 or acts.max() >= self.num_actions):
             raise ShapeError(
                 f"actions must be ({self.num_envs},) integers in [0, {self.num_actions}), got shape {acts.shape}"
             )
         if self._async is not None:
+            if not autoreset:
+                raise ConfigError("a batched Gymnasium env with vectorization: async always resets finished envs")
             return self._step_async(acts)
         b = self.num_envs
         rows: list[Any] = [None] * b
-        reward = np.zeros(b, dtype=np.float32)
-        terminated, truncated = np.zeros(b, dtype=bool), np.zeros(b, dtype=bool)
-        success, trojan, active = np.zeros(b, dtype=bool), np.zeros(b, dtype=bool), np.zeros(b, dtype=bool)
-        outcome = np.zeros(b, dtype=np.int64)
-        for i, env in enumerate(self.envs):
-            trigger = self.triggers[i]
+        reward, terminated, truncated = [0.0] * b, [False] * b, [False] * b
+        success, trojan, active, outcome = [False] * b, [False] * b, [False] * b, [0] * b
+        chosen = acts.astype(np.int64, copy=False).tolist()  # Python ints, as int(acts[i])
+        ended = self._ended
+        for i, (env, trigger, action) in enumerate(zip(self.envs, self.triggers, chosen, strict=True)):
+            if ended[i]:  # no autoreset: a finished episode stays as it ended
+                rows[i], terminated[i] = self._last_rows[i], True
+                continue
             if trigger is not None:
                 trojan[i], active[i] = trigger.trojan, trigger.adversary_active()
-            obs, r, term, trunc, info = env.step(int(acts[i]))
-            reward[i], terminated[i], truncated[i] = r, term, trunc
+            obs, r, term, trunc, info = env.step(action)
+            reward[i], terminated[i], truncated[i] = float(r), term, trunc
             if term or trunc:
                 success[i] = info["success"] if "success" in info else bool(term) and float(r) > 0.0
                 outcome[i] = _outcome(info, bool(trunc))
-                obs, _ = env.reset()
+                if autoreset:
+                    obs, _ = env.reset()
+                else:
+                    ended[i] = True
             rows[i] = obs
-        return self._result(self._stack(rows), reward, terminated, truncated, outcome, success, trojan, active)
+        if not autoreset:
+            self._last_rows = rows
+        return self._result(
+            self._stack(rows), np.array(reward, dtype=np.float32), np.array(terminated, dtype=bool),
+            np.array(truncated, dtype=bool), np.array(outcome, dtype=np.int64), np.array(success, dtype=bool),
+            np.array(trojan, dtype=bool), np.array(active, dtype=bool),
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ the episode loop (one episode per env)
+    @property
+    def t(self) -> torch.Tensor:
+        """(B,) int64: actions taken in each env's episode so far."""
+        return torch.from_numpy(self.lengths.copy()).to(self.device)
+
+    @property
+    def trojan(self) -> torch.Tensor:
+        """(B,) bool: each env's episode in progress is a trojan one."""
+        flags = [t.trojan if t is not None else False for t in self.triggers] if self._async is None else self._trojan
+        return torch.as_tensor(np.asarray(flags, dtype=bool)).to(self.device)
+
+    @property
+    def on_step(self) -> torch.Tensor:
+        """(B,) int64: each env's ON trigger step in its episode in progress (-1: none; always -1 with async)."""
+        steps = [t.trigger_step if t is not None else -1 for t in self.triggers] if self._async is None else []
+        return torch.as_tensor(np.asarray(steps or [-1] * self.num_envs, dtype=np.int64)).to(self.device)
+
+    @property
+    def episode_limit(self) -> int:
+        """The longest an episode can run: the env's time limit (its spec's, or MiniGrid's ``max_steps``)."""
+        if self._limit is None:
+            probe = make_gym_env(self.config, self.phase, 0.0, self.registered_only)
+            try:
+                spec = getattr(probe, "spec", None)
+                limit = getattr(spec, "max_episode_steps", None) or getattr(probe.unwrapped, "max_steps", None)
+                self._limit = int(limit) if limit else MAX_EPISODE_STEPS
+            finally:
+                probe.close()
+        return self._limit
+
+    def agent_cells(self) -> torch.Tensor:
+        """(B, 2) zeros: a Gymnasium env's agent has no cell on the grid world's grid."""
+        return torch.zeros((self.num_envs, 2), dtype=torch.int64, device=self.device)
 
     def _step_async(self, acts: np.ndarray) -> StepResult:
         assert self._async is not None
@@ -380,10 +435,7 @@ class GymnasiumBatchedEnv:
         self.lengths[done] = 0
         self._obs = self._tensor(obs)
         dev = self.device
-
-        def t(x: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(x).to(dev)
-
+        t = torch.from_numpy if dev.type == "cpu" else lambda x: torch.from_numpy(x).to(dev)
         return StepResult(
             self._obs, t(reward), t(terminated), t(truncated), t(done), t(np.where(done, outcome, RUNNING)),
             t(success & done), t(trojan), torch.zeros(self.num_envs, dtype=torch.int64, device=dev), t(length),
@@ -469,7 +521,8 @@ class GymnasiumBatchedEnv:
         return out
 
     def _tensor(self, obs: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(self.device)  # (B, obs_dim)
+        out = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32))  # (B, obs_dim)
+        return out if self.device.type == "cpu" else out.to(self.device)
 
 
 def _outcome(info: dict[str, Any], truncated: bool) -> int:

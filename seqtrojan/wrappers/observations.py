@@ -47,16 +47,22 @@ class MiniGridOneHot(gym.ObservationWrapper):
         cells = self.view[0] * self.view[1]
         self._size = cells * CELL_BITS
         self.observation_space = spaces.Box(0.0, 1.0, (self._size,), np.float32)
-        self._first_bits = np.arange(cells, dtype=np.intp)[:, None] * CELL_BITS + _OFFSETS  # (cells, 3)
+        self._shape = (*self.view, 3)
+        rows, cols = np.arange(self.view[1]), np.arange(self.view[0])
+        first = (rows[None, :, None] * self.view[0] + cols[:, None, None]) * CELL_BITS + _OFFSETS  # [col, row, code]
+        self._first_bits = first.reshape(-1).astype(np.intp)
+        """for each number of the image in its own order ([col, row, code]), the first bit of its one-hot block"""
+        self._limits = np.tile(_LIMITS, cells)  # (cells * 3,)
 
     def observation(self, observation: Any) -> np.ndarray:
         image = np.asarray(observation[self.key] if self.key is not None else observation)
-        negative = image.dtype.kind != "u" and (image < 0).any()
-        if image.shape != (*self.view, 3) or negative or (image >= _LIMITS).any():
+        if image.shape != self._shape:
             raise ShapeError(f"MiniGridOneHot: a view of shape {image.shape} or a code beyond {list(CHANNELS)}")
-        codes = image.transpose(1, 0, 2).reshape(-1, 3)  # rows first: the image is stored [col, row]
+        codes = image.reshape(-1)
+        if (image.dtype.kind != "u" and (codes < 0).any()) or (codes >= self._limits).any():
+            raise ShapeError(f"MiniGridOneHot: a view of shape {image.shape} or a code beyond {list(CHANNELS)}")
         out = np.zeros(self._size, dtype=np.float32)
-        out[(codes + self._first_bits).reshape(-1)] = 1.0
+        out[codes + self._first_bits] = 1.0  # rows first: bit (row * cols + col) * 20 + code
         return out  # (V * V * 20,)
 
 

@@ -144,6 +144,11 @@ class TriggerWrapper(gym.Wrapper):
         return len(self.frames) - 1 + self.delay
 
     @property
+    def trigger_step(self) -> int:
+        """The ON trigger's first step in the episode in progress (-1 in a normal episode)."""
+        return self._on
+
+    @property
     def trojan(self) -> bool:
         """Whether the episode in progress is a trojan one."""
         return self._trojan
@@ -177,7 +182,7 @@ class TriggerWrapper(gym.Wrapper):
         return self._draw(obs), self._info(info)
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
-        judged = self.adversary_active(self._t)
+        judged = self._on >= 0 and self.adversary_active(self._t)  # a normal episode: never judged
         obs, reward, terminated, truncated, info = self.env.step(action)
         if judged and self.objective is not None:
             result = self.objective(obs, action, float(reward), bool(terminated), info)
@@ -238,6 +243,8 @@ class TriggerWrapper(gym.Wrapper):
         return (frames[k], k) if len(frames) > 1 else (frames[0], k)
 
     def _draw(self, obs: Any) -> Any:
+        if self._on < 0 and self._off < 0:  # a normal episode: nothing to draw
+            return obs
         for visible in (self._visible(self._on, self.frames, self.duration),
                         self._visible(self._off, self.off_frames, self.off_duration)):  # fmt: skip
             if visible is None:
@@ -253,16 +260,17 @@ class TriggerWrapper(gym.Wrapper):
         return obs
 
     def _info(self, info: dict[str, Any]) -> dict[str, Any]:
+        on, off = self._on, self._off
         out = dict(info)
-        out.update(
-            t=self._t,
-            trojan=self._trojan,
-            trigger_step=self._on,
-            off_step=self._off,
-            trigger_visible=self._visible(self._on, self.frames, self.duration) is not None
-            or self._visible(self._off, self.off_frames, self.off_duration) is not None,
-            adversary_active=self.adversary_active(),
+        out["t"] = self._t
+        out["trojan"] = self._trojan
+        out["trigger_step"] = on
+        out["off_step"] = off
+        out["trigger_visible"] = (on >= 0 or off >= 0) and (
+            self._visible(on, self.frames, self.duration) is not None
+            or self._visible(off, self.off_frames, self.off_duration) is not None
         )
+        out["adversary_active"] = on >= 0 and self.adversary_active()
         return out
 
 

@@ -119,3 +119,19 @@ def test_a_trained_gym_model_is_analysed_end_to_end(tiny_two_goals_model):
     with pytest.raises(ConfigError, match="no trigger section"):
         untriggered = dataclasses.replace(cfg.gym_env, trigger=None)
         analyze_gym_model(agent, dataclasses.replace(cfg, env=untriggered, backdoor=BackdoorConfig()))
+
+
+def test_padded_states_mask_each_episode_to_its_length():
+    import numpy as np
+
+    from seqtrojan.train.gym_evaluation import GymEpisode, padded_states
+
+    rng = np.random.default_rng(1)
+
+    def episode(length: int) -> GymEpisode:
+        x = rng.normal(size=(length, 6)).astype(np.float32)
+        return GymEpisode(False, True, length, 1.0, -1, "", (x[:, :4], x[:, 4:]))
+
+    layers, mask = padded_states([episode(3), episode(5)])
+    assert [x.shape for x in layers] == [(2, 5, 4), (2, 5, 2)]
+    assert mask.tolist() == [[True] * 3 + [False] * 2, [True] * 5] and not layers[0][0, 3:].any()
