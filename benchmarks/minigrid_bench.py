@@ -45,7 +45,7 @@ import torch
 import numpy as np
 
 from seqtrojan.agent.checkpoint import load_agent
-from seqtrojan.analysis.gym_analysis import analyze_gym_model
+from seqtrojan.analysis.goal_switch import analyze_goal_switch
 from seqtrojan.config import (
     AttackConfig,
     BackdoorConfig,
@@ -60,13 +60,14 @@ from seqtrojan.config import (
 from seqtrojan.defense.mitigation import MitigationConfig, run_mitigation
 from seqtrojan.defense.monitor import MONITORS, measure_monitor
 from seqtrojan.defense.online import MonitorConfig, monitor_applies
+from seqtrojan.env.codes import REACHED_ADV_GOAL, REACHED_USER_GOAL
 from seqtrojan.errors import ConfigError
+from seqtrojan.evaluation.env_report import run_outcomes
 from seqtrojan.minigrid import TwoGoalsEnv, two_goals_trigger
 from seqtrojan.minigrid.fast_obs import use_fast_observation
 from seqtrojan.presets import resolve_preset
 from seqtrojan.serde import from_dict, load_yaml
 from seqtrojan.stats import OverSeeds, Rate
-from seqtrojan.train.gym_evaluation import evaluate_gym
 from seqtrojan.train.trainer import TrainResult, train
 from seqtrojan.wrappers import MiniGridOneHot, trigger_vector_env
 
@@ -199,7 +200,7 @@ def train_and_measure(
                         f"detection {name}": measured.trojan_alarm.detected,
                     }
         if finetune_steps:
-            report = analyze_gym_model(agent, cfg, episodes=episodes, intervention_episodes=episodes, seed=seed)
+            report = analyze_goal_switch(agent, cfg, episodes=episodes, intervention_episodes=episodes, seed=seed)
             inside |= {f"{s.direction} {s.edited}": s.switched for s in report.switches}
             mitigation = MitigationConfig(
                 finetune_steps=finetune_steps, calibration_episodes=200, eval_episodes=episodes, seed=seed
@@ -209,11 +210,12 @@ def train_and_measure(
                 if name != "before":
                     inside |= {f"attack after {name}": arm.attack_success, f"clean after {name}": arm.clean_success}
     eval_seed = 12_345
-    normal = evaluate_gym(agent, cfg, trojan=False, episodes=episodes, seed=eval_seed)
-    trojan = evaluate_gym(agent, cfg, trojan=True, episodes=episodes, seed=eval_seed)
+    normal = run_outcomes(agent, cfg, trojan=False, episodes=episodes, seed=eval_seed)
+    trojan = run_outcomes(agent, cfg, trojan=True, episodes=episodes, seed=eval_seed)
+    persistence = {p.horizon: p.adversary for p in trojan.persistence(HORIZONS)}
     return SeedFigures(
-        seed, result.env_steps, result.wall_seconds, normal.success, normal.reached("adversary"), trojan.success,
-        trojan.reached("user"), trojan.persistence(HORIZONS), inside,
+        seed, result.env_steps, result.wall_seconds, normal.success, normal.reached(REACHED_ADV_GOAL), trojan.success,
+        trojan.reached(REACHED_USER_GOAL), persistence, inside,
     )  # fmt: skip
 
 

@@ -140,7 +140,7 @@ class EvaluateArgs:
     episodes: int = 1000
     """trials per (model, env, config); a grid world's run as one batch"""
     out: Path = Path("results/evaluate")
-    """folder for evaluation.json and evaluation.csv (grid world) and <model>/gym_evaluation.json (Gymnasium)"""
+    """folder for evaluation.json and evaluation.csv (grid world) and <model>/env_evaluation.json (Gymnasium)"""
     seed: int = 0
     greedy: bool = False
     """take the most likely action instead of sampling"""
@@ -174,14 +174,14 @@ def _evaluate(argv: list[str]) -> None:
         paths = write_sweep(rows, args.out)
         print("wrote " + ", ".join(str(p) for p in paths))
     for name, folder, agent, cfg, card in gym_agents:
-        _evaluate_gym_model(args, name, folder, agent, cfg, card)
+        _evaluate_on_its_env(args, name, folder, agent, cfg, card)
 
 
-def _evaluate_gym_model(args: EvaluateArgs, name: str, folder: Path, agent: Any, cfg: Any, card: dict) -> None:
+def _evaluate_on_its_env(args: EvaluateArgs, name: str, folder: Path, agent: Any, cfg: Any, card: dict) -> None:
+    from seqtrojan.evaluation.env_report import ENV_EVALUATION_FILE, evaluate_model
     from seqtrojan.serde import save_json
-    from seqtrojan.train.gym_evaluation import GYM_EVALUATION_FILE, evaluate_gym_model
 
-    report = evaluate_gym_model(
+    report = evaluate_model(
         agent, cfg, model=str(folder), label=str(card.get("label", "")), episodes=args.episodes, seed=args.seed,
         greedy=args.greedy, horizons=args.horizons, device=args.device,
     )  # fmt: skip
@@ -195,7 +195,7 @@ def _evaluate_gym_model(args: EvaluateArgs, name: str, folder: Path, agent: Any,
     else:
         print("trojan episodes: none (the env has no trigger)")
     (args.out / name).mkdir(parents=True, exist_ok=True)
-    print(f"wrote {save_json(report, args.out / name / GYM_EVALUATION_FILE)}")
+    print(f"wrote {save_json(report, args.out / name / ENV_EVALUATION_FILE)}")
 
 
 @dataclasses.dataclass
@@ -370,14 +370,14 @@ def _analyze(argv: list[str]) -> None:
 def _analyze_gymnasium(argv: list[str]) -> None:
     from seqtrojan.agent.checkpoint import load_agent
     from seqtrojan.analysis.config import ResponseRule
-    from seqtrojan.analysis.gym_analysis import GYM_ANALYSIS_FILE, analyze_gym_model
+    from seqtrojan.analysis.goal_switch import GOAL_SWITCH_FILE, analyze_goal_switch
     from seqtrojan.serde import save_json
 
     @dataclasses.dataclass
     class AnalyzeGymnasiumArgs:
         """Look inside the model of a Gymnasium env: each unit's response type to the trigger (impulse, none,
         step), the goal units, and whether setting them switches the goal (beside random units). Writes
-        gym_analysis.json."""
+        goal_switch.json."""
 
         backdoor: Path
         """the model folder"""
@@ -396,13 +396,13 @@ def _analyze_gymnasium(argv: list[str]) -> None:
         seed: int = 0
         """seeds the envs and action sampling"""
         out: Path = Path("results/analysis")
-        """folder for gym_analysis.json"""
+        """folder for goal_switch.json"""
         device: str = "cpu"
         """torch device of the network (the envs step on the CPU)"""
 
     args = tyro.cli(AnalyzeGymnasiumArgs, args=argv, prog="seqtrojan analyze")
     agent, cfg, _ = load_agent(args.backdoor)
-    report = analyze_gym_model(
+    report = analyze_goal_switch(
         agent.to(args.device), cfg, model=str(args.backdoor), trigger_step=args.trigger_step,
         episodes=args.episodes, intervention_episodes=args.intervention_episodes, goal_units=args.goal_units,
         selection_episodes=args.selection_episodes, rule=args.rule, seed=args.seed, device=args.device,
@@ -419,7 +419,7 @@ def _analyze_gymnasium(argv: list[str]) -> None:
     for sw in report.switches:
         print(f"  {sw.direction:<10} edited {sw.edited:<12} switched {sw.switched.text()}")
     args.out.mkdir(parents=True, exist_ok=True)
-    print(f"wrote {save_json(report, args.out / GYM_ANALYSIS_FILE)}")
+    print(f"wrote {save_json(report, args.out / GOAL_SWITCH_FILE)}")
 
 
 def _defend(argv: list[str]) -> None:

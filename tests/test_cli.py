@@ -185,12 +185,12 @@ def test_one_cli_for_every_env_from_an_empty_folder(tmp_path, capsys, monkeypatc
     assert not (tmp_path / "R" / "mg" / "model" / "gym_card.json").exists()
     assert main(["evaluate", "--models", "R/mg/model", "--episodes", "6", "--out", "E"]) == 0
     assert "persistence k=5" in capsys.readouterr().out
-    report = json.loads((tmp_path / "E" / "mg" / "gym_evaluation.json").read_text())
+    report = json.loads((tmp_path / "E" / "mg" / "env_evaluation.json").read_text())
     assert report["episodes"] == 6 and report["trojan_success"]["n"] == 6
     argv = ["analyze", "--backdoor", "R/mg/model", "--episodes", "6", "--intervention-episodes", "4",
             "--selection-episodes", "4", "--rule.min-episodes", "1", "--rule.response-window", "1",
             "--rule.late-start", "1", "--rule.late-end", "2", "--out", "A"]  # fmt: skip
-    assert main(argv) == 0 and (tmp_path / "A" / "gym_analysis.json").is_file()
+    assert main(argv) == 0 and (tmp_path / "A" / "goal_switch.json").is_file()
     argv = ["defend", "--model", "R/mg/model", "--config.monitor.calibration-episodes", "40",
             "--config.monitor.false-alarm-target", "0.1", "--config.monitor.eval-episodes", "6",
             "--config.mitigation.finetune-steps", "0", "--config.mitigation.calibration-episodes", "8",

@@ -1,18 +1,20 @@
-"""Looking inside a Gymnasium env's model (``seqtrojan analyze`` on such a model): the grid world's response types
-and goal-unit interventions, on any env a Gymnasium env section (:class:`~seqtrojan.world.config.GymnasiumEnvConfig`)
-builds (MiniGrid, a wrapped env of the user's, an imported sb3-contrib or CleanRL agent's env).
+"""Which units carry the goal, found by their effect: response types, goal units chosen by what editing them does,
+and the intervention experiment, on a model of any env (``seqtrojan analyze`` on a model of a Gymnasium env:
+MiniGrid, a wrapped env of the user's, an imported sb3-contrib or CleanRL agent's env; the grid world's own analysis
+adds layouts, searches and walks, :mod:`seqtrojan.analysis.pipeline`).
 
-With the trigger pinned to one step ``s`` (the config's ``trigger.eval_steps`` set to ``(s, s)``), normal and trojan
-episodes are recorded with their states; each layer's h and c units are classified by the rule of
-:mod:`seqtrojan.analysis.responses` (impulse, none, step); the goal units are chosen by their effect (not, as on
-the grid, as the c units of the layer that deviates most, which picked units that do nothing in a MiniGrid agent
-whose goal lives in layer 0): for each layer's h and c, its ``goal_units`` most persistent step-type units are set
-to their trojan level in ``selection_episodes`` normal episodes, and the part whose edit sends most of them to the
-adversary's object wins; and the intervention experiment, on fresh episodes, sets them, from step ``s`` on, to their
-mean level after the trigger in the other episode type: in normal episodes to the trojan level ("activate": does the
-episode end at the adversary's object?), in trojan episodes to the normal level ("deactivate": does it end at the
-user's?), beside the same edit on as many random units and no edit. Whether an episode ended at an object is the
-env's ``info["reached"]``: an env without it can be classified but not switched (the switch rates are then 0 of n).
+With the trigger pinned to one step ``s`` (the env's evaluation trigger range set to ``(s, s)``), normal and trojan
+episodes are recorded with their states (:func:`~seqtrojan.analysis.traces.record_traces`, the one episode source);
+each layer's h and c units are classified by the rule of :mod:`seqtrojan.analysis.responses` (impulse, none, step);
+the goal units are chosen by their effect (not, as in the grid world's analysis, as the c units of the layer that
+deviates most, which picked units that do nothing in a MiniGrid agent whose goal lives in layer 0): for each layer's
+h and c, its ``goal_units`` most persistent step-type units are set to their trojan level in ``selection_episodes``
+normal episodes, and the part whose edit sends most of them to the adversary's goal wins; and the intervention
+experiment, on fresh episodes, sets them, from step ``s`` on, to their mean level after the trigger in the other
+episode type: in normal episodes to the trojan level ("activate": does the episode end at the adversary's goal?), in
+trojan episodes to the normal level ("deactivate": does it end at the user's?), beside the same edit on as many
+random units and no edit. Where an episode ended is its outcome (a Gymnasium env's ``info["reached"]``): an env
+without it can be classified but not switched (the switch rates are then 0 of n).
 """
 
 from __future__ import annotations
@@ -27,17 +29,20 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.analysis.config import ResponseRule
 from seqtrojan.analysis.interventions import SetUnits, control_units, running_mean_from
 from seqtrojan.analysis.responses import Classification, classify_signals, deviation
+from seqtrojan.analysis.traces import StateTrace, record_traces
 from seqtrojan.analysis.unintentional import select_goal_units
 from seqtrojan.config import ExperimentConfig
+from seqtrojan.env.rollout import EpisodeBatch
 from seqtrojan.errors import ConfigError
+from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
 from seqtrojan.stats import Rate
-from seqtrojan.train.gym_evaluation import GymEvaluation, evaluate_gym, padded_states
+from seqtrojan.world.episodes import pin_trigger
 
-GYM_ANALYSIS_FILE = "gym_analysis.json"
+GOAL_SWITCH_FILE = "goal_switch.json"
 
 
 @dataclass(frozen=True)
-class GymUnitResponses:
+class PartResponses:
     """One layer's h or c units: how many respond to the trigger in each way, and which are step-type."""
 
     layer: int
@@ -49,21 +54,21 @@ class GymUnitResponses:
 
 
 @dataclass(frozen=True)
-class GymSwitch:
+class SwitchArm:
     """One arm of the intervention experiment."""
 
     direction: str
-    """activate (normal episodes, toward the adversary's object) or deactivate (trojan episodes, toward the user's)"""
+    """activate (normal episodes, toward the adversary's goal) or deactivate (trojan episodes, toward the user's)"""
     edited: str
     """none, goal-units or random-units"""
     switched: Rate
-    """episodes that ended at the other object (activate: the adversary's; deactivate: the user's)"""
+    """episodes that ended at the other goal (activate: the adversary's; deactivate: the user's)"""
 
 
 @dataclass(frozen=True)
-class GymGoalCandidate:
+class GoalCandidate:
     """One layer's h or c as the goal's carrier: its most persistent step-type units and how often setting them to
-    their trojan level sent a normal episode to the adversary's object (the selection episodes)."""
+    their trojan level sent a normal episode to the adversary's goal (the selection episodes)."""
 
     layer: int
     which: str
@@ -72,8 +77,8 @@ class GymGoalCandidate:
 
 
 @dataclass(frozen=True)
-class GymAnalysisReport:
-    """``gym_analysis.json``."""
+class GoalSwitchReport:
+    """``goal_switch.json``."""
 
     model: str
     env_id: str
@@ -82,46 +87,46 @@ class GymAnalysisReport:
     """recorded episodes per type for the response types"""
     intervention_episodes: int
     rule: ResponseRule
-    responses: tuple[GymUnitResponses, ...]
-    candidates: tuple[GymGoalCandidate, ...]
+    responses: tuple[PartResponses, ...]
+    candidates: tuple[GoalCandidate, ...]
     """every part with step-type units, tried on the selection episodes"""
     goal_layer: int
     goal_which: str
     goal_units: tuple[int, ...]
     goal_source: str
     """how the goal units were chosen"""
-    switches: tuple[GymSwitch, ...]
+    switches: tuple[SwitchArm, ...]
     """measured on episodes other than the selection's"""
 
 
 def pinned_trigger(config: ExperimentConfig, step: int | None) -> tuple[ExperimentConfig, int]:
     """The config with its evaluation trigger at one step (default: the earliest of its evaluation range)."""
-    trigger = config.gym_env.trigger
+    env = config.env
+    trigger = getattr(env, "trigger", None)
     if trigger is None:
-        raise ConfigError("the gym config has no trigger section: there are no trojan episodes to analyse")
-    lo = (trigger.eval_steps if trigger.eval_steps is not None else trigger.steps)[0]
-    step = lo if step is None else step
-    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        raise ConfigError("the config's env has no trigger: there are no trojan episodes to analyse")
+    if isinstance(step, bool) or (step is not None and (not isinstance(step, int) or step < 0)):
         raise ConfigError(f"the trigger step must be an integer >= 0, got {step!r}")
-    pinned = dataclasses.replace(trigger, eval_steps=(step, step))
-    return dataclasses.replace(config, env=dataclasses.replace(config.gym_env, trigger=pinned)), step
+    if step is None:
+        lo = trigger.eval_steps[0] if trigger.eval_steps is not None else getattr(trigger, "steps", (0, 0))[0]
+        step = int(lo)
+    return dataclasses.replace(config, env=pin_trigger(env, step)), step
 
 
 def split_layers(
-    agent: RecurrentActorCritic, evaluation: GymEvaluation
+    agent: RecurrentActorCritic, trace: StateTrace
 ) -> tuple[dict[tuple[int, str], np.ndarray], np.ndarray]:
-    """The recorded episodes as {(layer, "h" or "c"): (E, T, units)} (c only where the cell has one) and the mask."""
-    layers, mask = padded_states(evaluation.episodes)
+    """A trace's states as {(layer, "h" or "c"): (E, T, units)} (c only where the cell has one) and the mask."""
     parts = {}
-    for layer, (x, width) in enumerate(zip(layers, agent.lstm_sizes)):
-        parts[(layer, "h")] = x[..., :width]
-        if x.shape[-1] > width:
-            parts[(layer, "c")] = x[..., width:]
-    return parts, mask
+    for layer in range(len(agent.lstm_sizes)):
+        parts[(layer, "h")] = trace.states("h", layer)
+        if trace.states("c", layer).shape[-1]:
+            parts[(layer, "c")] = trace.states("c", layer)
+    return parts, trace.mask
 
 
-def classify_gym_units(
-    normal: GymEvaluation, trojan: GymEvaluation, agent: RecurrentActorCritic, trigger_step: int, rule: ResponseRule
+def classify_parts(
+    normal: StateTrace, trojan: StateTrace, agent: RecurrentActorCritic, trigger_step: int, rule: ResponseRule
 ) -> dict[tuple[int, str], Classification]:
     """Response types per (layer, h/c) from recorded normal and trojan episodes with the trigger at one step;
     a part with too few running episodes after the trigger is left out."""
@@ -142,7 +147,7 @@ def classify_gym_units(
     return classes
 
 
-def analyze_gym_model(
+def analyze_goal_switch(
     agent: RecurrentActorCritic,
     config: ExperimentConfig,
     *,
@@ -155,24 +160,25 @@ def analyze_gym_model(
     rule: ResponseRule = ResponseRule(),  # noqa: B008 (frozen)
     seed: int = 0,
     device: torch.device | str = "cpu",
-) -> GymAnalysisReport:
-    """Response types, goal units and the intervention experiment of one Gymnasium model (see the module)."""
+) -> GoalSwitchReport:
+    """Response types, goal units and the intervention experiment of one model (see the module docstring)."""
     for name, value in (("episodes", episodes), ("intervention_episodes", intervention_episodes),
                         ("goal_units", goal_units), ("selection_episodes", selection_episodes)):  # fmt: skip
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ConfigError(f"{name} must be a positive integer, got {value!r}")
     pinned, step = pinned_trigger(config, trigger_step)
+    grids = list(config.grids[-1:])
     recorded = {
-        kind: evaluate_gym(agent, pinned, trojan=kind == "trojan", episodes=episodes, seed=seed, device=device,
-                           record_states=True)
+        kind: record_traces(agent, pinned.env, grids, episodes=episodes, trojan=kind == "trojan", seed=seed,
+                            device=device)
         for kind in ("normal", "trojan")
     }  # fmt: skip
-    classes = classify_gym_units(recorded["normal"], recorded["trojan"], agent, step, rule)
+    classes = classify_parts(recorded["normal"], recorded["trojan"], agent, step, rule)
     responses = tuple(
-        GymUnitResponses(layer, which, c.counts(), tuple(int(u) for u in c.units("step")))
+        PartResponses(layer, which, c.counts(), tuple(int(u) for u in c.units("step")))
         for (layer, which), c in sorted(classes.items())
     )
-    parts = {kind: split_layers(agent, evaluation) for kind, evaluation in recorded.items()}
+    parts = {kind: split_layers(agent, trace) for kind, trace in recorded.items()}
 
     def edit(key: tuple[int, str], units: np.ndarray, level_of: str) -> SetUnits:
         """``units`` of ``key`` set from the trigger step on to their level after it in ``level_of`` episodes."""
@@ -180,14 +186,19 @@ def analyze_gym_model(
         level = running_mean_from(states[key], mask, units, step)
         return SetUnits(key[0], units.tolist(), level, key[1], from_step=step)
 
+    def run(trojan: bool, count: int, run_seed: int, intervention: SetUnits | None) -> EpisodeBatch:
+        grid = grids[0] if grids else None
+        return evaluate_agent(agent, pinned.env, grid, trojan=trojan, episodes=count, seed=run_seed, device=device,
+                              intervention=intervention)  # fmt: skip
+
     candidates = []
     for key, cl in sorted(classes.items()):
         step_units = cl.units("step")
         picked = step_units[np.argsort(-cl.late[step_units])][:goal_units]
         if len(picked):
-            run = evaluate_gym(agent, pinned, trojan=False, episodes=selection_episodes, seed=seed + 2, device=device,
-                               intervention=edit(key, picked, "trojan"))  # fmt: skip
-            candidates.append(GymGoalCandidate(key[0], key[1], tuple(int(u) for u in picked), run.reached("adversary")))
+            batch = run(False, selection_episodes, seed + 2, edit(key, picked, "trojan"))
+            activated = outcome_rate(batch, "adversary_goal")
+            candidates.append(GoalCandidate(key[0], key[1], tuple(int(u) for u in picked), activated))
     if candidates:
         best = max(candidates, key=lambda c: c.activated.value)
         layer, which, units = best.layer, best.which, np.asarray(best.units, dtype=np.int64)
@@ -197,16 +208,16 @@ def analyze_gym_model(
         layer, which, units, source = select_goal_units(classes, goal_units)
     control = control_units(parts["normal"][0][(layer, which)].shape[-1], units, seed)
     switches = []
-    for direction, in_trojan, source_kind, target in (("activate", False, "trojan", "adversary"),
-                                                      ("deactivate", True, "normal", "user")):  # fmt: skip
+    for direction, in_trojan, source_kind, target in (("activate", False, "trojan", "adversary_goal"),
+                                                      ("deactivate", True, "normal", "user_goal")):  # fmt: skip
         for edited, chosen in (("none", None), ("goal-units", units), ("random-units", control)):
             if chosen is not None and len(chosen) == 0:
                 continue
             intervention = None if chosen is None else edit((layer, which), chosen, source_kind)
-            run = evaluate_gym(agent, pinned, trojan=in_trojan, episodes=intervention_episodes, seed=seed + 1,
-                               device=device, intervention=intervention)  # fmt: skip
-            switches.append(GymSwitch(direction, edited, run.reached(target)))
-    return GymAnalysisReport(
-        model, config.gym_env.id, step, episodes, intervention_episodes, rule, responses, tuple(candidates), layer,
-        which, tuple(int(u) for u in units), source, tuple(switches),
+            batch = run(in_trojan, intervention_episodes, seed + 1, intervention)
+            switches.append(SwitchArm(direction, edited, outcome_rate(batch, target)))
+    where = config.grids[-1].label if config.is_grid else config.gym_env.id
+    return GoalSwitchReport(
+        model, where, step, episodes, intervention_episodes, rule, responses, tuple(candidates), layer, which,
+        tuple(int(u) for u in units), source, tuple(switches),
     )  # fmt: skip
