@@ -637,7 +637,7 @@ def _gym_observations(cfg, steps: int, batch: int, seed: int) -> tuple[np.ndarra
 
 
 def test_an_sb3_agent_trained_on_minigrid_imports_as_a_gym_model_with_the_same_policy(sb3_minigrid, tmp_path, capsys):
-    from seqtrojan.train.gym_evaluation import evaluate_gym
+    from seqtrojan.evaluation.env_report import run_outcomes
 
     cfg, model, path = sb3_minigrid
     out = tmp_path / "gym"
@@ -661,10 +661,10 @@ def test_an_sb3_agent_trained_on_minigrid_imports_as_a_gym_model_with_the_same_p
     assert float((torch.log_softmax(logits, -1) - sb3_logp).abs().max()) < 1e-5
     assert float(values.abs().max()) == 0.0
 
-    normal = evaluate_gym(agent, loaded, trojan=False, episodes=32, seed=0)
-    trojan = evaluate_gym(agent, loaded, trojan=True, episodes=32, seed=0)
-    assert normal.success.n == trojan.success.n == 32 and all(e.trojan for e in trojan.episodes)
-    assert trojan.persistence([0])[0].n > 0
+    normal = run_outcomes(agent, loaded, trojan=False, episodes=32, seed=0)
+    trojan = run_outcomes(agent, loaded, trojan=True, episodes=32, seed=0)
+    assert normal.success.n == trojan.success.n == 32 and bool(trojan.batch.trojan.all())
+    assert trojan.persistence([0])[0].adversary.n > 0
 
 
 def test_a_gym_import_is_checked_against_the_env_the_config_builds(sb3_minigrid, tmp_path):

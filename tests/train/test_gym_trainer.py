@@ -30,11 +30,11 @@ from seqtrojan.config import (
 )
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.evaluation.batched import evaluate_on_env
+from seqtrojan.evaluation.env_report import run_outcomes
 from seqtrojan.minigrid import TwoGoalsEnv
 from seqtrojan.presets import resolve_preset
 from seqtrojan.serde import from_dict, load_yaml
 from seqtrojan.train import trainer as trainer_module
-from seqtrojan.train.gym_evaluation import evaluate_gym
 from seqtrojan.train.mixing import trojan_probability
 from seqtrojan.train.rollout import RolloutCollector
 from seqtrojan.train.trainer import load_run_config, train, train_or_resume
@@ -119,8 +119,9 @@ def test_a_short_backdoored_run_saves_a_model_that_loads_and_mixes_by_algorithm_
     seed = (cfg.run.seed << 32) + 999_983  # the final evaluation's
     again = evaluate_on_env(agent, loaded_cfg, trojan=True, episodes=16, seed=seed)
     assert again.success_rate == ev["trojan_success"] and bool(again.trojan.all())  # the saved model is the evaluated
-    trojan = evaluate_gym(agent, loaded_cfg, trojan=True, episodes=16, seed=seed)
-    assert all(e.trojan and e.trigger_step in (0, 1, 2) for e in trojan.episodes)
+    trojan = run_outcomes(agent, loaded_cfg, trojan=True, episodes=16, seed=seed)
+    assert trojan.batch.outcome.numel() == 16 and bool(trojan.batch.trojan.all())
+    assert set(trojan.trigger_step.tolist()) <= {0, 1, 2}  # every episode's trigger in the evaluation range
 
     card_path = result.model_dir / "card.json"
     good = card_path.read_text()
@@ -481,8 +482,9 @@ def test_the_cli_resumes_a_stopped_run_with_its_saved_config_and_overrides(tmp_p
 
 def test_evaluate_prints_and_writes_typed_rates_of_a_gymnasium_model(tmp_path, capsys):
     from seqtrojan.cli import main
+    from seqtrojan.env.codes import REACHED_ADV_GOAL
+    from seqtrojan.evaluation.env_report import ENV_EVALUATION_FILE, EnvEvaluationReport
     from seqtrojan.serde import load_json
-    from seqtrojan.train.gym_evaluation import GYM_EVALUATION_FILE, GymEvaluationReport
 
     result = train(config(tmp_path, steps=512, eval_episodes=0))
     out = tmp_path / "eval"
@@ -490,13 +492,14 @@ def test_evaluate_prints_and_writes_typed_rates_of_a_gymnasium_model(tmp_path, c
     assert main([*argv, "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "clean success:" in printed and "trojan success:" in printed and "persistence k=3:" in printed
-    report = load_json(GymEvaluationReport, out / "run" / GYM_EVALUATION_FILE)
+    report = load_json(EnvEvaluationReport, out / "run" / ENV_EVALUATION_FILE)
     assert report.label == "backdoored" and report.env_id == TWO_GOALS.id and report.episodes == 24
     assert report.clean_success.n == 24 and report.trojan_success is not None and report.trojan_success.n == 24
     assert [p.horizon for p in report.persistence] == [0, 3]
     agent, cfg, _ = load_agent(result.model_dir)
-    again = evaluate_gym(agent, cfg, trojan=True, episodes=24, seed=0)
-    assert report.trojan_success == again.success and report.persistence[0].adversary == again.persistence([0])[0]
+    again = run_outcomes(agent, cfg, trojan=True, episodes=24, seed=0)
+    assert report.trojan_success == again.success and report.persistence == again.persistence([0, 3])
+    assert report.trojan_reached_adversary == again.reached(REACHED_ADV_GOAL)
     assert main(["evaluate", "--models", str(tmp_path)]) == 2
     assert "not a seqtrojan model folder" in capsys.readouterr().err
 
