@@ -21,9 +21,10 @@ from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.codes import REACHED_ADV_GOAL
 from seqtrojan.env.rollout import EpisodeBatch, run_episodes
 from seqtrojan.errors import ConfigError
+from seqtrojan.evaluation.episodes import concat_batches
 from seqtrojan.stats import Rate
 from seqtrojan.world import check_fits
-from seqtrojan.world.episodes import episode_env
+from seqtrojan.world.episodes import episode_chunks, episode_env
 
 ENV_EVALUATION_FILE = "env_evaluation.json"
 
@@ -92,17 +93,21 @@ def run_outcomes(
     agent: RecurrentActorCritic, config: ExperimentConfig, *, trojan: bool, episodes: int, seed: int,
     greedy: bool = False, device: torch.device | str = "cpu",
 ) -> EpisodeOutcomes:  # fmt: skip
-    """``episodes`` episodes of one type on ``config``'s env (its last grid on the grid world), one per slot."""
+    """``episodes`` episodes of one type on ``config``'s env (its last grid on the grid world), one per slot (in
+    chunks on a Gymnasium env, :func:`~seqtrojan.world.episodes.episode_chunks`)."""
     grid = config.grids[-1] if config.grids else None
-    env = episode_env(config.env, grid, episodes, trojan=trojan, device=device)
-    policy = AgentPolicy(agent, greedy=greedy, seed=seed, step_counter=lambda: env.t)
+    batches, triggers = [], []
     was_training = agent.training
     agent.eval()
     try:
-        batch = run_episodes(env, policy, seed=seed)
+        for start, count in episode_chunks(config.env, episodes):
+            env = episode_env(config.env, grid, count, trojan=trojan, device=device)
+            policy = AgentPolicy(agent, greedy=greedy, seed=seed + start, step_counter=lambda env=env: env.t)
+            batches.append(run_episodes(env, policy, seed=seed + start))
+            triggers.append(env.on_step.cpu())
     finally:
         agent.train(was_training)
-    return EpisodeOutcomes(batch, env.on_step.cpu())
+    return EpisodeOutcomes(concat_batches(batches), torch.cat(triggers))
 
 
 def evaluate_model(

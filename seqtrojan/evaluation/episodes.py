@@ -19,9 +19,10 @@ from seqtrojan.agent.state import Intervention
 from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.env.rollout import EpisodeBatch, EpisodeEnv, Policy, run_episodes
+from seqtrojan.errors import ConfigError
 from seqtrojan.stats import Rate
 from seqtrojan.world.config import GymnasiumEnvConfig
-from seqtrojan.world.episodes import episode_env
+from seqtrojan.world.episodes import episode_chunks, episode_env
 
 PolicyFactory = Callable[[Any], Policy]
 """Builds a batched policy for a given env (the env is passed so that scripted agents can read the grid core)."""
@@ -57,15 +58,30 @@ def evaluate_agent(
 ) -> EpisodeBatch:
     """:func:`evaluate_policy` for a trained agent (sampled actions, or greedy), optionally with an intervention."""
 
-    def make_policy(core: EpisodeEnv) -> AgentPolicy:
-        return AgentPolicy(agent, greedy=greedy, seed=seed, intervention=intervention, step_counter=lambda: core.t)
+    def run(start: int, count: int) -> EpisodeBatch:
+        def make_policy(core: EpisodeEnv) -> AgentPolicy:
+            return AgentPolicy(
+                agent, greedy=greedy, seed=seed + start, intervention=intervention, step_counter=lambda: core.t
+            )
 
+        return evaluate_policy(make_policy, env, grid, trojan=trojan, episodes=count, seed=seed + start, device=device)
+
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ConfigError(f"episodes must be a positive integer, got {episodes!r}")
     was_training = agent.training
     agent.eval()
     try:
-        return evaluate_policy(make_policy, env, grid, trojan=trojan, episodes=episodes, seed=seed, device=device)
+        return concat_batches([run(start, count) for start, count in episode_chunks(env, episodes)])
     finally:
         agent.train(was_training)
+
+
+def concat_batches(batches: list[EpisodeBatch]) -> EpisodeBatch:
+    """Batches of episodes as one (in order)."""
+    if len(batches) == 1:
+        return batches[0]
+    return EpisodeBatch(*(torch.cat([getattr(b, name) for b in batches]) for name in ("outcome", "success", "length",
+                                                                                     "trojan")))  # fmt: skip
 
 
 def outcome_rate(batch: EpisodeBatch, name: str) -> Rate:

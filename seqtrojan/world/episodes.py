@@ -24,6 +24,18 @@ from seqtrojan.env.rollout import EpisodeEnv
 from seqtrojan.errors import ConfigError
 from seqtrojan.world.config import GymnasiumEnvConfig
 
+GYMNASIUM_SLOTS = 1024
+"""most episodes one batch of Gymnasium env slots runs at once (each slot is an env object): longer evaluations run
+in chunks (:func:`episode_chunks`)"""
+
+
+def episode_chunks(env: EnvConfig | GymnasiumEnvConfig, episodes: int) -> list[tuple[int, int]]:
+    """(first episode, count) of the batches ``episodes`` episodes run in: one batch on the grid world (its slots are
+    tensors), batches of :data:`GYMNASIUM_SLOTS` on a Gymnasium env. Chunk ``(start, n)`` is seeded ``seed + start``,
+    so its slot ``j`` is episode ``start + j`` of the whole run."""
+    size = episodes if isinstance(env, EnvConfig) else GYMNASIUM_SLOTS
+    return [(start, min(size, episodes - start)) for start in range(0, episodes, max(size, 1))]
+
 
 def pin_trigger(env: EnvConfig | GymnasiumEnvConfig, step: int) -> EnvConfig | GymnasiumEnvConfig:
     """``env`` with its evaluation trigger always at ``step``."""

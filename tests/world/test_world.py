@@ -97,3 +97,20 @@ def test_a_card_of_an_unknown_env_kind_is_refused_in_one_line(tmp_path):
     with pytest.raises(CheckpointError, match=r"env\.kind='atari' is not one of") as err:
         load_agent(model)
     assert "\n" not in str(err.value)
+
+
+def test_a_long_gymnasium_evaluation_runs_in_chunks_of_env_slots(monkeypatch, tiny_two_goals_model):
+    from seqtrojan.evaluation import episodes as episodes_module
+    from seqtrojan.evaluation.episodes import evaluate_agent
+    from seqtrojan.world import episodes as world_episodes
+
+    agent, cfg, _ = tiny_two_goals_model
+    monkeypatch.setattr(world_episodes, "GYMNASIUM_SLOTS", 4)
+    made = []
+    real = episodes_module.episode_env
+    monkeypatch.setattr(episodes_module, "episode_env", lambda *a, **k: made.append(a[2]) or real(*a, **k))
+    batch = evaluate_agent(agent, cfg.env, None, trojan=True, episodes=10, seed=5)
+    assert made == [4, 4, 2] and batch.outcome.shape == (10,) and bool(batch.trojan.all())
+    first = evaluate_agent(agent, cfg.env, None, trojan=True, episodes=4, seed=5)
+    assert torch.equal(first.outcome, batch.outcome[:4])  # chunk (start, n) is episodes start.. of the whole run
+    assert world_episodes.episode_chunks(EnvConfig(), 5000) == [(0, 5000)]  # the grid's slots are tensors
