@@ -240,3 +240,9 @@ def test_the_studies_explain_every_option(command):
     assert any(name.startswith("--workers ") for name in options)  # the parse found the options
     bare = [name for name, text in options.items() if not text or text.startswith("(default")]
     assert not bare, f"options without help text: {bare}"
+
+
+def test_the_minigrid_matrix_preset_is_a_matrix_config(capsys):
+    with pytest.raises(SystemExit) as code:
+        main(["matrix", "--config", "matrix_minigrid_smoke", "--help"])
+    assert code.value.code == 0 and "--config" in capsys.readouterr().out

@@ -94,3 +94,46 @@ def test_bad_presets_are_named(tmp_path):
         matrix_jobs(from_dict(MatrixConfig, {**TINY, "backdoor": TINY["clean"]}), tmp_path)
     with pytest.raises(ConfigError, match="unknown attack 'nope'"):
         from_dict(MatrixConfig, {**TINY, "attacks": ["nope"]})
+
+
+MINIGRID_TRAINING = {
+    "agent": {"lstm_sizes": [16]},
+    "ppo": {"total_steps": 1024, "num_envs": 8, "rollout_steps": 32, "bptt_length": 16, "num_minibatches": 2,
+            "update_epochs": 1},
+    "run": {"eval_episodes": 0, "checkpoint_every": 1024, "progress": False},
+}  # fmt: skip
+
+
+def test_the_matrix_runs_on_a_minigrid_env_with_the_defenses_that_apply(tmp_path):
+    """The MiniGrid preset keeps the attacks and defenses that apply to a Gymnasium env (none drawn with grid-world
+    codes), names a grid-only one in one line, and a tiny run measures every applicable defense."""
+    shipped = load_matrix_config("matrix_minigrid_smoke")
+    assert shipped.attack_names == ("dedicated_code", "delayed", "state_camouflage", "from_clean",
+                                    "weight_camouflage", "ewc")  # fmt: skip
+    assert shipped.online_names == ("state_monitor", "multivariate_monitor") and shipped.offline_names == ()
+    assert load_matrix_config("smoke").online_names[-1] == "input_novelty"  # the grid world keeps all
+    for field, name, message in (("attacks", "partial_patch", "grid-world cells"),
+                                 ("online", "input_novelty", "reads grid-world views"),
+                                 ("offline", "behaviour_detector", "reads grid-world views")):  # fmt: skip
+        with pytest.raises(ConfigError, match=message):
+            from_dict(MatrixConfig, {"backdoor": {"preset": "minigrid_two_goals"}, field: [name], "zoo": None})
+    tiny = {
+        "backdoor": {"preset": "minigrid_two_goals", "set": MINIGRID_TRAINING},
+        "clean": {"preset": "minigrid_two_goals", "set": {**MINIGRID_TRAINING, "backdoor": {"enabled": False}}},
+        "attacks": ["dedicated_code", "from_clean"], "seeds": 1, "episodes": 12,
+        "monitor": {"calibration_episodes": 40, "eval_episodes": 12, "false_alarm_target": 0.05},
+        "mitigation": {"finetune_steps": 256, "calibration_episodes": 8, "eval_episodes": 12},
+        "zoo": None, "jobs": {"backend": "serial"},
+    }  # fmt: skip
+    result = run_matrix(from_dict(MatrixConfig, tiny), tmp_path, scale="minigrid", log=lambda *_: None)
+    assert result.grid == "seqtrojan/MiniGridTwoGoals-v0" and [a.attack for a in result.attacks] == list(
+        tiny["attacks"]
+    )
+    for a in result.agents:
+        assert set(a.online) == {"state_monitor", "multivariate_monitor"} and a.natural_trigger is None
+        assert set(a.mitigation) == {"fine_pruned", "fine_tuned"} and a.attack_success.n == 12
+    assert {(c.defense, c.kind) for c in result.cells} == {
+        ("state_monitor", "online"), ("multivariate_monitor", "online"), ("fine_pruned", "mitigation"),
+        ("fine_tuned", "mitigation"),
+    }  # fmt: skip
+    assert (tmp_path / "report.html").read_text().count("MiniGridTwoGoals") >= 1
