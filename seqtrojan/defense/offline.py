@@ -104,7 +104,7 @@ def load_zoo_model(path: Path) -> ZooModel:
     :class:`~seqtrojan.errors.SeqTrojanError` naming the problem."""
     from seqtrojan.zoo.build import load_zoo_agent, read_label
 
-    agent, cfg, card = load_zoo_agent(path)
+    agent, _, card = load_zoo_agent(path)
     truth = read_label(path)
     tensors = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
     bad = sorted(k for k, v in tensors.items() if not np.isfinite(v).all())
@@ -114,7 +114,7 @@ def load_zoo_model(path: Path) -> ZooModel:
     attack = card.get("metrics", {}).get("trojan_success") if label else None
     if attack is not None and not (isinstance(attack, (int, float)) and not isinstance(attack, bool)):
         raise CheckpointError(f"card.json in {str(path)!r}: metrics.trojan_success must be a number, got {attack!r}")
-    return ZooModel(path.name, label, weight_features(tensors, cfg.env.obs_dim), truth, attack)
+    return ZooModel(path.name, label, weight_features(tensors, agent.obs_dim), truth, attack)
 
 
 def load_zoo_features(zoo: Path) -> tuple[list[ZooModel], list[Rejected]]:
@@ -191,9 +191,9 @@ class FittedWeightDetector:
 
     def probability(self, model: Path) -> float:
         """P(backdoored) of the model folder ``model`` (read through the same checks as a zoo model's weights)."""
-        agent, cfg, _ = load_agent(model)
+        agent, _, _ = load_agent(model)
         tensors = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
-        features = weight_features(tensors, cfg.grid_env.obs_dim)
+        features = weight_features(tensors, agent.obs_dim)
         missing = sorted(set(self.feature_names) - set(features))
         if missing:
             raise SeqTrojanError(f"{str(model)!r} lacks weight features the detector was trained on: {missing[:3]}")
@@ -281,8 +281,10 @@ def detect_zoo(zoo: Path, folds: int = 5, seed: int = 0) -> DetectionResult:
     that cannot be used are skipped and listed under ``rejected`` with their reasons; the rest are scored."""
     at = _functional_at(zoo)
     models, rejected = load_zoo_features(zoo)
+    # a group without features is left out (the input-code norms read the grid world's one-hot codes only)
+    groups = [g for g in GROUPS if not models or _matrix(models, g)[1]]
     try:
-        scores = tuple(cross_validated_scores(models, group, folds, seed) for group in (None, *GROUPS))
+        scores = tuple(cross_validated_scores(models, group, folds, seed) for group in (None, *groups))
     except SeqTrojanError as err:
         if not rejected:
             raise

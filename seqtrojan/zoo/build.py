@@ -106,6 +106,17 @@ class ZooConfig:
     stop: StopConfig = StopConfig()  # noqa: RUF009 (frozen, so one shared default is safe)
     """early stopping of every model (``stop:`` of a training run; off by default: each model trains
     ``total_steps``); the steps each model took are in its card and the manifest"""
+    env_preset: str | None = None
+    """a training preset (or YAML file) of a Gymnasium env with a trigger (e.g. ``minigrid_two_goals``): every model
+    is that preset's run with its own seed, widths and trigger -- ``trigger_cells`` cells of the view's two far rows,
+    an object of ``trigger_objects`` in a colour of ``trigger_colors``, shown for one of ``trigger_durations`` steps
+    -- trained ``total_steps`` with the preset's other settings (its envs, rollout and learning rate: ``num_envs``,
+    ``rollout_steps``, ``learning_rate``, ``curricula`` and ``trigger_values`` are the grid world's). None: the grid
+    world"""
+    trigger_objects: tuple[str, ...] = ("key", "ball", "box")
+    """a Gymnasium zoo's trigger objects (MiniGrid object names)"""
+    trigger_colors: tuple[str, ...] = ("purple", "yellow", "blue", "grey")
+    """a Gymnasium zoo's trigger colours (MiniGrid colour names; the two-goal room's goals are green and red)"""
 
     def __post_init__(self) -> None:
         if self.clean < 0 or self.backdoored < 0 or self.clean + self.backdoored == 0:
@@ -127,7 +138,9 @@ class ZooConfig:
     def size(self) -> int:
         return self.clean + self.backdoored
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("cell", "window", "stop", "rollout_steps", "learning_rate")
+    OPTIONAL: ClassVar[tuple[str, ...]] = (
+        "cell", "window", "stop", "rollout_steps", "learning_rate", "env_preset", "trigger_objects", "trigger_colors",
+    )  # fmt: skip
     """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
     built before them is the same config"""
 
@@ -165,6 +178,8 @@ class ZooJob(TrainJob):
 
 def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
     """The zoo's jobs, a pure function of the zoo config: clean and backdoored models interleaved."""
+    if cfg.env_preset is not None:
+        return _gymnasium_jobs(cfg, root)
     jobs = []
     labels = ["backdoored"] * cfg.backdoored + ["clean"] * cfg.clean
     order = np.random.default_rng(cfg.seed).permutation(len(labels))
@@ -195,6 +210,56 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
         )  # fmt: skip
         variation = {
             "lstm_sizes": list(sizes), "curriculum": [g.label for g in stages], "trigger_value": value,
+            "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
+        }  # fmt: skip
+        if cfg.cell != "lstm":
+            variation["cell"] = cfg.cell
+        jobs.append(ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at))
+    return jobs
+
+
+def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
+    """The jobs of a zoo of a Gymnasium env's models (``cfg.env_preset``): the same interleaving and per-model draws
+    (from seed ``[cfg.seed, i, 7919]``) as the grid world's, over that env's trigger settings."""
+    from seqtrojan.presets import resolve_preset
+    from seqtrojan.serde import from_dict, load_yaml
+    from seqtrojan.world import env_spec
+    from seqtrojan.world.config import GymnasiumEnvConfig
+
+    assert cfg.env_preset is not None
+    base = from_dict(ExperimentConfig, load_yaml(resolve_preset(cfg.env_preset)), "")
+    env = base.env
+    if not isinstance(env, GymnasiumEnvConfig) or env.trigger is None or env.trigger.patch != "minigrid":
+        raise ConfigError(f"zoo env_preset {cfg.env_preset!r} must be a Gymnasium env with a MiniGrid trigger patch")
+    rows, cols, _ = env_spec(env).image or (0, 0, 0)
+    far = [(r, c) for r in range(min(2, rows)) for c in range(cols)]  # the view's two far rows
+    if not far:
+        raise ConfigError(f"zoo env_preset {cfg.env_preset!r}: its observation is no image view to draw a trigger on")
+    jobs = []
+    labels = ["backdoored"] * cfg.backdoored + ["clean"] * cfg.clean
+    order = np.random.default_rng(cfg.seed).permutation(len(labels))
+    for i, k in enumerate(order):
+        label, seed = labels[k], cfg.seed + i
+        rng = np.random.default_rng([cfg.seed, i, 7919])
+        sizes = cfg.lstm_sizes[rng.integers(len(cfg.lstm_sizes))]
+        n_cells = int(rng.integers(cfg.trigger_cells[0], min(cfg.trigger_cells[1], len(far)) + 1))
+        cells = tuple(sorted(far[int(j)] for j in rng.choice(len(far), size=n_cells, replace=False)))
+        obj = str(cfg.trigger_objects[rng.integers(len(cfg.trigger_objects))])
+        color = str(cfg.trigger_colors[rng.integers(len(cfg.trigger_colors))])
+        duration = int(cfg.trigger_durations[rng.integers(len(cfg.trigger_durations))])
+        trigger = dataclasses.replace(env.trigger, cells=cells, object=obj, color=color, duration=duration)
+        config = dataclasses.replace(
+            base, env=dataclasses.replace(env, trigger=trigger),
+            agent=dataclasses.replace(base.agent, lstm_sizes=tuple(sizes), cell=cfg.cell, window=cfg.window),
+            ppo=dataclasses.replace(base.ppo, total_steps=cfg.total_steps),
+            backdoor=dataclasses.replace(base.backdoor, enabled=label == "backdoored"), stop=cfg.stop,
+            run=RunConfig(
+                out_dir=str(root / "work"), name=f"m{i:04d}", seed=seed, progress=False,
+                eval_episodes=cfg.eval_episodes, checkpoint_every=max(cfg.total_steps // 4, 1),
+            ),
+        )  # fmt: skip
+        variation = {
+            "env": env.id, "lstm_sizes": list(sizes), "trigger_value": f"{color} {obj}",
             "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
         if cfg.cell != "lstm":
@@ -259,7 +324,10 @@ def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
                              "attack_success": None, "functional_backdoor": None}  # fmt: skip
     if job.label == "backdoored":
         attack = metrics.get("trojan_success")
-        truth.update(trigger=to_dict(job.config.env.trigger), attack_success=attack,
+        trigger = to_dict(job.config.env.trigger)
+        if not isinstance(trigger.get("value"), str):  # a Gymnasium trigger: its object, by name (label.json's value)
+            trigger["value"] = str(job.variation.get("trigger_value", ""))
+        truth.update(trigger=trigger, attack_success=attack,
                      functional_backdoor=attack is not None and attack >= job.functional_at)  # fmt: skip
     return truth
 

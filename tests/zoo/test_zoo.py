@@ -312,3 +312,29 @@ def test_kill_9_of_a_build_leaves_no_worker_and_a_rerun_finishes_every_model(tmp
     for job in make_jobs(cfg, zoo):
         _, _, card = load_agent(zoo / "models" / job.model_id)
         assert card["env_steps"] == 4096
+
+
+def test_a_zoo_of_a_minigrid_env_builds_and_is_scored(tmp_path):
+    """``env_preset``: every model is the MiniGrid preset's run with its own seed, widths and trigger (cells of the
+    view's far rows, object and colour); the zoo builds, labels its models, and the weight detector scores it
+    (without the grid world's input-code features, which a MiniGrid view has none of)."""
+    from seqtrojan.defense.offline import detect_zoo
+
+    cfg = ZooConfig(clean=3, backdoored=3, total_steps=512, eval_episodes=4, lstm_sizes=((8,), (8, 8)),
+                    env_preset="minigrid_two_goals")  # fmt: skip
+    jobs = make_jobs(cfg, tmp_path)
+    assert jobs == make_jobs(cfg, tmp_path)  # a pure function of the config
+    triggers = {(j.config.env.trigger.object, j.config.env.trigger.color, j.config.env.trigger.cells) for j in jobs}
+    assert len(triggers) > 1 and all(r < 2 and c < 5 for t in triggers for r, c in t[2])
+    assert {j.config.backdoor.enabled for j in jobs} == {True, False} and all(not j.config.grids for j in jobs)
+    build_zoo(cfg, tmp_path, workers=1, backend="serial", log=lambda *_: None)
+    models = sorted((tmp_path / "models").iterdir())
+    assert len(models) == 6
+    truth = json.loads((models[0] / "label.json").read_text())
+    assert truth["variation"]["env"] == "seqtrojan/MiniGridTwoGoals-v0"
+    backdoored = [json.loads((m / "label.json").read_text()) for m in models]
+    assert all(t["trigger"]["value"] == t["variation"]["trigger_value"] for t in backdoored if t["trigger"])
+    result = detect_zoo(tmp_path, folds=2)
+    assert [s.group for s in result.scores] == ["all", "gate_stats", "spectral"] and not result.rejected
+    with pytest.raises(ConfigError, match="must be a Gymnasium env"):
+        make_jobs(ZooConfig(clean=1, backdoored=1, env_preset="smoke"), tmp_path / "grid")
