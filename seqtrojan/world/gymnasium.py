@@ -352,6 +352,7 @@ class GymnasiumBatchedEnv:
         success, trojan, active, outcome = [False] * b, [False] * b, [False] * b, [0] * b
         chosen = acts.astype(np.int64, copy=False).tolist()  # Python ints, as int(acts[i])
         ended = self._ended
+        frozen = None if autoreset else ended.copy()  # the episodes that had ended before this step
         for i, (env, trigger, action) in enumerate(zip(self.envs, self.triggers, chosen, strict=True)):
             if ended[i]:  # no autoreset: a finished episode stays as it ended
                 rows[i], terminated[i] = self._last_rows[i], True
@@ -373,7 +374,7 @@ class GymnasiumBatchedEnv:
         return self._result(
             self._stack(rows), np.array(reward, dtype=np.float32), np.array(terminated, dtype=bool),
             np.array(truncated, dtype=bool), np.array(outcome, dtype=np.int64), np.array(success, dtype=bool),
-            np.array(trojan, dtype=bool), np.array(active, dtype=bool),
+            np.array(trojan, dtype=bool), np.array(active, dtype=bool), frozen,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ the episode loop (one episode per env)
@@ -428,11 +429,18 @@ class GymnasiumBatchedEnv:
     def _result(
         self, obs: np.ndarray, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray,
         outcome: np.ndarray, success: np.ndarray, trojan: np.ndarray, active: np.ndarray,
+        frozen: np.ndarray | None = None,
     ) -> StepResult:  # fmt: skip
+        """The step's StepResult. ``frozen`` (no autoreset): the envs whose episode had ended before this step; their
+        step count stays at their episode's length (the episode loop's per-env step ``t`` must not start again)."""
         done = terminated | truncated
-        self.lengths += 1
-        length = self.lengths.copy()
-        self.lengths[done] = 0
+        if frozen is None:
+            self.lengths += 1
+            length = self.lengths.copy()
+            self.lengths[done] = 0  # the next episode starts at step 0
+        else:
+            self.lengths[~frozen] += 1
+            length = self.lengths.copy()
         self._obs = self._tensor(obs)
         dev = self.device
         t = torch.from_numpy if dev.type == "cpu" else lambda x: torch.from_numpy(x).to(dev)

@@ -47,6 +47,17 @@ def test_the_state_monitors_watch_a_gymnasium_model(tiny_two_goals_model):
         assert result.normal_alarm.false_alarm.n == result.trojan_reset.attack_success.n == SMALL.eval_episodes
 
 
+def test_a_calibrated_monitor_keeps_its_false_alarm_target_on_a_gymnasium_model(tiny_two_goals_model):
+    """Calibrated at 5% on clean episodes, the monitors raise false alarms in about 5% of fresh clean episodes (a
+    finished episode's slot must not count its alarms: its step stops at the episode's length)."""
+    agent, cfg, _ = tiny_two_goals_model
+    calibration = MonitorConfig(calibration_episodes=200, false_alarm_target=0.05, eval_episodes=120)
+    for detector in (StateMonitor, MultivariateMonitor):
+        monitor = detector.calibrate(agent, cfg.env, None, calibration)
+        result = measure_monitor(agent, cfg.env, None, monitor, calibration)
+        assert result.normal_alarm.false_alarm.value <= 0.15, (detector, result.normal_alarm.false_alarm)
+
+
 def test_alarms_count_as_detections_only_from_the_trigger_on(tiny_two_goals_model):
     """The two-goal room's trigger shows at step 0-2 (evaluation range): an alarm from step 3 on is a detection of
     every trojan episode still running then; one from step 0 on fires before the trigger in most of them."""

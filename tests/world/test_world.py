@@ -63,10 +63,15 @@ def test_the_episode_loop_keeps_a_finished_gymnasium_episode_finished():
     assert isinstance(env, GymnasiumBatchedEnv) and env.config.vectorization == "sync"  # the loop steps in-process
     assert bool(env.trojan.all()) and bool((env.on_step >= 0).all()) and env.episode_limit > 0
     ended = torch.zeros(6, dtype=torch.bool)
+    final = torch.zeros(6, dtype=torch.int64)
     for _ in range(env.episode_limit):
         before = env.observe().clone()
         result = env.step(torch.full((6,), 2, dtype=torch.int64), autoreset=False)  # forward, into the wall
         assert torch.equal(result.obs[ended], before[ended])  # finished slots are no longer stepped
+        newly = result.done & ~ended
+        assert torch.equal(env.t[newly], result.length[newly])  # a slot's step stops at its episode's length
+        assert bool((env.t[ended] == final[ended]).all()) if bool(ended.any()) else True
+        final = torch.where(newly, result.length, final)
         ended |= result.done
         if bool(ended.all()):
             break
