@@ -65,6 +65,9 @@ def main(path: str) -> None:
         print(f"| {a.attack} | {spread(a.clean_success)} | " + " | ".join(row) + " |")
     offline = [c for c in result.cells if c.kind == "offline"]
     detectors = list(dict.fromkeys(c.defense for c in offline))
+    if not detectors:
+        print("\nOffline detectors: none applied to this matrix.")
+        return
     print("\nOffline detectors, ROC-AUC of the attack's models against the clean models [95% interval]:\n")
     print("| attack | " + " | ".join(detectors) + " |")
     print("|---|" + "---|" * len(detectors))
