@@ -123,8 +123,9 @@ def test_an_intervention_sees_each_env_s_episode_step(tiny_two_goals_model):
     batch = evaluate_agent(agent, cfg.env, None, trojan=False, episodes=12, seed=3, intervention=record)
     steps = torch.stack(seen)  # (steps, envs): one episode per env, all starting together
     assert steps.shape == (int(batch.length.max()), 12) and steps[0].tolist() == [0] * 12
-    for env, length in enumerate(batch.length.tolist()):  # each env's episode step, then 0 once it has ended
-        assert steps[:length, env].tolist() == list(range(length)) and not steps[length:, env].any()
+    for env, length in enumerate(batch.length.tolist()):  # each env's episode step, then its length once it ended
+        assert steps[:length, env].tolist() == list(range(length))
+        assert bool((steps[length:, env] == length).all())
 
 
 def test_a_trained_gym_model_is_analysed_end_to_end(tiny_two_goals_model):
