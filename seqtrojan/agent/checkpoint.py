@@ -117,6 +117,7 @@ def save_agent(
         raise ConfigError(f"label must be 'clean' or 'backdoored', got {label!r}")
     folder = Path(folder)
     tensors = {k: v.detach().cpu().contiguous() for k, v in agent.state_dict().items()}
+    _refuse_non_finite(tensors, f"the weights for {str(folder)!r}")
     from seqtrojan import __version__
 
     card = {
@@ -177,6 +178,7 @@ def load_agent(
     except (SafetensorError, ValueError) as err:
         raise CheckpointError(f"{str(path)!r} is corrupt: {err}") from None
     del data
+    _refuse_non_finite(tensors, f"{WEIGHTS} in {str(folder)!r}")
     agent = build_agent(card.config, card.architecture)
     try:
         agent.load_state_dict(tensors, strict=True)
@@ -185,6 +187,15 @@ def load_agent(
             f"{WEIGHTS} in {str(folder)!r} does not fit the architecture in card.json: {err}"
         ) from None
     return agent.to(device).eval(), card.config, card.data
+
+
+def _refuse_non_finite(tensors: dict[str, torch.Tensor], what: str) -> None:
+    """A model's weights must be finite numbers: a NaN or infinite weight (a diverged training, a tampered file) is
+    refused in one line naming the tensors, before anything is built from or written with them."""
+    bad = sorted(k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all()))
+    if bad:
+        shown = ", ".join(bad[:3]) + (f" and {len(bad) - 3} more" if len(bad) > 3 else "")
+        raise CheckpointError(f"{what} holds NaN or infinite values (in {shown})")
 
 
 def read_safetensors(path: Path) -> dict[str, torch.Tensor]:

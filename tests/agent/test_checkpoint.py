@@ -364,3 +364,24 @@ def test_valid_model_loads_with_identical_weights_and_outputs(saved):
         a = agent.unroll(obs, agent.initial_state(2), starts)
         b = loaded.unroll(obs, loaded.initial_state(2), starts)
     assert torch.equal(a.logits, b.logits) and torch.equal(a.values, b.values)
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_weights_are_refused_on_save_and_on_load(saved, tmp_path, value):
+    from safetensors.torch import load_file, save_file
+
+    _, folder = saved
+    agent, cfg, _ = load_agent(folder)
+    with torch.no_grad():
+        agent.policy_head.bias[0] = value
+    with pytest.raises(CheckpointError, match=r"holds NaN or infinite values \(in policy_head.bias\)"):
+        save_agent(tmp_path / "diverged", agent, cfg, label="clean")
+    assert not (tmp_path / "diverged").exists()
+    tensors = load_file(str(folder / "model.safetensors"))  # a tampered file whose card records its hash
+    tensors["value_head.bias"] = torch.full_like(tensors["value_head.bias"], value)
+    save_file(tensors, str(folder / "model.safetensors"))
+    card = json.loads((folder / "card.json").read_text())
+    card["weights_sha256"] = hashlib.sha256((folder / "model.safetensors").read_bytes()).hexdigest()
+    (folder / "card.json").write_text(json.dumps(card))
+    with pytest.raises(CheckpointError, match=r"holds NaN or infinite values \(in value_head.bias\)"):
+        load_agent(folder)

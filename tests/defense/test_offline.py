@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import pickle
 import shutil
@@ -9,6 +10,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from safetensors.torch import load_file, save_file
 
 from seqtrojan.agent.checkpoint import build_agent, save_agent
 from seqtrojan.cli import main
@@ -126,10 +128,13 @@ def test_malformed_cards_and_labels_are_each_rejected_with_a_reason_and_the_rest
     spoil(zoo, "zz_label_not_json", "label.json", lambda text: "{")
     nan = zoo / "models" / "zz_nan_weights"
     cfg = ExperimentConfig(agent=AgentConfig(lstm_sizes=(16,)))
-    agent = build_agent(cfg)
-    with torch.no_grad():
-        agent.cells[0].weight_hh[0, 0] = float("nan")
-    save_agent(nan, agent, cfg, label="clean")
+    save_agent(nan, build_agent(cfg), cfg, label="clean")  # saving refuses NaN weights: the file is tampered after
+    tensors = load_file(str(nan / "model.safetensors"))
+    tensors["cells.0.weight_hh"][0, 0] = float("nan")
+    save_file(tensors, str(nan / "model.safetensors"))
+    card = json.loads((nan / "card.json").read_text())
+    card["weights_sha256"] = hashlib.sha256((nan / "model.safetensors").read_bytes()).hexdigest()
+    (nan / "card.json").write_text(json.dumps(card))
     (nan / "label.json").write_text(json.dumps({"label": "clean", "trigger": None}))
 
     assert main(["zoo", "detect", "--zoo", str(zoo), "--folds", "3"]) == 0
