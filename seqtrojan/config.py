@@ -9,6 +9,7 @@ imports; new code imports them from :mod:`seqtrojan.serde`.
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from typing import Literal
 
@@ -464,6 +465,23 @@ class RunConfig:
 
 _DEVICE = re.compile(r"cpu|cuda(?::[0-9]+)?")
 
+
+def _check_finite(value: object, path: str) -> None:
+    """Every number of a config must be finite: a NaN or infinite learning rate, coefficient, reward or probability
+    would train a model of non-finite weights, so it is refused in one line naming its dotted path."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(f"{path} must be a finite number, got {value!r}")
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        for f in dataclasses.fields(value):
+            _check_finite(getattr(value, f.name), f"{path}.{f.name}" if path else f.name)
+    elif isinstance(value, (tuple, list)):
+        for i, item in enumerate(value):
+            _check_finite(item, f"{path}[{i}]")
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            _check_finite(item, f"{path}.{key}")
+
+
 EnvSection = EnvConfig | GymnasiumEnvConfig
 """An ``env:`` section: the grid world, or a Gymnasium env (``kind: gymnasium``)."""
 """The devices a run may name (whether CUDA is present is checked when the run starts)."""
@@ -515,6 +533,7 @@ class ExperimentConfig:
     stop: StopConfig = dataclasses.field(default_factory=StopConfig)
 
     def __post_init__(self) -> None:
+        _check_finite(self, "")
         needing = [f"attack.{name}" for name in AttackConfig.NEEDS_INIT_FROM if getattr(self.attack, name).enabled]
         if needing and self.backdoor.enabled and self.run.init_from is None:
             raise ConfigError(

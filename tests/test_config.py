@@ -125,3 +125,20 @@ def test_lstm_sizes_beyond_what_a_model_card_accepts_are_refused_before_training
     with pytest.raises(ConfigError, match="1 to 8 layers of at most 4096 units"):
         AgentConfig(lstm_sizes=sizes)
     AgentConfig(lstm_sizes=(4096,))  # the largest width still builds a config
+
+
+@pytest.mark.parametrize(
+    ("section", "key", "path"),
+    [("ppo", "ent_coef", "ppo.ent_coef"), ("ppo", "learning_rate", "ppo.learning_rate"),
+     ("agent", "forget_bias", "agent.forget_bias")],
+)  # fmt: skip
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), float("-inf")])
+def test_non_finite_numbers_are_refused_with_their_path(section, key, path, value):
+    from seqtrojan.config import ExperimentConfig
+    from seqtrojan.errors import ConfigError
+    from seqtrojan.serde import from_dict
+
+    with pytest.raises(ConfigError, match=path.replace(".", r"\.")):
+        from_dict(ExperimentConfig, {section: {key: value}})
+    with pytest.raises(ConfigError, match=r"env\.rewards\.goal must be a finite number"):
+        from_dict(ExperimentConfig, {"env": {"rewards": {"goal": value}}})
