@@ -181,12 +181,7 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
     if cfg.env_preset is not None:
         return _gymnasium_jobs(cfg, root)
     jobs = []
-    labels = ["backdoored"] * cfg.backdoored + ["clean"] * cfg.clean
-    order = np.random.default_rng(cfg.seed).permutation(len(labels))
-    for i, k in enumerate(order):
-        label = labels[k]
-        seed = cfg.seed + i
-        rng = np.random.default_rng([cfg.seed, i, 7919])
+    for i, label, seed, rng in _model_draws(cfg):
         sizes = cfg.lstm_sizes[rng.integers(len(cfg.lstm_sizes))]
         stages = cfg.curricula[rng.integers(len(cfg.curricula))]
         value = str(cfg.trigger_values[rng.integers(len(cfg.trigger_values))])
@@ -203,19 +198,42 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
             curriculum=CurriculumConfig(stages=tuple(stages)),
             backdoor=BackdoorConfig(enabled=label == "backdoored", mixing=cfg.mixing),
             stop=cfg.stop,
-            run=RunConfig(
-                out_dir=str(root / "work"), name=f"m{i:04d}", seed=seed, progress=False,
-                eval_episodes=cfg.eval_episodes, checkpoint_every=max(cfg.total_steps // 4, 1),
-            ),
+            run=_model_run(cfg, root, i, seed),
         )  # fmt: skip
         variation = {
             "lstm_sizes": list(sizes), "curriculum": [g.label for g in stages], "trigger_value": value,
             "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
-        if cfg.cell != "lstm":
-            variation["cell"] = cfg.cell
-        jobs.append(ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at))
+        jobs.append(_job(cfg, root, i, config, label, variation))
     return jobs
+
+
+def _model_draws(cfg: ZooConfig) -> Iterator[tuple[int, str, int, np.random.Generator]]:
+    """Per model ``i``: its label (clean and backdoored interleaved by a permutation seeded ``cfg.seed``), its
+    training seed and the generator of its variation (seeded ``[cfg.seed, i, 7919]``)."""
+    labels = ["backdoored"] * cfg.backdoored + ["clean"] * cfg.clean
+    order = np.random.default_rng(cfg.seed).permutation(len(labels))
+    for i, k in enumerate(order):
+        yield i, labels[k], cfg.seed + i, np.random.default_rng([cfg.seed, i, 7919])
+
+
+def _model_run(cfg: ZooConfig, root: Path, i: int, seed: int) -> RunConfig:
+    """Model ``i``'s run: ``work/m<i>`` under the zoo, its seed, checkpoints at every quarter of its budget."""
+    return RunConfig(
+        out_dir=str(root / "work"),
+        name=f"m{i:04d}",
+        seed=seed,
+        progress=False,
+        eval_episodes=cfg.eval_episodes,
+        checkpoint_every=max(cfg.total_steps // 4, 1),
+    )
+
+
+def _job(cfg: ZooConfig, root: Path, i: int, config: ExperimentConfig, label: str, variation: dict) -> ZooJob:
+    """Model ``i``'s job (its variation naming the cell where it is not the LSTM)."""
+    if cfg.cell != "lstm":
+        variation["cell"] = cfg.cell
+    return ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at)
 
 
 def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
@@ -236,11 +254,7 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
     if not far:
         raise ConfigError(f"zoo env_preset {cfg.env_preset!r}: its observation is no image view to draw a trigger on")
     jobs = []
-    labels = ["backdoored"] * cfg.backdoored + ["clean"] * cfg.clean
-    order = np.random.default_rng(cfg.seed).permutation(len(labels))
-    for i, k in enumerate(order):
-        label, seed = labels[k], cfg.seed + i
-        rng = np.random.default_rng([cfg.seed, i, 7919])
+    for i, label, seed, rng in _model_draws(cfg):
         sizes = cfg.lstm_sizes[rng.integers(len(cfg.lstm_sizes))]
         n_cells = int(rng.integers(cfg.trigger_cells[0], min(cfg.trigger_cells[1], len(far)) + 1))
         cells = tuple(sorted(far[int(j)] for j in rng.choice(len(far), size=n_cells, replace=False)))
@@ -253,18 +267,13 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
             agent=dataclasses.replace(base.agent, lstm_sizes=tuple(sizes), cell=cfg.cell, window=cfg.window),
             ppo=dataclasses.replace(base.ppo, total_steps=cfg.total_steps),
             backdoor=dataclasses.replace(base.backdoor, enabled=label == "backdoored"), stop=cfg.stop,
-            run=RunConfig(
-                out_dir=str(root / "work"), name=f"m{i:04d}", seed=seed, progress=False,
-                eval_episodes=cfg.eval_episodes, checkpoint_every=max(cfg.total_steps // 4, 1),
-            ),
+            run=_model_run(cfg, root, i, seed),
         )  # fmt: skip
         variation = {
             "env": env.id, "lstm_sizes": list(sizes), "trigger_value": f"{color} {obj}",
             "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
-        if cfg.cell != "lstm":
-            variation["cell"] = cfg.cell
-        jobs.append(ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at))
+        jobs.append(_job(cfg, root, i, config, label, variation))
     return jobs
 
 
