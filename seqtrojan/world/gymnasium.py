@@ -15,6 +15,7 @@ same facts from its infos. Both reset a finished env in the step that ends its e
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any, SupportsFloat
 
@@ -163,8 +164,6 @@ def check_spaces(env: gym.Env, env_id: str) -> tuple[int, int]:
 
 def minigrid_image(obs_dim: int) -> tuple[int, int, int]:
     """The (rows, cols, channels) of a flat MiniGrid one-hot view (:class:`~seqtrojan.wrappers.MiniGridOneHot`)."""
-    import math
-
     cells, rest = divmod(obs_dim, CELL_BITS)
     side = math.isqrt(cells)
     if rest or side * side != cells:
@@ -416,14 +415,12 @@ class GymnasiumBatchedEnv:
         assert self._async is not None
         trojan, active = self._trojan.copy(), self._active.copy()
         obs, reward, terminated, truncated, infos = self._async.step(acts)
-        done = terminated | truncated
         success, outcome = np.zeros(self.num_envs, dtype=bool), np.zeros(self.num_envs, dtype=np.int64)
         for ep in finished_episodes(infos, reward, terminated):
             success[ep.env] = ep.success
             outcome[ep.env] = _outcome(ep.info, bool(truncated[ep.env]))
         self._read_infos(infos, np.ones(self.num_envs, dtype=bool))
         obs = np.asarray(obs, dtype=np.float32)
-        del done
         return self._result(obs, reward.astype(np.float32), terminated, truncated, outcome, success, trojan, active)
 
     def _result(
@@ -492,7 +489,7 @@ class GymnasiumBatchedEnv:
             return None
         return [env.record() if isinstance(env, EpisodeRecorder) else None for env in self.envs]
 
-    def restore_episodes(self, records: Any, obs: torch.Tensor, lengths: torch.Tensor | None = None) -> bool:
+    def restore_episodes(self, records: Any, obs: torch.Tensor) -> bool:
         """Replay every env's recorded episode; True when each gives back its saved observation in ``obs`` (then
         the envs are exactly where the checkpoint left them). False leaves the envs to be reset by the caller."""
         if self._async is not None or not isinstance(records, list) or len(records) != self.num_envs:
