@@ -13,6 +13,7 @@ import math
 import re
 from typing import Literal
 
+from seqtrojan.cell_types import CELL_TYPES, cell_names, cell_type
 from seqtrojan.env.config import EnvConfig, GridSpec
 from seqtrojan.errors import ConfigError
 from seqtrojan.serde import dump_omitting_defaults, from_dict, load_yaml, parse_yaml, short_repr, to_dict
@@ -47,8 +48,6 @@ MAX_WIDTH = 4096
 
 
 ACTIVATIONS = ("tanh", "relu")
-CELLS = ("lstm", "lstm_peephole", "gru", "transformer")
-"""the sequence models an agent's layers can be (:mod:`seqtrojan.agent.cells`)"""
 MAX_WINDOW = 256
 """longest Transformer context window (in steps)"""
 MAX_HEADS = 64
@@ -129,13 +128,13 @@ class AgentConfig:
         for name in ("encoder_activation", "mlp_activation"):
             if getattr(self, name) not in ACTIVATIONS:
                 raise ConfigError(f"agent.{name} must be one of {ACTIVATIONS}, got {short_repr(getattr(self, name))}")
-        if self.cell not in CELLS:
-            raise ConfigError(f"agent.cell must be one of {CELLS}, got {short_repr(self.cell)}")
+        if not isinstance(self.cell, str) or self.cell not in CELL_TYPES:
+            raise ConfigError(f"agent.cell must be one of {cell_names()}, got {short_repr(self.cell)}")
         for name, top in (("window", MAX_WINDOW), ("heads", MAX_HEADS)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= top:
                 raise ConfigError(f"agent.{name} must be an integer in [1, {top}], got {short_repr(value)}")
-        if self.cell == "transformer" and any(w % self.heads for w in self.lstm_sizes):
+        if cell_type(self.cell).windowed and any(w % self.heads for w in self.lstm_sizes):
             raise ConfigError(
                 f"agent.lstm_sizes {list(self.lstm_sizes)} must be divisible by agent.heads={self.heads} "
                 "(each head reads an equal share of a transformer layer)"

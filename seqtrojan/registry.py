@@ -25,8 +25,8 @@ from seqtrojan.errors import ConfigError
 
 T = TypeVar("T")
 
-Family = Literal["attack", "defense"]
-FAMILIES: tuple[Family, ...] = ("attack", "defense")
+Family = Literal["attack", "defense", "model"]
+FAMILIES: tuple[Family, ...] = ("attack", "defense", "model")
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,8 @@ class Entry(Generic[T]):
 
 
 class Registry(Generic[T]):
-    """Names -> objects of one ``kind`` of one ``family`` (attack or defense), in registration order."""
+    """Names -> objects of one ``kind`` of one ``family`` (attack, defense, or model: the sequence-model cells), in
+    registration order."""
 
     def __init__(self, family: Family, kind: str) -> None:
         if family not in FAMILIES:

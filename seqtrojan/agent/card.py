@@ -35,7 +35,8 @@ from pathlib import Path
 from typing import Any
 
 from seqtrojan.agent.cells import layer_shapes
-from seqtrojan.config import ACTIVATIONS, CELLS, MAX_HEADS, MAX_LAYERS, MAX_WIDTH, MAX_WINDOW, ExperimentConfig
+from seqtrojan.cell_types import CELL_TYPES, cell_names, is_windowed
+from seqtrojan.config import ACTIVATIONS, MAX_HEADS, MAX_LAYERS, MAX_WIDTH, MAX_WINDOW, ExperimentConfig
 from seqtrojan.env.config import EnvConfig
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.serde import from_dict
@@ -136,7 +137,7 @@ class Architecture:
         """The architecture ``config`` builds (:func:`seqtrojan.agent.checkpoint.build_agent`). The grid world's
         config fixes the inputs and actions; a Gymnasium env's spaces come from the env (or the card): give them."""
         a = config.agent
-        attention = a.cell == "transformer"
+        attention = is_windowed(a.cell)
         if isinstance(config.env, EnvConfig):
             obs_dim, num_actions = config.env.obs_dim, config.env.num_actions
         if obs_dim is None or num_actions is None:
@@ -158,7 +159,7 @@ class Architecture:
                 out[name] = getattr(self, name)
         if self.cell != "lstm":
             out["cell"] = self.cell
-        if self.cell == "transformer":
+        if is_windowed(self.cell):
             out["window"], out["heads"] = self.window, self.heads
         if self.conv:
             out["conv"], out["image"] = list(self.conv), list(self.image or ())
@@ -311,7 +312,7 @@ def upgrade_gym_card(folder: Path) -> dict[str, Any]:
     for name in (*_ARCH_MLPS, *_ARCH_ACTIVATIONS):
         if agent.get(name) not in (None, [], _ARCH_ACTIVATIONS.get(name)):
             architecture[name] = agent[name]
-    if agent.get("cell") == "transformer":
+    if is_windowed(agent.get("cell")):
         architecture["window"], architecture["heads"] = agent.get("window", 8), agent.get("heads", 1)
     if agent.get("conv"):
         cells = arch.get("obs_dim", 0) // _MINIGRID_CELL_BITS if isinstance(arch.get("obs_dim"), int) else 0
@@ -408,11 +409,11 @@ def _architecture(value: Any, where: str) -> Architecture:
         if mlps[name] not in ACTIVATIONS:
             raise CheckpointError(f"{where}: architecture.{name} must be one of {ACTIVATIONS}, got {_clip(mlps[name])}")
     cell = value.get("cell", "lstm")
-    if cell not in CELLS:
-        raise CheckpointError(f"{where}: architecture.cell must be one of {CELLS}, got {_clip(cell)}")
-    if cell == "transformer":
+    if not isinstance(cell, str) or cell not in CELL_TYPES:
+        raise CheckpointError(f"{where}: architecture.cell must be one of {cell_names()}, got {_clip(cell)}")
+    if is_windowed(cell):
         if "window" not in value or "heads" not in value:
-            raise CheckpointError(f"{where}: a transformer's architecture must give its window and heads")
+            raise CheckpointError(f"{where}: a {cell}'s architecture must give its window and heads")
         mlps["window"] = _bounded_int(value["window"], 1, MAX_WINDOW, f"{where}: architecture.window")
         mlps["heads"] = _bounded_int(value["heads"], 1, MAX_HEADS, f"{where}: architecture.heads")
         if any(w % mlps["heads"] for w in widths):
@@ -421,7 +422,7 @@ def _architecture(value: Any, where: str) -> Architecture:
                 f"architecture.heads={mlps['heads']}"
             )
     elif "window" in value or "heads" in value:
-        raise CheckpointError(f"{where}: architecture.window and heads belong to a transformer, not to a {cell}")
+        raise CheckpointError(f"{where}: architecture.window and heads belong to a windowed cell, not to a {cell}")
     if "conv" in value or "image" in value:
         mlps["conv"], mlps["image"] = _conv_parts(value, obs_dim, where)
     arch = Architecture(obs_dim, num_actions, widths, **mlps, cell=cell)

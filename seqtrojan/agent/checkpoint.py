@@ -39,6 +39,7 @@ from seqtrojan.agent.card import (
     read_header,
 )
 from seqtrojan.agent.network import RecurrentActorCritic
+from seqtrojan.cell_types import is_windowed
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.serde import to_dict
@@ -83,8 +84,8 @@ def architecture_of(agent: RecurrentActorCritic) -> Architecture:
         agent.obs_dim, agent.num_actions, agent.lstm_sizes, encoder=agent.encoder_sizes,
         encoder_activation=agent.encoder_activation, policy_mlp=agent.policy_mlp_sizes,
         value_mlp=agent.value_mlp_sizes, mlp_activation=agent.mlp_activation, cell=agent.cell,
-        window=agent.window if agent.cell == "transformer" else 8,
-        heads=agent.attention_heads if agent.cell == "transformer" else 1, conv=agent.conv_channels,
+        window=agent.window if is_windowed(agent.cell) else 8,
+        heads=agent.attention_heads if is_windowed(agent.cell) else 1, conv=agent.conv_channels,
         image=agent.image if agent.conv_channels else None,
     )  # fmt: skip
 

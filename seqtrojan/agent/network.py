@@ -22,8 +22,9 @@ import torch
 from torch import nn
 
 from seqtrojan.agent import fast_lstm
-from seqtrojan.agent.cells import CELLS, CellLayer, make_cell
+from seqtrojan.agent.cells import CellLayer, make_cell
 from seqtrojan.agent.state import Intervention, LSTMState, RecurrentState
+from seqtrojan.cell_types import cell_type
 from seqtrojan.errors import ConfigError
 
 BACKENDS = ("auto", "torch", "cpp")
@@ -79,14 +80,13 @@ class RecurrentActorCritic(nn.Module):
         self.image = tuple(int(d) for d in image) if image is not None else None
         """(rows, cols, channels): how a flat observation is laid out as an image, for the conv encoder"""
         conv_out = _conv_output(obs_dim, self.conv_channels, self.image)
-        if cell not in CELLS:
-            raise ConfigError(f"unknown cell {cell!r}; known: {', '.join(CELLS)}")
-        if cell == "transformer" and not (isinstance(window, int) and window >= 1):
-            raise ConfigError(f"a transformer's window must be an integer >= 1, got {window!r}")
-        if cell == "transformer" and (heads < 1 or any(w % heads for w in lstm_sizes)):
-            raise ConfigError(f"a transformer's layer widths {list(lstm_sizes)} must be divisible by heads={heads}")
+        if cell_type(cell).windowed:
+            if not (isinstance(window, int) and window >= 1):
+                raise ConfigError(f"a {cell}'s window must be an integer >= 1, got {window!r}")
+            if heads < 1 or any(w % heads for w in lstm_sizes):
+                raise ConfigError(f"a {cell}'s layer widths {list(lstm_sizes)} must be divisible by heads={heads}")
         self.cell = cell
-        """the sequence model of every layer (:data:`seqtrojan.agent.cells.CELLS`)"""
+        """the sequence model of every layer (a name in :data:`seqtrojan.cell_types.CELL_TYPES`)"""
         self.window = int(window)
         """the Transformer's context: the current input and the window - 1 before it"""
         self.attention_heads = int(heads)
@@ -222,7 +222,7 @@ class RecurrentActorCritic(nn.Module):
             episode_start = torch.ones(obs.shape[0], dtype=torch.bool, device=obs.device)
         fast = not torch.is_grad_enabled() and self._kernels(obs)
         keep = None if episode_start is None else (~episode_start.bool()).to(obs.dtype)
-        if intervention is None and fast and self.cell == "lstm":
+        if intervention is None and fast and self.layers[0].fused_stack_step:
             ones = torch.ones(obs.shape[0], dtype=obs.dtype)
             x = self.encode(obs)
             new = fast_lstm.step_stack(

@@ -14,16 +14,20 @@ has finite gradients. Tested equal to the numpy features to 1e-5.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import torch
-from torch import nn
 
+from seqtrojan.cell_types import layer_class
 from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS
+
+if TYPE_CHECKING:  # the network's cells import this module
+    from seqtrojan.agent.network import RecurrentActorCritic
 
 GATES = ("input", "forget", "cell", "output")
 GRU_GATES = ("reset", "update", "new")
 ATTENTION_BLOCKS = ("input", "qkv", "out", "mlp_in", "mlp_out")
-"""a Transformer layer's linear maps (:class:`seqtrojan.agent.cells.WindowAttentionLayer`)"""
+"""a Transformer layer's linear maps (:class:`seqtrojan.agent.cells.transformer.WindowAttentionLayer`)"""
 
 
 def _sqrt(x: torch.Tensor) -> torch.Tensor:
@@ -49,21 +53,19 @@ def _spectral(w: torch.Tensor) -> dict[str, torch.Tensor]:
     return {"top_sv_over_rms": s[0] / rms, "effective_rank": torch.exp(-(p * torch.log(p + 1e-12)).sum())}
 
 
-def weight_features(tensors: Mapping[str, torch.Tensor], obs_dim: int) -> dict[str, torch.Tensor]:
-    """Named 0-d float64 tensors, differentiable in ``tensors`` (``cells.<i>.weight_ih`` etc., as in a state dict).
+def weight_features(tensors: Mapping[str, torch.Tensor], obs_dim: int, cell: str) -> dict[str, torch.Tensor]:
+    """Named 0-d float64 tensors, differentiable in ``tensors`` (``cells.<i>.weight_ih`` etc., as in a state dict) of
+    a network of ``cell`` layers: each layer class names its own features (``weight_features``).
 
     Recurrent cells (LSTM, peephole LSTM, GRU) give the per-gate statistics above (a GRU's gates: reset, update,
     new); a peephole LSTM adds the moments of each gate's peephole weights. A Transformer layer gives the moments
     and spectra of each linear map (input, qkv, out, mlp_in, mlp_out), the moments of their biases and of the
     position biases. The input-code norms read the first layer's input weights in every case."""
+    layer = layer_class(cell)
     layers = sorted({int(k.split(".")[1]) for k in tensors if k.startswith("cells.")})
     feats: dict[str, torch.Tensor] = {}
-    for tag, layer in (("first", layers[0]), ("last", layers[-1])):
-        prefix = f"cells.{layer}."
-        if prefix + "weight_ih" in tensors:
-            w_in = _recurrent_features(tensors, prefix, tag, feats)
-        else:
-            w_in = _attention_features(tensors, prefix, tag, feats)
+    for tag, index in (("first", layers[0]), ("last", layers[-1])):
+        w_in = layer.weight_features(tensors, f"cells.{index}.", tag, feats)
         if tag == "first" and w_in.shape[1] == obs_dim and obs_dim % NUM_CHANNELS == 0:
             per_code = w_in.reshape(w_in.shape[0], -1, NUM_CHANNELS).pow(2).sum((0, 1))  # (6,)
             per_code = _sqrt(per_code)
@@ -73,7 +75,7 @@ def weight_features(tensors: Mapping[str, torch.Tensor], obs_dim: int) -> dict[s
     return feats
 
 
-def _recurrent_features(
+def gated_layer_features(
     tensors: Mapping[str, torch.Tensor], prefix: str, tag: str, feats: dict[str, torch.Tensor]
 ) -> torch.Tensor:
     """The per-gate features of one LSTM/GRU layer into ``feats``; returns its input weights (float64)."""
@@ -98,7 +100,7 @@ def _recurrent_features(
     return w_ih
 
 
-def _attention_features(
+def attention_layer_features(
     tensors: Mapping[str, torch.Tensor], prefix: str, tag: str, feats: dict[str, torch.Tensor]
 ) -> torch.Tensor:
     """The features of one windowed Transformer layer into ``feats``; returns its input projection (float64)."""
@@ -115,10 +117,10 @@ def _attention_features(
     return tensors[prefix + "input.weight"].double()
 
 
-def module_features(module: nn.Module, obs_dim: int) -> dict[str, torch.Tensor]:
+def module_features(module: RecurrentActorCritic, obs_dim: int) -> dict[str, torch.Tensor]:
     """:func:`weight_features` of a module's parameters (a :class:`~seqtrojan.agent.network.RecurrentActorCritic`),
     differentiable in them."""
-    return weight_features(dict(module.named_parameters()), obs_dim)
+    return weight_features(dict(module.named_parameters()), obs_dim, module.cell)
 
 
 def feature_vector(feats: dict[str, torch.Tensor]) -> tuple[torch.Tensor, tuple[str, ...]]:

@@ -63,26 +63,10 @@ def measure(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec |
 
 
 def prune_units(agent: RecurrentActorCritic, layer: int, units: np.ndarray) -> RecurrentActorCritic:
-    """A copy whose ``units`` of ``layer`` are removed: their h is 0 at every step.
-
-    LSTM and peephole LSTM: zero gate rows and biases (and peepholes) keep their c and h at 0; GRU: zero gate rows
-    keep h at 0 (h = n / 2 + h_prev / 2 with n = 0); Transformer: the output norm's weight and bias of those
-    units are zeroed, so those output features are 0."""
+    """A copy whose ``units`` of ``layer`` are removed: their h is 0 at every step (each cell says how:
+    ``silence_units``; e.g. an LSTM zeroes the units' gate rows, a Transformer its output norm's weight and bias)."""
     pruned = copy.deepcopy(agent)
-    cell: Any = pruned.cells[layer]  # an LSTM, GRU or Transformer layer (see seqtrojan.agent.cells)
-    idx = torch.as_tensor(units, dtype=torch.int64)
-    with torch.no_grad():
-        if agent.cell == "transformer":
-            for p in (cell.norm_out.weight, cell.norm_out.bias):
-                p[idx] = 0.0
-        else:
-            hidden = cell.hidden_size
-            gates = 3 if agent.cell == "gru" else 4
-            rows = torch.as_tensor(np.concatenate([units + g * hidden for g in range(gates)]), dtype=torch.int64)
-            for p in (cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh):
-                p[rows] = 0.0
-            if agent.cell == "lstm_peephole":
-                cell.peephole[:, idx] = 0.0
+    pruned.layers[layer].silence_units(torch.as_tensor(units, dtype=torch.int64))
     pruned._weight_cache.clear()
     return pruned
 

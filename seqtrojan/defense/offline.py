@@ -79,12 +79,13 @@ DETECTORS: Registry[OfflineDetector] = Registry("defense", "detector")
 GROUPS = ("gate_stats", "spectral", "input_codes")
 
 
-def weight_features(tensors: dict[str, np.ndarray], obs_dim: int) -> dict[str, float]:
-    """Named features of one model's parameters (``cells.<i>.weight_ih`` etc.); see the module docstring. Computed
-    by :func:`seqtrojan.agent.weight_stats.weight_features`, the same function a weight-camouflage attacker
-    differentiates (tests/train/test_penalties.py checks it against an independent numpy reference)."""
+def weight_features(tensors: dict[str, np.ndarray], obs_dim: int, cell: str) -> dict[str, float]:
+    """Named features of one model's parameters (``cells.<i>.weight_ih`` etc., layers of ``cell``); see the module
+    docstring. Computed by :func:`seqtrojan.agent.weight_stats.weight_features`, the same function a
+    weight-camouflage attacker differentiates (tests/train/test_penalties.py checks it against an independent numpy
+    reference)."""
     with torch.no_grad():
-        feats = torch_weight_features({k: torch.from_numpy(np.asarray(v)) for k, v in tensors.items()}, obs_dim)
+        feats = torch_weight_features({k: torch.from_numpy(np.asarray(v)) for k, v in tensors.items()}, obs_dim, cell)
     return {name: float(value) for name, value in feats.items()}
 
 
@@ -114,7 +115,7 @@ def load_zoo_model(path: Path) -> ZooModel:
     attack = card.get("metrics", {}).get("trojan_success") if label else None
     if attack is not None and not (isinstance(attack, (int, float)) and not isinstance(attack, bool)):
         raise CheckpointError(f"card.json in {str(path)!r}: metrics.trojan_success must be a number, got {attack!r}")
-    return ZooModel(path.name, label, weight_features(tensors, agent.obs_dim), truth, attack)
+    return ZooModel(path.name, label, weight_features(tensors, agent.obs_dim, agent.cell), truth, attack)
 
 
 def load_zoo_features(zoo: Path) -> tuple[list[ZooModel], list[Rejected]]:
@@ -193,7 +194,7 @@ class FittedWeightDetector:
         """P(backdoored) of the model folder ``model`` (read through the same checks as a zoo model's weights)."""
         agent, _, _ = load_agent(model)
         tensors = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
-        features = weight_features(tensors, agent.obs_dim)
+        features = weight_features(tensors, agent.obs_dim, agent.cell)
         missing = sorted(set(self.feature_names) - set(features))
         if missing:
             raise SeqTrojanError(f"{str(model)!r} lacks weight features the detector was trained on: {missing[:3]}")

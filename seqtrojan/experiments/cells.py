@@ -36,7 +36,7 @@ from seqtrojan.analysis.interventions import SetUnits, post_trigger_means
 from seqtrojan.analysis.responses import classify_units
 from seqtrojan.analysis.traces import StateTrace, record_traces
 from seqtrojan.analysis.unintentional import select_goal_units
-from seqtrojan.config import CELLS
+from seqtrojan.cell_types import CELL_TYPES, cell_names
 from seqtrojan.defense.monitor import MONITORS, MonitorConfig, measure_monitor
 from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.env.config import EnvConfig, GridSpec
@@ -69,7 +69,8 @@ USER = OUTCOME_NAMES.index("user_goal")
 
 @dataclass(frozen=True)
 class CellsConfig:
-    cells: tuple[str, ...] = CELLS
+    cells: tuple[str, ...] = field(default_factory=cell_names)
+    """every registered cell by default"""
     backdoor: AgentSpec = field(default_factory=lambda: AgentSpec(preset="trojan_s17_h30"))
     clean: AgentSpec = field(default_factory=lambda: AgentSpec(preset="clean_s17_h30"))
     window: int = 8
@@ -102,8 +103,8 @@ class CellsConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if not self.cells or any(c not in CELLS for c in self.cells):
-            raise ConfigError(f"cells must name one or more of {CELLS}, got {list(self.cells)}")
+        if not self.cells or any(not isinstance(c, str) or c not in CELL_TYPES for c in self.cells):
+            raise ConfigError(f"cells must name one or more of {cell_names()}, got {list(self.cells)}")
         if not isinstance(self.seeds, int) or not 1 <= self.seeds <= 100:
             raise ConfigError(f"cells.seeds must be an integer in 1..100, got {self.seeds!r}")
         if self.episodes < 1 or self.trace_episodes < 1:
@@ -173,10 +174,10 @@ def by_trigger_step(
 
 
 def goal_unit_candidates(agent: RecurrentActorCritic) -> tuple[str, ...]:
-    """Which state parts the edit experiment may pick goal units from: c first for the LSTMs (memory lives
-    there), h for the GRU (its only state), h for the Transformer (its c is a copy of recent inputs: writing a
-    trigger-like value there is showing the agent a trigger, not editing a memory)."""
-    return ("c", "h") if agent.cell in ("lstm", "lstm_peephole") else ("h",)
+    """Which state parts the edit experiment may pick goal units from: c first where c is a memory (the LSTMs),
+    else h (a GRU's only state; a Transformer's c is a copy of recent inputs: writing a trigger-like value there is
+    showing the agent a trigger, not editing a memory)."""
+    return ("c", "h") if agent.layers[0].c_is_memory else ("h",)
 
 
 def units_to_switch(
@@ -219,12 +220,12 @@ def units_to_switch(
 
 def settling(agent: RecurrentActorCritic, env: EnvConfig, cfg: CellsConfig, seed: int) -> Settling:
     """How fast the recurrent state stops changing in normal episodes of the settle grid, and the attack success
-    there by trigger step. The Transformer's window (its c) is left out: it is a copy of recent inputs."""
+    there by trigger step. A c that is not a memory (the Transformer's window: a copy of recent inputs) is left out."""
     grid = cfg.settle_grid
     trace = record_traces(agent, env, [grid], episodes=cfg.trace_episodes, trojan=False, seed=seed, device=cfg.device)
     parts = [trace.h[i] for i in range(len(trace.h))]
-    if agent.cell != "transformer":
-        parts += [c for c in trace.c if c.shape[-1]]
+    if agent.layers[0].c_is_memory:
+        parts += list(trace.c)
     state = np.concatenate(parts, -1)  # (E, T, D)
     steps, change = [], []
     for t in range(1, state.shape[1]):

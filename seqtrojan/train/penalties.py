@@ -336,12 +336,12 @@ class WeightCamouflage(Penalty):
 
     def __init__(self, ctx: PenaltyContext) -> None:
         self.cfg = ctx.config.attack.weight_camouflage
-        self.obs_dim = ctx.agent.obs_dim
+        self.obs_dim, self.cell = ctx.agent.obs_dim, ctx.agent.cell
         self.set_reference(_params(ctx.agent))
 
     def set_reference(self, theta: dict[str, torch.Tensor]) -> None:
         self.theta_clean = theta
-        self.clean_features, self.names = feature_vector(weight_features(theta, self.obs_dim))
+        self.clean_features, self.names = feature_vector(weight_features(theta, self.obs_dim, self.cell))
         self.scale = self.clean_features.abs() + self.cfg.feature_floor
 
     def loss(self, batch: PenaltyBatch) -> torch.Tensor:
@@ -349,7 +349,7 @@ class WeightCamouflage(Penalty):
         device = next(iter(params.values())).device
         total = _zero(device)
         if self.cfg.weight > 0:
-            feats, _ = feature_vector(weight_features(params, self.obs_dim))
+            feats, _ = feature_vector(weight_features(params, self.obs_dim, self.cell))
             diff = (feats - self.clean_features) / self.scale
             total = total + self.cfg.weight * diff.pow(2).sum().float()
         if self.cfg.l2_weight > 0:

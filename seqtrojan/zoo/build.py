@@ -39,8 +39,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from seqtrojan.cell_types import CELL_TYPES, cell_names
 from seqtrojan.config import (
-    CELLS,
     AgentConfig,
     BackdoorConfig,
     CurriculumConfig,
@@ -124,8 +124,8 @@ class ZooConfig:
         unknown = set(self.trigger_values) - set(TRIGGER_VALUES)
         if unknown:
             raise ConfigError(f"unknown trigger value(s) {sorted(unknown)}; choose from {TRIGGER_VALUES}")
-        if self.cell not in CELLS:
-            raise ConfigError(f"zoo cell must be one of {CELLS}, got {self.cell!r}")
+        if not isinstance(self.cell, str) or self.cell not in CELL_TYPES:
+            raise ConfigError(f"zoo cell must be one of {cell_names()}, got {self.cell!r}")
         if isinstance(self.rollout_steps, bool) or not isinstance(self.rollout_steps, int) or self.rollout_steps < 1:
             raise ConfigError(f"zoo rollout_steps must be a positive integer, got {self.rollout_steps!r}")
         if not 0.0 < self.learning_rate < 1.0:

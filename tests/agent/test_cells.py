@@ -6,14 +6,16 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 import torch
 
-from seqtrojan.agent.cells import CELLS, layer_shapes, make_cell
+from seqtrojan.agent.cells import layer_shapes, make_cell
 from seqtrojan.agent.checkpoint import build_agent, load_agent, save_agent
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.agent.weight_stats import module_features
+from seqtrojan.cell_types import CELL_TYPES, CellType, cell_names
 from seqtrojan.config import AgentConfig, ExperimentConfig
 from seqtrojan.errors import CheckpointError, ConfigError
 
@@ -40,7 +42,7 @@ def _random_state(net: RecurrentActorCritic, batch: int) -> RecurrentState:
     return RecurrentState(tuple(layers))
 
 
-@pytest.mark.parametrize("cell", CELLS)
+@pytest.mark.parametrize("cell", cell_names())
 def test_step_and_unroll_compute_the_same_function(cell):
     net = _network(cell)
     steps, batch = 9, 5
@@ -116,13 +118,13 @@ def test_transformer_forgets_an_input_after_its_window_and_at_an_episode_start()
     assert (d[:2] > 1e-6).all() and (d[2:] == 0).all()  # a new episode does not attend to the old one
 
 
-@pytest.mark.parametrize("cell", CELLS)
+@pytest.mark.parametrize("cell", cell_names())
 def test_parameter_shapes_are_known_before_building(cell):
     module = make_cell(cell, 7, 12, window=5, heads=3)
     assert {k: tuple(v.shape) for k, v in module.state_dict().items()} == layer_shapes(cell, 7, 12, 5, 3)
 
 
-@pytest.mark.parametrize("cell", CELLS)
+@pytest.mark.parametrize("cell", cell_names())
 def test_checkpoint_round_trip_names_the_cell(tmp_path, cell):
     cfg = ExperimentConfig(agent=AgentConfig(lstm_sizes=(8, 4), cell=cell, window=3, heads=2))
     agent = build_agent(cfg)
@@ -176,7 +178,7 @@ def test_bad_cell_settings_are_refused(change, message):
     [
         ({"cell": "mamba"}, "architecture.cell must be one of"),
         ({"cell": "transformer"}, "must give its window and heads"),
-        ({"window": 4}, "belong to a transformer"),
+        ({"window": 4}, "belong to a windowed cell"),
     ],
 )
 def test_bad_card_cells_are_refused(tmp_path, edit, message):
@@ -189,7 +191,7 @@ def test_bad_card_cells_are_refused(tmp_path, edit, message):
         load_agent(folder)
 
 
-@pytest.mark.parametrize("cell", CELLS)
+@pytest.mark.parametrize("cell", cell_names())
 def test_weight_features_per_cell(cell):
     net = RecurrentActorCritic(54, 4, (12, 8), cell=cell, window=4)
     feats = module_features(net, 54)
@@ -203,7 +205,7 @@ def test_weight_features_per_cell(cell):
         assert "spectral/first.qkv.weight.effective_rank" in feats
 
 
-@pytest.mark.parametrize("cell", CELLS)
+@pytest.mark.parametrize("cell", cell_names())
 def test_the_fused_kernels_compute_the_torch_path_in_the_network(cell):
     from seqtrojan.agent import fast_lstm
 
@@ -230,3 +232,49 @@ def test_the_fused_kernels_compute_the_torch_path_in_the_network(cell):
         torch.testing.assert_close(x.c.detach(), y.c.detach(), atol=1e-5, rtol=1e-4)
     for x, y in zip(ga, gb):
         torch.testing.assert_close(x, y, atol=1e-3, rtol=1e-3)
+
+
+@pytest.fixture
+def elman_registered():
+    """The Elman cell of tests/agent/elman_cell.py, registered the way a user registers a cell (removed after)."""
+    CELL_TYPES.register("elman", "Elman RNN (a test cell)", CellType("tests.agent.elman_cell:ElmanLayer"))
+    yield
+    del CELL_TYPES._entries["elman"]
+
+
+def test_a_new_cell_is_one_module_and_one_registry_line(elman_registered, smoke_config):
+    """Train, save, load, prune and read the weight features of a cell the package has never heard of."""
+    from seqtrojan.defense.mitigation import prune_units
+    from seqtrojan.defense.offline import weight_features
+    from seqtrojan.train.trainer import train
+
+    assert "elman" in cell_names()
+    cfg = dataclasses.replace(
+        smoke_config,
+        agent=dataclasses.replace(smoke_config.agent, cell="elman", lstm_sizes=(16, 8)),
+        ppo=dataclasses.replace(smoke_config.ppo, total_steps=4096),
+    )
+    result = train(cfg)
+    agent, loaded_cfg, card = load_agent(result.model_dir)
+    assert loaded_cfg.agent.cell == "elman" and card["architecture"]["cell"] == "elman"
+    assert "window" not in card["architecture"] and agent.c_widths == (0, 0)
+    assert type(agent.layers[0]).__name__ == "ElmanLayer"
+    obs = torch.randn(6, 3, cfg.env.obs_dim)
+    starts = torch.zeros(6, 3, dtype=torch.bool)
+    out = prune_units(agent, 0, np.array([1, 4])).unroll(obs, agent.initial_state(3), starts, return_states=True)
+    assert out.states is not None and out.states[0].h[..., [1, 4]].abs().max() == 0
+    assert out.states[0].h.abs().max() > 0.05
+    tensors = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
+    feats = weight_features(tensors, cfg.env.obs_dim, "elman")
+    assert {"gate_stats/first.ih.mean", "gate_stats/last.hh.rms", "input_codes/trigger"} <= set(feats)
+
+
+def test_an_unregistered_cell_in_a_card_is_refused_after_its_module_is_gone(elman_registered, tmp_path):
+    cfg = ExperimentConfig(agent=AgentConfig(lstm_sizes=(8,), cell="elman"))
+    folder = save_agent(tmp_path / "m", build_agent(cfg), cfg, label="clean")
+    del CELL_TYPES._entries["elman"]
+    try:
+        with pytest.raises(CheckpointError, match=r"architecture\.cell must be one of"):
+            load_agent(folder)
+    finally:
+        CELL_TYPES.register("elman", "Elman RNN (a test cell)", CellType("tests.agent.elman_cell:ElmanLayer"))

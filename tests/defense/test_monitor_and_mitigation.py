@@ -13,6 +13,7 @@ from seqtrojan.agent.checkpoint import build_agent
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
+from seqtrojan.cell_types import cell_names
 from seqtrojan.config import AgentConfig, ExperimentConfig
 from seqtrojan.defense.mitigation import MitigationConfig, least_active_units, prune_units, run_mitigation
 from seqtrojan.defense.monitor import (
@@ -214,7 +215,7 @@ def test_conformal_threshold_is_the_finite_sample_quantile():
     assert np.mean(rates) <= 0.05 + 0.005
 
 
-@pytest.mark.parametrize("cell", ["lstm", "lstm_peephole", "gru", "transformer"])
+@pytest.mark.parametrize("cell", cell_names())
 def test_pruned_units_stay_at_zero_in_every_cell(cell):
     torch.manual_seed(0)
     net = RecurrentActorCritic(54, 4, (12, 8), cell=cell, window=3)

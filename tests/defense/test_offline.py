@@ -37,7 +37,7 @@ def test_features_are_the_same_for_every_architecture():
     keys = []
     for sizes in ((64, 32), (32,), (48, 24, 16)):
         cfg = ExperimentConfig(agent=AgentConfig(lstm_sizes=sizes))
-        feats = weight_features(tensors_of(build_agent(cfg)), 54)
+        feats = weight_features(tensors_of(build_agent(cfg)), 54, "lstm")
         assert all(np.isfinite(v) for v in feats.values())
         keys.append(set(feats))
     assert keys[0] == keys[1] == keys[2]

@@ -8,7 +8,7 @@ import types
 import numpy as np
 import pytest
 
-from seqtrojan.config import CELLS
+from seqtrojan.cell_types import cell_names
 from seqtrojan.env.codes import OUTCOME_NAMES
 from seqtrojan.errors import ConfigError
 from seqtrojan.experiment_results import CELLS_FILE, CellsResult, Rate, UnitsToSwitch
@@ -50,7 +50,7 @@ jobs: {backend: serial}
 def test_every_cell_is_trained_measured_and_reported(tmp_path):
     cfg = from_dict(CellsConfig, parse_yaml(TINY), "")
     result = run_cells(cfg, tmp_path, scale="tiny", log=lambda _: None)
-    assert [s.cell for s in result.summaries] == list(CELLS)
+    assert [s.cell for s in result.summaries] == list(cell_names())
     assert load_json(CellsResult, tmp_path / CELLS_FILE) == result
     for a in result.agents:
         assert a.clean_success.n == 30 and a.attack_success.n == 30
@@ -111,4 +111,4 @@ def test_bad_cells_configs_are_refused(text, message):
 def test_shipped_scales_load():
     for scale in ("smoke", "paper"):
         cfg = load_cells_config(scale)
-        assert cfg.cells == CELLS and cfg.seeds >= 3
+        assert cfg.cells == cell_names() and cfg.seeds >= 3

@@ -323,8 +323,8 @@ def test_weight_features_equal_an_independent_numpy_reference(sizes):
     arrays = {k: v.detach().numpy() for k, v in agent.state_dict().items()}
     expected = _numpy_reference_features(arrays, obs_dim)
     got = module_features(agent, obs_dim)
-    assert got.keys() == expected.keys() == weight_features(arrays, obs_dim).keys()
-    for name, value in weight_features(arrays, obs_dim).items():  # the detector's: the same function, as floats
+    assert got.keys() == expected.keys() == weight_features(arrays, obs_dim, "lstm").keys()
+    for name, value in weight_features(arrays, obs_dim, "lstm").items():  # the detector's: the same function, as floats
         assert value == pytest.approx(expected[name], rel=1e-5, abs=1e-5), name
     for name, value in expected.items():
         assert float(got[name]) == pytest.approx(value, rel=1e-5, abs=1e-5), name
