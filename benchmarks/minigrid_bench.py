@@ -71,7 +71,8 @@ from seqtrojan.stats import OverSeeds, Rate
 from seqtrojan.train.trainer import TrainResult, train
 from seqtrojan.wrappers import MiniGridOneHot, trigger_vector_env
 
-NUM_ENVS, ROLLOUT = 16, 64
+NUM_ENVS, ROLLOUT = 64, 32
+"""the two-goal room's envs and rollout steps per update by default (the ``minigrid_two_goals`` preset's)"""
 HORIZONS = (0, 2, 5, 10, 15, 20)
 
 
@@ -106,8 +107,9 @@ the two stages of the ``minigrid_memory`` presets)"""
 
 def config(
     out_dir: str, steps: int, seed: int, backdoor: bool = True, attack: str = "none", fast_view: bool = True,
-    task: str = "two_goals",
+    task: str = "two_goals", shape: tuple[int, int] = (NUM_ENVS, ROLLOUT),
 ) -> ExperimentConfig:  # fmt: skip
+    """The run of one seed; ``shape`` is the two-goal room's (envs, rollout steps) per update."""
     if task == "memory":
         preset = from_dict(
             ExperimentConfig, load_yaml(resolve_preset("minigrid_memory_backdoor"))
@@ -124,7 +126,7 @@ def config(
             trigger=WrapperTriggerConfig(),
         ),
         ppo=PPOConfig(
-            total_steps=steps, num_envs=NUM_ENVS, rollout_steps=ROLLOUT, bptt_length=16, num_minibatches=4,
+            total_steps=steps, num_envs=shape[0], rollout_steps=shape[1], bptt_length=16, num_minibatches=4,
             update_epochs=4, learning_rate=1e-3,
         ),
         backdoor=BackdoorConfig(enabled=backdoor),
@@ -176,7 +178,7 @@ def train_backdoor(cfg: ExperimentConfig, clean_start_steps: int, harden_from_st
 
 def train_and_measure(
     steps: int, episodes: int, finetune_steps: int, attack: str, monitor_episodes: int, task: str, out_root: str | None,
-    clean_start_steps: int, harden_from_steps: int, seed: int,
+    clean_start_steps: int, harden_from_steps: int, shape: tuple[int, int], seed: int,
 ) -> SeedFigures:  # fmt: skip
     """Train one backdoored agent (seed ``seed``, attacker ``attack``), load it back as a user would, measure it on
     fresh episodes; with ``monitor_episodes`` > 0 run the state monitors on it, with ``finetune_steps`` > 0 also
@@ -185,7 +187,7 @@ def train_and_measure(
     inside: dict[str, Rate] = {}
     with tempfile.TemporaryDirectory() as tmp:
         out = out_root if out_root is not None else tmp
-        cfg = config(out, steps, seed, attack=attack, task=task)
+        cfg = config(out, steps, seed, attack=attack, task=task, shape=shape)
         result = train_backdoor(cfg, clean_start_steps, harden_from_steps)
         agent, _, _ = load_agent(result.model_dir)
         if monitor_episodes:
@@ -222,13 +224,13 @@ def train_and_measure(
 def backdoor_part(
     steps: int, episodes: int, seed: int, seeds: int, workers: int, finetune_steps: int = 0, attack: str = "none",
     monitor_episodes: int = 0, task: str = "two_goals", out_root: str | None = None, clean_start_steps: int = 0,
-    harden_from_steps: int = 0,
+    harden_from_steps: int = 0, shape: tuple[int, int] = (NUM_ENVS, ROLLOUT),
 ) -> None:  # fmt: skip
     """Train ``seeds`` agents (seeds ``seed``, ``seed + 1``, ...) on ``workers`` processes; print each seed's
     figures, then mean ± sd over seeds and the pooled 95% interval."""
     job = partial(
         train_and_measure, steps, episodes, finetune_steps, attack, monitor_episodes, task, out_root, clean_start_steps,
-        harden_from_steps,
+        harden_from_steps, shape,
     )  # fmt: skip
     with ProcessPoolExecutor(min(workers, seeds), mp_context=multiprocessing.get_context("spawn")) as pool:
         runs = list(pool.map(job, range(seed, seed + seeds)))
@@ -237,6 +239,8 @@ def backdoor_part(
         where += f", backdoor added to a clean agent of {clean_start_steps} steps (fixed 0.5 mixing)"
     if harden_from_steps:
         where += f", the attacker trained on from a plain backdoor of {harden_from_steps} steps"
+    if task == "two_goals":
+        where += f", {shape[0]} envs x {shape[1]} rollout steps"
     print(f"\n== backdoor ({attack} attacker): {where}, {steps} env steps per seed, {seeds} seed(s), "
           f"{episodes} episodes per type ==")  # fmt: skip
     print("seed  env steps  wall s  clean success          trojan success         persistence k=5")
@@ -320,12 +324,14 @@ def speed_part(steps: int, seed: int, repeats: int, fast_view: bool) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--part", choices=["all", "backdoor", "speed"], default="all")
-    parser.add_argument("--steps", type=int, default=150 * 1024, help="training steps of the backdoor part")
+    parser.add_argument("--steps", type=int, default=180 * 2048, help="training steps of the backdoor part")
     parser.add_argument("--episodes", type=int, default=500, help="evaluation episodes per type")
     parser.add_argument("--speed-steps", type=int, default=20 * 1024, help="training steps per speed run")
     parser.add_argument("--repeats", type=int, default=3, help="speed runs per trainer")
     parser.add_argument("--seed", type=int, default=0, help="first training seed")
     parser.add_argument("--seeds", type=int, default=5, help="training seeds of the backdoor part")
+    parser.add_argument("--num-envs", type=int, default=NUM_ENVS, help="the two-goal room's envs per update")
+    parser.add_argument("--rollout", type=int, default=ROLLOUT, help="the two-goal room's rollout steps per env")
     parser.add_argument("--workers", type=int, default=2, help="processes training the backdoor part's seeds")
     parser.add_argument(
         "--finetune-steps",
@@ -365,7 +371,7 @@ def main() -> None:
     if args.part in ("all", "backdoor"):
         backdoor_part(args.steps, args.episodes, args.seed, args.seeds, args.workers, args.finetune_steps,
                       args.attack, args.monitor_episodes, args.task, args.out, args.clean_start_steps,
-                      args.harden_from_steps)  # fmt: skip
+                      args.harden_from_steps, (args.num_envs, args.rollout))  # fmt: skip
     if args.part in ("all", "speed"):
         speed_part(args.speed_steps, args.seed, args.repeats, fast_view=not args.minigrid_view)
 
