@@ -130,8 +130,9 @@ def _train(argv: list[str]) -> None:
 class EvaluateArgs:
     """Success rates of trained models, with 95% intervals. A grid-world model is evaluated over grid configs
     (default: the paper's 14) beside the paper's numbers; a model of a Gymnasium env on that env: clean success,
-    trojan success and the trojan's persistence. A clean model is evaluated in the normal env, a backdoored one (or
-    a Gymnasium model whose env has a trigger) in the normal and the trojan env."""
+    trojan success and the trojan's persistence. A model stated clean is evaluated in the normal env only; a
+    backdoored one, one of unknown lineage (an imported suspect) and a Gymnasium model whose env has a trigger in
+    the normal and the trojan env."""
 
     models: tuple[Path, ...]
     """model folders (each with model.safetensors and card.json; an earlier version's gym_card.json also loads)"""
@@ -169,6 +170,7 @@ def _evaluate(argv: list[str]) -> None:
         rows = evaluate_sweep(
             [(name, agent, cfg) for name, _, agent, cfg, _ in grid_agents], parse_configs(args.configs),
             episodes=args.episodes, seed=args.seed, greedy=args.greedy, device=args.device,
+            labels=[card["label"] for *_, card in grid_agents],
         )  # fmt: skip
         Console().print(sweep_table(rows))
         paths = write_sweep(rows, args.out)
@@ -562,8 +564,8 @@ def _import(argv: list[str]) -> None:
         out: Path
         """the model folder to write (new or empty)"""
         label: Literal["clean", "backdoored"] | None = None
-        """what you state the agent is (the card's label); unset writes 'clean' and marks the card's
-        provenance.label_stated false"""
+        """what you state the agent is (the card's label); unset writes 'unknown' (a suspect: evaluated in
+        both envs, never taken as ground truth) and marks the card's provenance.label_stated false"""
         obs_dim: int | None = None
         """observation inputs (required for cleanrl; checked for sb3)"""
         actions: int | None = None

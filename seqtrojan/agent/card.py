@@ -46,7 +46,9 @@ FORMAT = "seqtrojan-model"
 FORMAT_VERSION = 1
 WEIGHTS = "model.safetensors"
 CARD = "card.json"
-LABELS = ("clean", "backdoored")
+LABELS = ("clean", "backdoored", "unknown")
+"""what a model is said to be; ``unknown``: nobody stated it (an imported agent without ``--label``), so every tool
+treats it as a suspect (both envs evaluated) and nothing takes it as ground truth"""
 
 ARCHITECTURE_TYPE = "RecurrentActorCritic"
 
@@ -349,7 +351,7 @@ def parse_card(raw: bytes | str, where: str = CARD) -> ModelCard:
         raise CheckpointError(f"{where} has unknown field(s) {_clip(unknown)}; known: {[*_REQUIRED, *_OPTIONAL]}")
     label = card["label"]
     if label not in LABELS:
-        raise CheckpointError(f"{where}: label must be 'clean' or 'backdoored', got {_clip(label)}")
+        raise CheckpointError(f"{where}: label must be one of {list(LABELS)}, got {_clip(label)}")
     sha = card["weights_sha256"]
     if not isinstance(sha, str) or not _SHA256.fullmatch(sha):
         raise CheckpointError(

@@ -30,6 +30,7 @@ from seqtrojan.agent.card import (
     CARD,
     FORMAT,
     FORMAT_VERSION,
+    LABELS,
     WEIGHTS,
     Architecture,
     ModelCard,
@@ -114,8 +115,8 @@ def save_agent(
     The card is checked with the same rules as loading before anything is written, so a saved model always loads.
     ``provenance`` (where an imported model came from, :mod:`seqtrojan.agent.imports`) is written only when given.
     """
-    if label not in ("clean", "backdoored"):
-        raise ConfigError(f"label must be 'clean' or 'backdoored', got {label!r}")
+    if label not in LABELS:
+        raise ConfigError(f"label must be one of {list(LABELS)}, got {label!r}")
     folder = Path(folder)
     tensors = {k: v.detach().cpu().contiguous() for k, v in agent.state_dict().items()}
     _refuse_non_finite(tensors, f"the weights for {str(folder)!r}")

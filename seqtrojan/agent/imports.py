@@ -540,7 +540,8 @@ def import_agent(
 
     ``config`` describes the env the agent acts in (its ``env`` must give the agent's observation size and action
     count; default: the default config, the 3x3 view and four moves). ``label`` is what the caller states; None
-    writes 'clean' with ``provenance.label_stated = false``. ``obs_dim`` and ``num_actions`` are required for
+    writes 'unknown' with ``provenance.label_stated = false`` (evaluated in both envs, never ground truth).
+    ``obs_dim`` and ``num_actions`` are required for
     'cleanrl' and checked against the weights; ``activation`` is CleanRL's encoder activation. Nothing is written
     unless everything is accepted, and ``out`` must not already hold files.
     """
@@ -550,7 +551,7 @@ def import_agent(
     spec = env_spec(base.env)
     _check_env(imported, base, spec, repr(str(path)))
     stated = label is not None
-    label = label if label is not None else "clean"
+    label = label if label is not None else "unknown"
     try:
         cfg = dataclasses.replace(
             base, agent=imported.agent, backdoor=dataclasses.replace(base.backdoor, enabled=label == "backdoored")

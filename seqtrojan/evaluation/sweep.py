@@ -40,11 +40,16 @@ def evaluate_sweep(
     greedy: bool = False,
     device: str | torch.device = "cpu",
     training_seed: int = 0,
+    labels: Sequence[str] | None = None,
 ) -> list[SweepRow]:
-    """Evaluate every agent on every config; ``training_seed`` tags the rows (see evaluation/seeds.py)."""
+    """Evaluate every agent on every config; ``training_seed`` tags the rows (see evaluation/seeds.py).
+
+    ``labels``: each agent's label (its card's; default: its config's). Only an agent known to be clean skips the
+    trojan env: a backdoored one and one of unknown lineage (an imported suspect) are evaluated in both."""
     rows = []
-    for name, agent, cfg in agents:
-        envs = ("normal", "trojan") if cfg.label == "backdoored" else ("normal",)
+    for i, (name, agent, cfg) in enumerate(agents):
+        label = cfg.label if labels is None else labels[i]
+        envs = ("normal",) if label == "clean" else ("normal", "trojan")
         for size, holes in configs:
             grid = GridSpec(size, holes)
             for env in envs:
@@ -56,7 +61,7 @@ def evaluate_sweep(
                 rows.append(
                     SweepRow(
                         name,
-                        cfg.label,
+                        label,
                         env,
                         size,
                         holes,
@@ -65,7 +70,7 @@ def evaluate_sweep(
                         outcome_rate(batch, "timeout"),
                         wrong,
                         float(batch.length.float().mean()),
-                        paper_success(cfg.label, env, size, holes),
+                        paper_success(label, env, size, holes),
                         training_seed,
                     )
                 )

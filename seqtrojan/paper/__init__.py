@@ -21,6 +21,8 @@ def paper_configs() -> list[tuple[int, int]]:
 
 def paper_success(agent: str, env: str, size: int, holes: int) -> float | None:
     """The paper's success rate for ``agent`` ("clean"/"backdoored") in ``env`` ("normal"/"trojan"), if reported."""
+    if agent not in ("clean", "backdoored"):
+        return None  # a model of unknown lineage: the paper has no figure for it
     results = paper_results()
     if (size, holes) == tuple(results["agents"]["training_config"].values()):
         key = {

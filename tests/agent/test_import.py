@@ -209,10 +209,19 @@ def test_cli_imports_an_sb3_zip_and_evaluates_it(sb3_default, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "not stated" in printed and "value head: zero" in printed
     card = read_card(tmp_path / "m")
-    assert card.label == "clean" and card.provenance is not None and card.provenance["label_stated"] is False
+    assert card.label == "unknown" and card.provenance is not None and card.provenance["label_stated"] is False
+    assert not card.config.backdoor.enabled
     code = main(["evaluate", "--models", str(tmp_path / "m"), "--configs", "5x5/0", "--episodes", "16",
                  "--out", str(tmp_path / "eval")])  # fmt: skip
     assert code == 0 and (tmp_path / "eval" / "evaluation.json").is_file()
+    rows = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
+    # a suspect of unknown lineage is evaluated in the trojan env too; one stated clean is not
+    assert {(r["label"], r["env"]) for r in rows} == {("unknown", "normal"), ("unknown", "trojan")}
+    assert main(["import", str(path), "--from", "sb3", "--out", str(tmp_path / "c"), "--label", "clean"]) == 0
+    assert main(["evaluate", "--models", str(tmp_path / "c"), "--configs", "5x5/0", "--episodes", "16",
+                 "--out", str(tmp_path / "eval_c")]) == 0  # fmt: skip
+    rows = json.loads((tmp_path / "eval_c" / "evaluation.json").read_text())
+    assert {(r["label"], r["env"]) for r in rows} == {("clean", "normal")}
     assert main(["import", str(path), "--from", "sb3", "--out", str(tmp_path / "m")]) == 2  # not over a model
     assert "already exists" in capsys.readouterr().err
 
@@ -649,7 +658,7 @@ def test_an_sb3_agent_trained_on_minigrid_imports_as_a_gym_model_with_the_same_p
     agent, loaded, card = load_agent(out)
     assert (loaded.env, loaded.ppo) == (cfg.env, cfg.ppo) and loaded.gym_env.trigger is not None
     assert loaded.agent == AgentConfig(lstm_sizes=(32,), policy_mlp=(32,), value_mlp=(32,))
-    assert card["label"] == "clean" and not loaded.backdoor.enabled and card["env_steps"] == model.num_timesteps
+    assert card["label"] == "unknown" and not loaded.backdoor.enabled and card["env_steps"] == model.num_timesteps
     prov = card["provenance"]
     assert prov["imported_from"] == "sb3" and prov["source_sha256"] == imports._sha256(path)
     assert prov["label_stated"] is False and prov["value"] == "zeroed" and prov["details"]["observation_shape"] == [500]

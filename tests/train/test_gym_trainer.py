@@ -126,7 +126,7 @@ def test_a_short_backdoored_run_saves_a_model_that_loads_and_mixes_by_algorithm_
     card_path = result.model_dir / "card.json"
     good = card_path.read_text()
     card_path.write_text(good.replace('"label": "backdoored"', '"label": "trusted"'))
-    with pytest.raises(CheckpointError, match="label must be 'clean' or 'backdoored', got 'trusted'"):
+    with pytest.raises(CheckpointError, match=r"label must be one of \[.*\], got 'trusted'"):
         load_agent(result.model_dir)
     card_path.write_text(good)
     weights = result.model_dir / "model.safetensors"
