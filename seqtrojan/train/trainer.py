@@ -124,7 +124,8 @@ def train(
         torch.set_num_threads(cfg.run.threads)
     device = _device(cfg)
     MIXING_RULES.get(cfg.backdoor.mixing)  # an unknown rule is refused before the run folder exists
-    env_spec(cfg.env)  # and so is an env that cannot be made or whose spaces no agent takes (made once, remembered)
+    spec = env_spec(cfg.env)  # and so is an env that cannot be made or whose spaces no agent takes (made once)
+    cfg.ppo.check_rollout_memory(spec.obs_dim)  # and a rollout buffer larger than memory
     run_dir = Path(resume) if resume is not None else _new_run_dir(cfg)
 
     env, state = _set_up(cfg, device, resume is not None)
