@@ -488,6 +488,8 @@ class RunConfig:
     """show a progress bar"""
 
     def __post_init__(self) -> None:
+        if self.name is not None:
+            check_folder_name(self.name, "run.name")
         if not isinstance(self.device, str) or not _DEVICE.fullmatch(self.device):
             raise ConfigError(f"run.device={short_repr(self.device)} is not a device; use cpu, cuda or cuda:N")
         if isinstance(self.checkpoint_every, bool) or not isinstance(self.checkpoint_every, int):
@@ -506,6 +508,17 @@ class RunConfig:
 
 
 _DEVICE = re.compile(r"cpu|cuda(?::[0-9]+)?")
+
+
+def check_folder_name(value: object, what: str) -> str:
+    """``value`` as one folder name inside a chosen parent (``run.name`` under ``run.out_dir``, and through it the
+    matrix's, cells' and zoo's agent names): never a path that leaves the parent or a hidden name."""
+    if isinstance(value, str) and 0 < len(value) <= 255 and value[0] != "." and not set(value) & set("/\\\x00"):
+        return value
+    raise ConfigError(
+        f"{what} must be a plain folder name (not empty, no '/', '\\' or NUL, not starting with '.'), got "
+        f"{short_repr(value)}"
+    )
 
 
 def _check_finite(value: object, path: str) -> None:

@@ -246,3 +246,31 @@ def test_the_minigrid_matrix_preset_is_a_matrix_config(capsys):
     with pytest.raises(SystemExit) as code:
         main(["matrix", "--config", "matrix_minigrid_smoke", "--help"])
     assert code.value.code == 0 and "--config" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", ["../escaped", "a/b", "a\\b", "..", ".hidden", ""])
+def test_a_run_name_must_be_a_plain_folder_name(tmp_path, capsys, monkeypatch, name):
+    monkeypatch.chdir(tmp_path)
+    runs = tmp_path / "out" / "runs"
+    assert main(["train", "--config", "smoke", "--run.out-dir", str(runs), "--run.name", name]) == 2
+    err = capsys.readouterr().err
+    assert "run.name must be a plain folder name" in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == []  # nothing written, inside out_dir or beside it
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [(["train", "--ppo.totl-steps", "5"], "unrecognized option --ppo.totl-steps; did you mean --ppo.total-steps?"),
+     (["train", "--env.hols=3"], "unrecognized option --env.hols; did you mean --env.holes?"),
+     (["evaluate", "--models", "m", "--episodez", "5"], "unrecognized option --episodez; did you mean --episodes?"),
+     (["import", "a.zip", "--from", "sb3", "--out", "o", "--obs-dimm", "3"], "did you mean --obs-dim?"),
+     (["zoo", "detect", "--fold", "3"], "unrecognized option --fold; did you mean --folds?"),
+     (["train", "--ppo.clip-coef", "0"], "ppo.clip_coef must be a number > 0, got 0.0")],
+    ids=["train", "train=", "evaluate", "import", "zoo detect", "value refused while parsing"],
+)  # fmt: skip
+def test_a_misspelt_option_or_a_refused_value_is_named_in_one_line(tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"seqtrojan {argv[0]}") and message in err and len(err.strip().splitlines()) == 1, err
+    assert list(tmp_path.iterdir()) == []
