@@ -274,3 +274,24 @@ def test_a_misspelt_option_or_a_refused_value_is_named_in_one_line(tmp_path, cap
     err = capsys.readouterr().err
     assert err.startswith(f"seqtrojan {argv[0]}") and message in err and len(err.strip().splitlines()) == 1, err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [(["reproduce", "--out", "afile"], "--out 'afile' exists and is not a folder"),
+     (["matrix", "--out", "afile"], "--out 'afile' exists and is not a folder"),
+     (["cells", "--out", "afile"], "--out 'afile' exists and is not a folder"),
+     (["train", "--config", "smoke", "--run.out-dir", "afile"], "cannot be created: Not a directory"),
+     (["train", "--config", "smoke", "--run.out-dir", "runs", "--run.init-from", "nowhere"],
+      "no card.json in 'nowhere'"),
+     (["train", "--config", "smoke", "--run.out-dir", "runs", "--ppo.num-envs", "65536", "--ppo.rollout-steps",
+       "4096"], "exceeds the 8 GiB a rollout buffer may take")],
+    ids=["reproduce", "matrix", "cells", "train out_dir", "train init_from", "train rollout memory"],
+)  # fmt: skip
+def test_refused_outputs_and_configs_write_nothing(tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+    assert [p.name for p in tmp_path.iterdir()] == ["afile"]
