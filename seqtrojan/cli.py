@@ -7,9 +7,13 @@ No ``from __future__ import annotations`` here: tyro reads the annotations of th
 commands define after a local (lazy) import, and string annotations could not be resolved from there.
 """
 
+import contextlib
 import dataclasses
+import difflib
 import sys
-from collections.abc import Callable
+import types
+import typing
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
@@ -20,6 +24,71 @@ from seqtrojan.errors import ConfigError, SeqTrojanError
 if TYPE_CHECKING:
     from seqtrojan.experiments.cells import CellsConfig
     from seqtrojan.experiments.matrix import MatrixConfig
+
+
+T = TypeVar("T")
+
+
+def _cli(cls: type[T], argv: list[str], prog: str, **kwargs: Any) -> T:
+    """``tyro.cli(cls)`` whose refusals are one line: a misspelt option is named, with the closest known option (tyro's
+    own suggestion engine fails on some config types), and a config value refused while the parsed options are
+    built raises its own :class:`SeqTrojanError`, which :func:`main` prints as one line."""
+    with _one_line_parse_errors(cls):
+        return tyro.cli(cls, args=argv, prog=prog, **kwargs)
+
+
+@contextlib.contextmanager
+def _one_line_parse_errors(cls: type) -> Iterator[None]:
+    errors = getattr(tyro, "_errors", None)  # tyro's parse-error hook (private; without it, tyro's own messages)
+    if errors is None or not hasattr(errors, "on_parse_error"):
+        yield
+        return
+
+    def hook(event: Any) -> None:
+        if isinstance(event, errors.UnrecognizedArgs):
+            raise ConfigError(_unrecognized(event.tokens, cls))
+        if isinstance(event, errors.InstantiationFailure):
+            err = sys.exc_info()[1]
+            while err is not None and not isinstance(err, SeqTrojanError):
+                err = err.__cause__ or err.__context__
+            if err is not None:
+                raise err
+
+    with errors.on_parse_error(hook):
+        yield
+
+
+def _unrecognized(tokens: list[str], cls: type) -> str:
+    """``unrecognized option --x (did you mean --y?)`` for the first token that looks like an option."""
+    options = [t for t in tokens if t.startswith("-")] or tokens
+    flag = options[0].split("=", 1)[0] if options else "?"
+    close = difflib.get_close_matches(flag, sorted(_flags(cls)), n=1, cutoff=0.6)
+    also = f" (and {len(options) - 1} more)" if len(options) > 1 else ""
+    hint = f"; did you mean {close[0]}?" if close else ""
+    return f"unrecognized option {flag}{also}{hint} (--help lists the options)"
+
+
+def _flags(cls: Any, prefix: str = "") -> Iterator[str]:
+    """The option names tyro makes of the dataclass ``cls``'s fields (nested dataclasses as ``--a.b``, booleans also
+    as ``--no-...``), for suggestions."""
+    try:
+        hints = typing.get_type_hints(cls)
+    except Exception:  # an unresolvable annotation: no suggestions from this class
+        return
+    for f in dataclasses.fields(cls):
+        name = f.name.rstrip("_").replace("_", "-")
+        members = typing.get_args(hints[f.name]) if _is_union(hints[f.name]) else (hints[f.name],)
+        nested = [m for m in members if dataclasses.is_dataclass(m)]
+        for member in nested:
+            yield from _flags(member, f"{prefix}{name}.")
+        if not nested:
+            yield f"--{prefix}{name}"
+        if hints[f.name] is bool:
+            yield f"--{prefix}no-{name}"
+
+
+def _is_union(tp: Any) -> bool:
+    return typing.get_origin(tp) in (typing.Union, types.UnionType)
 
 
 def _pop_option(argv: list[str], name: str) -> tuple[str | None, list[str]]:
@@ -46,13 +115,13 @@ def _cli_with_config_file(args_cls: type, config_cls: type, argv: list[str], pro
     ``--config.*`` flags override them."""
     path, argv = _pop_option(argv, "--config-file")
     if path is None:
-        return tyro.cli(args_cls, args=argv, prog=prog)
+        return _cli(args_cls, argv, prog)
     from seqtrojan.serde import from_dict, load_yaml
 
     config: Any = from_dict(config_cls, load_yaml(Path(path)), "")
     required = {f.name: tyro.MISSING for f in dataclasses.fields(args_cls) if f.name != "config"
                 and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING}  # fmt: skip
-    return tyro.cli(args_cls, args=argv, prog=prog, default=args_cls(config=config, **required))
+    return _cli(args_cls, argv, prog, default=args_cls(config=config, **required))
 
 
 NOT_TRAINING_PRESETS = ("reproduce_", "matrix_", "cells_")
@@ -96,7 +165,7 @@ def parse_experiment(argv: list[str], prog: str, description: str):
 
     fields = [f.name for f in dataclasses.fields(ExperimentConfig)]
     default = TrainArgs(**{name: getattr(base, name) for name in fields}, config=preset, resume=resume)
-    args = tyro.cli(TrainArgs, default=default, args=argv, prog=prog, description=description)
+    args = _cli(TrainArgs, argv, prog, default=default, description=description)
     return ExperimentConfig(**{name: getattr(args, name) for name in fields}), args.resume
 
 
@@ -157,7 +226,7 @@ def _evaluate(argv: list[str]) -> None:
     from seqtrojan.evaluation.sweep import evaluate_sweep, parse_configs, write_sweep
     from seqtrojan.evaluation.tables import sweep_table
 
-    args = tyro.cli(EvaluateArgs, args=argv, prog="seqtrojan evaluate")
+    args = _cli(EvaluateArgs, argv, "seqtrojan evaluate")
     if args.episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
     grid_agents: list[tuple[str, Path, Any, Any, dict]] = []
@@ -225,7 +294,7 @@ class ReproduceArgs:
 def _reproduce(argv: list[str]) -> None:
     from seqtrojan.experiments.reproduce import load_reproduce_config, reproduce
 
-    args = tyro.cli(ReproduceArgs, args=argv, prog="seqtrojan reproduce")
+    args = _cli(ReproduceArgs, argv, "seqtrojan reproduce")
     config = load_reproduce_config(args.scale)
     if args.device is not None:
         config = dataclasses.replace(config, device=args.device)
@@ -274,7 +343,7 @@ class MatrixArgs(StudyArgs):
 def _matrix(argv: list[str]) -> None:
     from seqtrojan.experiments.matrix import load_matrix_config, run_matrix
 
-    args = tyro.cli(MatrixArgs, args=argv, prog="seqtrojan matrix")
+    args = _cli(MatrixArgs, argv, "seqtrojan matrix")
     chosen = args.config if args.config is not None else args.scale
     config = _with_study_options(load_matrix_config(chosen), args, "attacks", args.attacks)
     scale = Path(chosen).stem.removeprefix("matrix_")
@@ -321,7 +390,7 @@ def _with_study_options(config: StudyConfig, args: StudyArgs, names: str, chosen
 def _cells(argv: list[str]) -> None:
     from seqtrojan.experiments.cells import load_cells_config, run_cells
 
-    args = tyro.cli(CellsArgs, args=argv, prog="seqtrojan cells")
+    args = _cli(CellsArgs, argv, "seqtrojan cells")
     config = _with_study_options(load_cells_config(args.scale), args, "cells", args.cells)
     scale = Path(args.scale).stem.removeprefix("cells_")
     out = args.out or Path("results") / f"cells_{scale}"
@@ -402,7 +471,7 @@ def _analyze_gymnasium(argv: list[str]) -> None:
         device: str = "cpu"
         """torch device of the network (the envs step on the CPU)"""
 
-    args = tyro.cli(AnalyzeGymnasiumArgs, args=argv, prog="seqtrojan analyze")
+    args = _cli(AnalyzeGymnasiumArgs, argv, "seqtrojan analyze")
     agent, cfg, _ = load_agent(args.backdoor)
     report = analyze_goal_switch(
         agent.to(args.device), cfg, model=str(args.backdoor), trigger_step=args.trigger_step,
@@ -492,7 +561,7 @@ def _zoo(argv: list[str]) -> None:
                              ray_address=args.ray_address, threads=args.threads)  # fmt: skip
         print(f"wrote {manifest}")
         return
-    args = tyro.cli(ZooDetect, args=argv[1:], prog="seqtrojan zoo detect")
+    args = _cli(ZooDetect, argv[1:], "seqtrojan zoo detect")
     result = detect_zoo(args.zoo, args.folds, args.seed)
     save_json(result, args.zoo / DETECTION_FILE)
     table = Table(title=f"Offline detection on {args.zoo} (held-out, {result.scores[0].folds}-fold)")
@@ -577,7 +646,7 @@ def _import(argv: list[str]) -> None:
         minigrid_two_goals; default: the grid world's default env, a 3x3 view and four moves); the agent's
         observation size and action count are checked against that env"""
 
-    args = tyro.cli(ImportArgs, args=argv, prog="seqtrojan import")
+    args = _cli(ImportArgs, argv, "seqtrojan import")
     config = None
     if args.config is not None:
         from seqtrojan.config import ExperimentConfig
@@ -603,7 +672,7 @@ def _import(argv: list[str]) -> None:
 def _demo(argv: list[str]) -> None:
     from seqtrojan.demo import DemoArgs, run_demo
 
-    run_demo(tyro.cli(DemoArgs, args=argv, prog="seqtrojan demo"))
+    run_demo(_cli(DemoArgs, argv, "seqtrojan demo"))
 
 
 COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {

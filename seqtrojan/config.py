@@ -53,6 +53,17 @@ MAX_WINDOW = 256
 MAX_HEADS = 64
 """most attention heads of a Transformer layer"""
 """activation functions of the optional MLP layers (``agent.encoder``, ``agent.policy_mlp``, ``agent.value_mlp``)"""
+MAX_NUM_ENVS = 1 << 16
+"""most envs stepped in parallel (``ppo.num_envs``)"""
+MAX_ROLLOUT_STEPS = 1 << 16
+"""longest rollout per env (``ppo.rollout_steps``)"""
+MAX_TOTAL_STEPS = 1 << 53
+"""largest training budget (``ppo.total_steps``; the largest integer a float counts exactly)"""
+MAX_ROLLOUT_BYTES = 8 << 30
+"""largest rollout buffer of observations (rollout_steps x num_envs x observation size x 4 bytes), checked before a
+run allocates anything"""
+MAX_SEED = (1 << 30) - 1
+"""largest ``run.seed``: env seeds are ``run.seed << 32`` plus offsets, in int64"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,8 +204,13 @@ class PPOConfig:
     def __post_init__(self) -> None:
         for name in ("total_steps", "num_envs", "rollout_steps", "num_minibatches", "update_epochs"):
             value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"ppo.{name} must be a positive integer, got {short_repr(value)}")
+        for name, top in (("num_envs", MAX_NUM_ENVS), ("rollout_steps", MAX_ROLLOUT_STEPS),
+                          ("total_steps", MAX_TOTAL_STEPS)):  # fmt: skip
+            if getattr(self, name) > top:
+                raise ConfigError(f"ppo.{name} must be at most {top}, got {getattr(self, name)}")
+        self._check_coefficients()
         if self.sequence_length < 1 or self.rollout_steps % self.sequence_length:
             raise ConfigError(f"ppo.bptt_length={self.bptt_length} must divide ppo.rollout_steps={self.rollout_steps}")
         if self.num_sequences % self.num_minibatches:
@@ -207,6 +223,29 @@ class PPOConfig:
         if not (0 < self.gamma <= 1 and 0 <= self.gae_lambda <= 1):
             raise ConfigError(
                 f"ppo.gamma must be in (0, 1] and ppo.gae_lambda in [0, 1], got {self.gamma}, {self.gae_lambda}"
+            )
+
+    def _check_coefficients(self) -> None:
+        """The clip range, gradient-norm bound and Adam epsilon must be positive (0 freezes or breaks the update),
+        the loss weights non-negative, and a KL target positive."""
+        for name in ("clip_coef", "max_grad_norm", "adam_eps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+                raise ConfigError(f"ppo.{name} must be a number > 0, got {short_repr(value)}")
+        _non_negative("ppo", ent_coef=self.ent_coef, vf_coef=self.vf_coef)
+        kl = self.target_kl
+        if kl is not None and (isinstance(kl, bool) or not isinstance(kl, (int, float)) or not kl > 0):
+            raise ConfigError(f"ppo.target_kl must be a number > 0 or null, got {short_repr(kl)}")
+
+    def check_rollout_memory(self, obs_dim: int) -> None:
+        """Refuse a rollout whose observations alone (``rollout_steps x num_envs x obs_dim`` float32) would exceed
+        :data:`MAX_ROLLOUT_BYTES`, before anything is allocated."""
+        size = self.rollout_steps * self.num_envs * obs_dim * 4
+        if size > MAX_ROLLOUT_BYTES:
+            raise ConfigError(
+                f"ppo.rollout_steps x ppo.num_envs x {obs_dim} observation inputs ({self.rollout_steps} x "
+                f"{self.num_envs} x {obs_dim} x 4 bytes = {size / 2**30:.1f} GiB) exceeds the "
+                f"{MAX_ROLLOUT_BYTES >> 30} GiB a rollout buffer may take: lower ppo.num_envs or ppo.rollout_steps"
             )
 
     @property
@@ -448,6 +487,8 @@ class RunConfig:
     """show a progress bar"""
 
     def __post_init__(self) -> None:
+        if self.name is not None:
+            check_folder_name(self.name, "run.name")
         if not isinstance(self.device, str) or not _DEVICE.fullmatch(self.device):
             raise ConfigError(f"run.device={short_repr(self.device)} is not a device; use cpu, cuda or cuda:N")
         if isinstance(self.checkpoint_every, bool) or not isinstance(self.checkpoint_every, int):
@@ -458,11 +499,25 @@ class RunConfig:
             raise ConfigError(f"run.checkpoint_every must be a positive integer, got {self.checkpoint_every}")
         if isinstance(self.eval_episodes, bool) or not isinstance(self.eval_episodes, int) or self.eval_episodes < 0:
             raise ConfigError(f"run.eval_episodes must be an integer >= 0, got {short_repr(self.eval_episodes)}")
+        seed = self.seed
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+            raise ConfigError(f"run.seed must be an integer in [0, {MAX_SEED}], got {short_repr(seed)}")
         if self.threads is not None and (isinstance(self.threads, bool) or not 1 <= self.threads <= 1024):
             raise ConfigError(f"run.threads must be an integer in [1, 1024] or null, got {short_repr(self.threads)}")
 
 
 _DEVICE = re.compile(r"cpu|cuda(?::[0-9]+)?")
+
+
+def check_folder_name(value: object, what: str) -> str:
+    """``value`` as one folder name inside a chosen parent (``run.name`` under ``run.out_dir``, and through it the
+    matrix's, cells' and zoo's agent names): never a path that leaves the parent or a hidden name."""
+    if isinstance(value, str) and 0 < len(value) <= 255 and value[0] != "." and not set(value) & set("/\\\x00"):
+        return value
+    raise ConfigError(
+        f"{what} must be a plain folder name (not empty, no '/', '\\' or NUL, not starting with '.'), got "
+        f"{short_repr(value)}"
+    )
 
 
 def _check_finite(value: object, path: str) -> None:
@@ -540,7 +595,9 @@ class ExperimentConfig:
             )
         if isinstance(self.env, GymnasiumEnvConfig):
             self._check_gymnasium(self.env)
-        elif self.agent.conv:
+            return
+        self.ppo.check_rollout_memory(self.env.obs_dim)  # a Gymnasium env's size is checked once it is made
+        if self.agent.conv:
             raise ConfigError(
                 "agent.conv reads an image observation: the grid world's view is not one (drop agent.conv)"
             )

@@ -220,14 +220,22 @@ def _convert_tagged(options: list[Any], value: Any, path: str) -> Any:
         raise ConfigError(f"{err} (a {fits[0]} section starts with kind: {fits[0]})") from None
 
 
+MAX_YAML_DEPTH = 64
+"""deepest nesting of mappings and lists in a YAML file (a config nests 5 or 6 deep; PyYAML composes recursively)"""
+
+
 class _Yaml12Loader(yaml.SafeLoader):
     """PyYAML's safe loader read the YAML 1.2 way: only true/false are booleans, so that a key like ``off:`` (the
     OFF trigger) stays the string 'off' instead of becoming False as YAML 1.1 reads on/off/yes/no; and 1e-3 is a
     number, not a string.
 
     Aliases (``*name``, and so ``<<: *name`` merges) are refused: a few lines of nested aliases expand to billions
-    of nodes (the "billion laughs"). Anchors alone are harmless and allowed.
+    of nodes (the "billion laughs"). Anchors alone are harmless and allowed. A key given twice in one mapping is
+    refused (YAML 1.2 forbids it; PyYAML would keep the last silently), and so is nesting deeper than
+    :data:`MAX_YAML_DEPTH` (before it could exhaust Python's recursion limit).
     """
+
+    _depth = 0
 
     def compose_node(self, parent: Any, index: Any) -> Any:
         if self.check_event(yaml.AliasEvent):
@@ -235,7 +243,27 @@ class _Yaml12Loader(yaml.SafeLoader):
             raise yaml.composer.ComposerError(
                 None, None, f"found alias *{event.anchor}: aliases are not allowed in config files", event.start_mark
             )
-        return super().compose_node(parent, index)
+        if self._depth >= MAX_YAML_DEPTH:
+            mark = self.peek_event().start_mark
+            raise yaml.composer.ComposerError(None, None, f"nested more than {MAX_YAML_DEPTH} deep", mark)
+        self._depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {short_repr(key)}", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
 
 
 _Yaml12Loader.yaml_implicit_resolvers = {

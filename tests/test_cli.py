@@ -246,3 +246,52 @@ def test_the_minigrid_matrix_preset_is_a_matrix_config(capsys):
     with pytest.raises(SystemExit) as code:
         main(["matrix", "--config", "matrix_minigrid_smoke", "--help"])
     assert code.value.code == 0 and "--config" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", ["../escaped", "a/b", "a\\b", "..", ".hidden", ""])
+def test_a_run_name_must_be_a_plain_folder_name(tmp_path, capsys, monkeypatch, name):
+    monkeypatch.chdir(tmp_path)
+    runs = tmp_path / "out" / "runs"
+    assert main(["train", "--config", "smoke", "--run.out-dir", str(runs), "--run.name", name]) == 2
+    err = capsys.readouterr().err
+    assert "run.name must be a plain folder name" in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == []  # nothing written, inside out_dir or beside it
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [(["train", "--ppo.totl-steps", "5"], "unrecognized option --ppo.totl-steps; did you mean --ppo.total-steps?"),
+     (["train", "--env.hols=3"], "unrecognized option --env.hols; did you mean --env.holes?"),
+     (["evaluate", "--models", "m", "--episodez", "5"], "unrecognized option --episodez; did you mean --episodes?"),
+     (["import", "a.zip", "--from", "sb3", "--out", "o", "--obs-dimm", "3"], "did you mean --obs-dim?"),
+     (["zoo", "detect", "--fold", "3"], "unrecognized option --fold; did you mean --folds?"),
+     (["train", "--ppo.clip-coef", "0"], "ppo.clip_coef must be a number > 0, got 0.0")],
+    ids=["train", "train=", "evaluate", "import", "zoo detect", "value refused while parsing"],
+)  # fmt: skip
+def test_a_misspelt_option_or_a_refused_value_is_named_in_one_line(tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"seqtrojan {argv[0]}") and message in err and len(err.strip().splitlines()) == 1, err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [(["reproduce", "--out", "afile"], "--out 'afile' exists and is not a folder"),
+     (["matrix", "--out", "afile"], "--out 'afile' exists and is not a folder"),
+     (["cells", "--out", "afile"], "--out 'afile' exists and is not a folder"),
+     (["train", "--config", "smoke", "--run.out-dir", "afile"], "cannot be created: Not a directory"),
+     (["train", "--config", "smoke", "--run.out-dir", "runs", "--run.init-from", "nowhere"],
+      "no card.json in 'nowhere'"),
+     (["train", "--config", "smoke", "--run.out-dir", "runs", "--ppo.num-envs", "65536", "--ppo.rollout-steps",
+       "4096"], "exceeds the 8 GiB a rollout buffer may take")],
+    ids=["reproduce", "matrix", "cells", "train out_dir", "train init_from", "train rollout memory"],
+)  # fmt: skip
+def test_refused_outputs_and_configs_write_nothing(tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+    assert [p.name for p in tmp_path.iterdir()] == ["afile"]

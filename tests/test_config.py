@@ -142,3 +142,64 @@ def test_non_finite_numbers_are_refused_with_their_path(section, key, path, valu
         from_dict(ExperimentConfig, {section: {key: value}})
     with pytest.raises(ConfigError, match=r"env\.rewards\.goal must be a finite number"):
         from_dict(ExperimentConfig, {"env": {"rewards": {"goal": value}}})
+
+
+RANGE_REFUSALS = {
+    "clip_coef 0": ({"ppo": {"clip_coef": 0.0}}, r"ppo\.clip_coef must be a number > 0, got 0\.0"),
+    "clip_coef < 0": ({"ppo": {"clip_coef": -0.2}}, r"ppo\.clip_coef must be a number > 0"),
+    "max_grad_norm 0": ({"ppo": {"max_grad_norm": 0.0}}, r"ppo\.max_grad_norm must be a number > 0"),
+    "adam_eps 0": ({"ppo": {"adam_eps": 0}}, r"ppo\.adam_eps must be a number > 0"),
+    "ent_coef < 0": ({"ppo": {"ent_coef": -0.01}}, r"ppo\.ent_coef must be a finite number >= 0"),
+    "vf_coef < 0": ({"ppo": {"vf_coef": -1.0}}, r"ppo\.vf_coef must be a finite number >= 0"),
+    "target_kl 0": ({"ppo": {"target_kl": 0.0}}, r"ppo\.target_kl must be a number > 0 or null"),
+    "num_envs": ({"ppo": {"num_envs": 1 << 20}}, r"ppo\.num_envs must be at most 65536, got 1048576"),
+    "rollout_steps": ({"ppo": {"rollout_steps": 1 << 20}}, r"ppo\.rollout_steps must be at most 65536"),
+    "total_steps": ({"ppo": {"total_steps": 10**30}}, r"ppo\.total_steps must be at most 9007199254740992"),
+    "rollout memory": (
+        {"ppo": {"num_envs": 65536, "rollout_steps": 4096}, "env": {"view_size": 5}},
+        r"65536 x 150 x 4 bytes = 150\.0 GiB\) exceeds the 8 GiB a rollout buffer may take",
+    ),
+    "seed < 0": ({"run": {"seed": -1}}, r"run\.seed must be an integer in \[0, 1073741823\], got -1"),
+    "seed too large": ({"run": {"seed": 2**63}}, r"run\.seed must be an integer in \[0, 1073741823\]"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(RANGE_REFUSALS))
+def test_out_of_range_numbers_are_refused_in_one_line(case):
+    data, message = RANGE_REFUSALS[case]
+    with pytest.raises(ConfigError, match=message) as info:
+        from_dict(ExperimentConfig, data)
+    assert "\n" not in str(info.value)
+
+
+def test_the_range_limits_admit_their_edges():
+    from seqtrojan.config import MAX_SEED, PPOConfig
+
+    RunConfig(seed=0), RunConfig(seed=MAX_SEED)
+    PPOConfig(num_envs=65536, rollout_steps=16, num_minibatches=1, clip_coef=1e-9, max_grad_norm=1e-9, adam_eps=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [("ppo:\n  clip_coef: 0.1\n  clip_coef: 0.3\n", r"duplicate key 'clip_coef' \(line 3, column 3\)"),
+     ("run: {seed: 1, seed: 2}\n", "duplicate key 'seed'"),
+     ("ppo:\n" + "".join("  " * (i + 1) + f"k{i}:\n" for i in range(200)), "nested more than 64 deep"),
+     ("a: " + "[" * 5000 + "]" * 5000 + "\n", "nested more than 64 deep")],
+    ids=["duplicate key", "duplicate flow key", "deep mapping", "deep list"],
+)  # fmt: skip
+def test_yaml_with_duplicate_keys_or_deep_nesting_is_refused_in_one_line(tmp_path, text, message):
+    path = tmp_path / "config.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message) as info:
+        load_yaml(path)
+    assert "\n" not in str(info.value) and "not valid YAML" in str(info.value)
+    assert parse_yaml("a: 1\nb: {<<: {c: 2}, c: 3}\n") == {"a": 1, "b": {"c": 3}}  # a merge still overrides
+
+
+@pytest.mark.parametrize("steps", ["12", (1.7, 3.2), (1, True), (1, 2, 3), 12, None])
+def test_trigger_step_ranges_are_two_integers_never_digits_of_a_string(steps):
+    from seqtrojan.minigrid.tasks import two_goals_trigger
+
+    with pytest.raises(ConfigError, match=r"trigger_steps must be an inclusive range \[lo, hi\] of integer steps"):
+        two_goals_trigger(trigger_steps=steps)
+    assert two_goals_trigger(trigger_steps=[1, 2]).trigger_steps == (1, 2)

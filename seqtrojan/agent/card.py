@@ -30,6 +30,7 @@ import json
 import math
 import os
 import re
+import stat
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -276,10 +277,7 @@ def read_card(folder: str | Path) -> ModelCard:
         return parse_card(json.dumps(upgrade_gym_card(folder)), repr(str(folder / LEGACY_GYM_CARD)))
     if not path.is_file():
         raise CheckpointError(f"no {CARD} in {str(folder)!r}: not a seqtrojan model folder")
-    with path.open("rb") as fh:
-        raw = fh.read(MAX_CARD_BYTES + 1)
-    if len(raw) > MAX_CARD_BYTES:
-        raise CheckpointError(f"{str(path)!r} is larger than the {MAX_CARD_BYTES} bytes a model card may have")
+    raw = read_regular_file(path, MAX_CARD_BYTES, repr(str(path)), "a model card may have")
     return parse_card(raw, repr(str(path)))
 
 
@@ -297,11 +295,7 @@ def upgrade_gym_card(folder: Path) -> dict[str, Any]:
     tensor list read from the weights' header. Every check of :func:`parse_card` then applies."""
     path = folder / LEGACY_GYM_CARD
     where = repr(str(path))
-    with path.open("rb") as fh:
-        raw = fh.read(MAX_CARD_BYTES + 1)
-    if len(raw) > MAX_CARD_BYTES:
-        raise CheckpointError(f"{where} is larger than the {MAX_CARD_BYTES} bytes a model card may have")
-    old = load_json(raw, where)
+    old = load_json(read_regular_file(path, MAX_CARD_BYTES, where, "a model card may have"), where)
     if not isinstance(old, dict) or old.get("format") != "seqtrojan-gym-model" or old.get("format_version") != 1:
         raise CheckpointError(f"{where} is not a seqtrojan-gym-model card, version 1")
     unknown = sorted(set(old) - set(_LEGACY_GYM_KEYS))
@@ -661,26 +655,51 @@ def first_difference(expected: dict[str, list[int]], actual: dict[str, list[int]
     return "unknown difference"
 
 
-# ---------------------------------------------------------------------- bounded JSON
+# ---------------------------------------------------------------------- bounded files and JSON
+
+
+def read_regular_file(path: Path, limit: int, where: str, whose: str = "this file may have") -> bytes:
+    """The bytes of the regular file ``path``, at most ``limit``. A FIFO, device or folder is refused without
+    blocking (checked before opening, then opened non-blocking and checked again on the open file, in case it was
+    swapped), and a larger file from its size before anything is read. ``FileNotFoundError`` passes through; any
+    other refusal is one :class:`CheckpointError` line naming ``where``."""
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise CheckpointError(f"{where} is not a regular file (a FIFO, device or folder): refusing to read it")
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except FileNotFoundError:
+        raise
+    except OSError as err:
+        raise CheckpointError(f"cannot read {where}: {err.strerror or err}") from None
+    with os.fdopen(fd, "rb") as fh:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise CheckpointError(f"{where} is not a regular file (a FIFO, device or folder): refusing to read it")
+        if info.st_size > limit:
+            raise CheckpointError(f"{where} is larger than the {limit} bytes {whose}: refusing to read it")
+        raw = fh.read(limit + 1)
+    if len(raw) > limit:  # it grew while being read
+        raise CheckpointError(f"{where} is larger than the {limit} bytes {whose}: refusing to read it")
+    return raw
 
 
 class _DuplicateKeyError(ValueError):
     pass
 
 
-def load_json(raw: bytes | str, where: str) -> Any:
-    """Parse untrusted JSON with bounded cost: nesting depth and the number of values are checked before parsing,
-    then no duplicate keys and no list or object with more than :data:`MAX_ITEMS` entries."""
+def load_json(raw: bytes | str, where: str, *, max_values: int = MAX_VALUES, max_items: int = MAX_ITEMS) -> Any:
+    """Parse untrusted JSON with bounded cost: nesting depth and the number of values (``max_values``) are checked
+    before parsing, then no duplicate keys and no list or object with more than ``max_items`` entries."""
     data = raw if isinstance(raw, bytes) else raw.encode("utf-8", "surrogatepass")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as err:
         raise CheckpointError(f"{where} is not valid JSON: {err}") from None
-    if data.count(b'"') > 4 * MAX_VALUES:  # a key and a string value per entry, two quotes each
-        raise CheckpointError(f"{where} has more strings than {MAX_VALUES} values can hold: refusing to parse it")
+    if data.count(b'"') > 4 * max_values:  # a key and a string value per entry, two quotes each
+        raise CheckpointError(f"{where} has more strings than {max_values} values can hold: refusing to parse it")
     structure = _structure(data)
-    if structure.count(b",") + 1 > MAX_VALUES:
-        raise CheckpointError(f"{where} has more than {MAX_VALUES} values: refusing to parse it")
+    if structure.count(b",") + 1 > max_values:
+        raise CheckpointError(f"{where} has more than {max_values} values: refusing to parse it")
     if _depth(structure) > MAX_JSON_DEPTH:
         raise CheckpointError(f"{where} nests lists/objects more than {MAX_JSON_DEPTH} deep: refusing to parse it")
     try:
@@ -691,10 +710,10 @@ def load_json(raw: bytes | str, where: str) -> Any:
     while stack:
         item = stack.pop()
         if isinstance(item, (dict, list)):
-            if len(item) > MAX_ITEMS:
+            if len(item) > max_items:
                 kind = "an object" if isinstance(item, dict) else "a list"
                 raise CheckpointError(
-                    f"{where} has {kind} with {len(item)} entries, more than the limit of {MAX_ITEMS}"
+                    f"{where} has {kind} with {len(item)} entries, more than the limit of {max_items}"
                 )
             stack.extend(item.values() if isinstance(item, dict) else item)
     return value

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import errno
 import hashlib
 import json
 from pathlib import Path
@@ -139,12 +140,18 @@ def save_agent(
     if provenance is not None:
         card["provenance"] = provenance
     parse_card(json.dumps(card), f"the card for {str(folder)!r}")  # refuse what load_agent would refuse
-    folder.mkdir(parents=True, exist_ok=True)
-    tmp = folder / (WEIGHTS + ".tmp")
-    save_file(tensors, str(tmp))
-    tmp.replace(folder / WEIGHTS)
-    card["weights_sha256"] = sha256_file(folder / WEIGHTS)
-    _write_json(folder / CARD, card)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = folder / (WEIGHTS + ".tmp")
+        save_file(tensors, str(tmp))
+        tmp.replace(folder / WEIGHTS)
+        card["weights_sha256"] = sha256_file(folder / WEIGHTS)
+        _write_json(folder / CARD, card)
+    except OSError as err:  # a full disk: the files written before stay whole (each is renamed into place)
+        for leftover in (folder / (WEIGHTS + ".tmp"), folder / (CARD + ".tmp")):
+            leftover.unlink(missing_ok=True)
+        problem = "disk full" if err.errno == errno.ENOSPC else "cannot write"
+        raise CheckpointError(f"{problem} while writing the model {str(folder)!r}: {err.strerror or err}") from None
     return folder
 
 

@@ -19,9 +19,13 @@ and the defenses read only the policy; PPO fine-tuning learns a new value. A ``s
 CleanRL's critic are imported exactly (``provenance.value = "imported"``).
 
 Every file is untrusted: sizes are checked before anything is read or decompressed (:data:`MAX_DATA_BYTES`,
-:data:`MAX_WEIGHTS_BYTES`, also the entries of the torch archive inside), every tensor's name and shape is checked
-against the architecture, and any refusal is one :class:`~seqtrojan.errors.CheckpointError` line, raised before
-anything is written.
+:data:`MAX_WEIGHTS_BYTES`, also the entries of the torch archive inside), and a zip entry is read in chunks, never
+past its declared size or the limit (a zip bomb whose header lies stops there). The weights are loaded memory-mapped
+(``torch.load(mmap=True)``), so that each tensor's shape and the parameter counts (:data:`MAX_FILE_PARAMETERS`, and
+the model card's ``MAX_PARAMETERS`` for the imported network) are checked before any tensor is read into memory or
+the network is built; every tensor's name and shape is checked against the architecture, NaN or infinite weights
+are refused, and any refusal is one :class:`~seqtrojan.errors.CheckpointError` line, raised before anything is
+written.
 """
 
 from __future__ import annotations
@@ -31,14 +35,15 @@ import hashlib
 import io
 import math
 import re
+import tempfile
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal, cast
+from typing import IO, Any, Literal, cast
 
 import torch
 
-from seqtrojan.agent.card import MAX_DETAIL_CHARS, MAX_RANK, Architecture, load_json
+from seqtrojan.agent.card import MAX_DETAIL_CHARS, MAX_PARAMETERS, MAX_RANK, Architecture, load_json
 from seqtrojan.agent.checkpoint import build_agent, save_agent
 from seqtrojan.config import AgentConfig, ExperimentConfig
 from seqtrojan.env.codes import ACTION_SETS, CELL_NAMES
@@ -62,6 +67,11 @@ MAX_VERSION_BYTES = 256
 """largest ``_stable_baselines3_version`` entry read"""
 MAX_TENSORS = 256
 """most tensors in an imported state dict"""
+MAX_FILE_PARAMETERS = 2 * MAX_PARAMETERS
+"""most numbers in all the tensors of a weights file together (an sb3 policy holds the network, at most a model
+card's ``MAX_PARAMETERS``, and a second LSTM for its critic); one tensor holds at most ``MAX_PARAMETERS``"""
+_CHUNK = 1 << 20
+"""bytes read from a zip entry at a time"""
 
 SB3_POLICY_MODULE = "sb3_contrib.common.recurrent.policies"
 SB3_POLICY_CLASS = "RecurrentActorCriticPolicy"
@@ -110,22 +120,25 @@ def read_sb3(path: str | Path) -> Imported:
                         f"{_clip(sorted(entries)[:8])})"
                     )
             data_raw = _read_entry(archive, entries["data"], MAX_DATA_BYTES, where)
-            weights_raw = _read_entry(archive, entries["policy.pth"], MAX_WEIGHTS_BYTES, where)
             version = None
             if "_stable_baselines3_version" in entries:
                 text = _read_entry(archive, entries["_stable_baselines3_version"], MAX_VERSION_BYTES, where)
                 version = text.decode("utf-8", "replace").strip()
+            data = load_json(data_raw, f"the 'data' entry of {where}")
+            if not isinstance(data, dict):
+                raise CheckpointError(f"the 'data' entry of {where} is not a JSON object")
+            _check_sb3_policy_class(data.get("policy_class"), where)
+            kwargs = _plain_items(data.get("policy_kwargs") or {})
+            obs_shape = _sb3_observation_shape(data.get("observation_space"), where)
+            declared_actions = _sb3_action_count(data.get("action_space"), where)
+            with tempfile.TemporaryDirectory(prefix="seqtrojan-import-") as scratch:
+                weights = Path(scratch) / "policy.pth"  # extracted to disk, so that it loads memory-mapped
+                with weights.open("wb") as fh:
+                    _copy_entry(archive, entries["policy.pth"], MAX_WEIGHTS_BYTES, where, fh)
+                sd = _load_state_dict(weights, f"'policy.pth' in {where}")
+                return _map_sb3(sd, kwargs, obs_shape, declared_actions, data, version, where)
     except zipfile.BadZipFile as err:
         raise CheckpointError(f"{where} is not a valid zip file: {err}") from None
-    data = load_json(data_raw, f"the 'data' entry of {where}")
-    if not isinstance(data, dict):
-        raise CheckpointError(f"the 'data' entry of {where} is not a JSON object")
-    _check_sb3_policy_class(data.get("policy_class"), where)
-    kwargs = _plain_items(data.get("policy_kwargs") or {})
-    obs_shape = _sb3_observation_shape(data.get("observation_space"), where)
-    declared_actions = _sb3_action_count(data.get("action_space"), where)
-    tensors = _load_state_dict(weights_raw, f"'policy.pth' in {where}")
-    return _map_sb3(tensors, kwargs, obs_shape, declared_actions, data, version, where)
 
 
 def _map_sb3(
@@ -237,7 +250,7 @@ def _map_sb3(
     )
     return Imported(
         "sb3", obs_dim, num_actions, agent,
-        ours, "imported" if exact else "zeroed", details,
+        _network_tensors(ours, where), "imported" if exact else "zeroed", details,
         env_steps if type(env_steps) is int and env_steps >= 0 else None,
     )  # fmt: skip
 
@@ -327,9 +340,7 @@ def read_cleanrl(path: str | Path, obs_dim: int, num_actions: int, activation: s
     size = path.stat().st_size
     if size > MAX_WEIGHTS_BYTES:
         raise CheckpointError(f"{where} has {size} bytes, more than the limit of {MAX_WEIGHTS_BYTES}")
-    with path.open("rb") as fh:
-        raw = fh.read(MAX_WEIGHTS_BYTES + 1)
-    sd = _load_state_dict(raw, where)
+    sd = _load_state_dict(path, where)
     if "lstm.weight_ih_l0" not in sd:
         raise CheckpointError(f"{where} has no lstm.weight_ih_l0: not a CleanRL LSTM agent's state dict")
     lstm = _lstm_layers(sd, "lstm", where)
@@ -359,50 +370,59 @@ def read_cleanrl(path: str | Path, obs_dim: int, num_actions: int, activation: s
     ours["value_head.weight"], ours["value_head.bias"] = sd["critic.weight"], sd["critic.bias"]
     agent = AgentConfig(lstm_sizes=(hidden,) * len(lstm), encoder=encoder, encoder_activation=_activation(activation))
     details = {"format": "CleanRL LSTM state dict (ppo_atari_lstm.py layout, MLP encoder)"}
-    return Imported("cleanrl", obs_dim, num_actions, agent, ours, "imported", details)
+    return Imported("cleanrl", obs_dim, num_actions, agent, _network_tensors(ours, where), "imported", details)
 
 
 # ---------------------------------------------------------------------- shared checks
 
 
 def _read_entry(archive: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int, where: str) -> bytes:
-    """An entry's bytes, refused before decompression when its declared size exceeds ``limit`` (and never more than
-    ``limit`` bytes decompressed, whatever the header says)."""
+    """An entry's bytes (at most ``limit``; see :func:`_copy_entry`)."""
+    buffer = io.BytesIO()
+    _copy_entry(archive, info, limit, where, buffer)
+    return buffer.getvalue()
+
+
+def _copy_entry(archive: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int, where: str, out: IO[bytes]) -> int:
+    """Copy an entry's bytes to ``out`` in chunks: refused before decompression when its declared size exceeds
+    ``limit``, and stopped one byte past the declared size, whatever the compressed data holds (a zip bomb whose
+    header declares a small size). Returns the bytes copied."""
     if info.file_size > limit:
         raise CheckpointError(
             f"the {info.filename!r} entry of {where} unpacks to {info.file_size} bytes, more than the limit of "
             f"{limit}: refusing to read it"
         )
+    copied = 0
     try:
         with archive.open(info) as fh:
-            raw = fh.read(limit + 1)
+            while chunk := fh.read(min(_CHUNK, info.file_size + 1 - copied)):
+                copied += len(chunk)
+                if copied > info.file_size:
+                    raise CheckpointError(
+                        f"the {info.filename!r} entry of {where} unpacks to more than the {info.file_size} bytes "
+                        f"its header declares: refusing to read it"
+                    )
+                out.write(chunk)
     except (zipfile.BadZipFile, OSError, EOFError, NotImplementedError, RuntimeError) as err:
         raise CheckpointError(
             f"the {info.filename!r} entry of {where} cannot be read: {_clip_text(str(err))}"
         ) from None
-    if len(raw) > limit:
-        raise CheckpointError(f"the {info.filename!r} entry of {where} unpacks to more than {limit} bytes")
-    return raw
+    return copied
 
 
-def _load_state_dict(raw: bytes, where: str) -> dict[str, torch.Tensor]:
-    """``torch.load(weights_only=True)`` of a torch zip archive, after bounding what its entries unpack to; the
-    result must be a flat mapping of names to float tensors."""
-    if not raw.startswith(b"PK"):
+def _load_state_dict(path: Path, where: str) -> dict[str, torch.Tensor]:
+    """``torch.load(weights_only=True, mmap=True)`` of a torch zip archive on disk, after bounding what its entries
+    hold: a flat mapping of names to float tensors whose sizes are checked before any is read into memory (they
+    stay mapped from the file)."""
+    with path.open("rb") as fh:
+        magic = fh.read(2)
+    if magic != b"PK":
         raise CheckpointError(
             f"{where} is not a torch zip archive (torch.save's format since torch 1.6): refusing to read it"
         )
+    _check_torch_archive(path, where)
     try:
-        with zipfile.ZipFile(io.BytesIO(raw)) as inner:
-            unpacked = sum(info.file_size for info in inner.infolist())
-    except zipfile.BadZipFile as err:
-        raise CheckpointError(f"{where} is not a valid torch archive: {err}") from None
-    if unpacked > MAX_WEIGHTS_BYTES:
-        raise CheckpointError(
-            f"{where} unpacks to {unpacked} bytes, more than the limit of {MAX_WEIGHTS_BYTES}: refusing to read it"
-        )
-    try:
-        loaded = torch.load(io.BytesIO(raw), map_location="cpu", weights_only=True)
+        loaded = torch.load(str(path), map_location="cpu", weights_only=True, mmap=True)
     except Exception as err:  # weights_only refuses any pickled object that is not tensors and plain containers
         first = str(err).strip().splitlines()[0] if str(err).strip() else ""
         raise CheckpointError(
@@ -419,10 +439,55 @@ def _load_state_dict(raw: bytes, where: str) -> dict[str, torch.Tensor]:
             raise CheckpointError(
                 f"{where}: entry {_clip(key)} is a {type(value).__name__}, not a tensor: not a state dict"
             )
-        if not value.is_floating_point() or value.dim() > MAX_RANK:
-            raise CheckpointError(f"{where}: tensor {_clip(key)} has dtype {value.dtype} and shape {list(value.shape)}")
-        out[key] = value.detach().to(torch.float32).contiguous()
+        if not value.is_floating_point() or value.dim() > MAX_RANK or value.numel() > MAX_PARAMETERS:
+            raise CheckpointError(
+                f"{where}: tensor {_clip(key)} has dtype {value.dtype} and shape {_clip(list(value.shape))} (a "
+                f"weight is a float tensor of at most {MAX_RANK} dimensions and {MAX_PARAMETERS} numbers)"
+            )
+        out[key] = value.detach()
+    total = sum(v.numel() for v in out.values())
+    if total > MAX_FILE_PARAMETERS:
+        raise CheckpointError(
+            f"{where} holds {total} numbers in its tensors, more than the limit of {MAX_FILE_PARAMETERS}: refusing "
+            f"to read them"
+        )
     return out
+
+
+def _check_torch_archive(path: Path, where: str) -> None:
+    """The entries of a torch archive, from its directory: torch.save stores them uncompressed, and together they
+    may hold at most :data:`MAX_WEIGHTS_BYTES`."""
+    try:
+        with zipfile.ZipFile(path) as inner:
+            infos = inner.infolist()
+    except zipfile.BadZipFile as err:
+        raise CheckpointError(f"{where} is not a valid torch archive: {err}") from None
+    unpacked = sum(info.file_size for info in infos)
+    if unpacked > MAX_WEIGHTS_BYTES:
+        raise CheckpointError(
+            f"{where} unpacks to {unpacked} bytes, more than the limit of {MAX_WEIGHTS_BYTES}: refusing to read it"
+        )
+    packed = [info.filename for info in infos if info.compress_type != zipfile.ZIP_STORED]
+    if packed:
+        raise CheckpointError(
+            f"{where} has compressed entries ({_clip(packed[:3])}), which torch.save never writes: refusing to read it"
+        )
+
+
+def _network_tensors(ours: dict[str, torch.Tensor], where: str) -> dict[str, torch.Tensor]:
+    """The imported network's tensors as float32 copies, after checking its parameter count against a model card's
+    limit (from the shapes: before anything is copied or the network is built); every value must be finite."""
+    total = sum(v.numel() for v in ours.values())
+    if total > MAX_PARAMETERS:
+        raise CheckpointError(
+            f"{where}: the imported network would have {total} parameters, more than the limit of {MAX_PARAMETERS} "
+            f"a model may have"
+        )
+    copies = {k: v.to(dtype=torch.float32, memory_format=torch.contiguous_format, copy=True) for k, v in ours.items()}
+    bad = sorted(k for k, v in copies.items() if not bool(torch.isfinite(v).all()))
+    if bad:
+        raise CheckpointError(f"{where}: the weights hold NaN or infinite values (imported as {_clip(bad)})")
+    return copies
 
 
 def _lstm_layers(sd: dict[str, torch.Tensor], prefix: str, where: str) -> list[tuple[int, int]]:

@@ -56,6 +56,7 @@ from seqtrojan.experiment_results import (
 )
 from seqtrojan.experiments.measured import measure_all, train_all
 from seqtrojan.experiments.specs import AgentSpec, deep_merge, experiment_from_spec
+from seqtrojan.folders import folder_lock, make_output_folder
 from seqtrojan.jobs import JobsConfig, TrainJob, make_backend
 from seqtrojan.presets import resolve_preset
 from seqtrojan.serde import from_dict, load_yaml, save_json
@@ -298,8 +299,14 @@ def offline_scores(cfg: CellsConfig, jobs: Sequence[TrainJob], out: Path, log: C
 
 
 def run_cells(cfg: CellsConfig, out: Path, scale: str = "custom", log: Callable[[str], None] = print) -> CellsResult:
-    """Train what is not trained yet, measure what is not measured yet, write ``cells.json`` and return it."""
-    out.mkdir(parents=True, exist_ok=True)
+    """Train what is not trained yet, measure what is not measured yet, write ``cells.json`` and return it. The
+    jobs are made (and a config they refuse is refused) before ``out`` is; ``out`` is held by this process alone."""
+    cell_jobs(cfg, out / "runs")
+    with folder_lock(make_output_folder(out, "--out"), "cells folder"):
+        return _run_cells(cfg, out, scale, log)
+
+
+def _run_cells(cfg: CellsConfig, out: Path, scale: str, log: Callable[[str], None]) -> CellsResult:
     runs, measured_dir = out / "runs", out / "measured"
     jobs = cell_jobs(cfg, runs)
     backend = make_backend(cfg.jobs)

@@ -53,6 +53,7 @@ from seqtrojan.experiments.attacks import ATTACKS
 from seqtrojan.experiments.matrix_plot import plot_matrix
 from seqtrojan.experiments.measured import measure_all, train_all
 from seqtrojan.experiments.specs import AgentSpec, experiment_from_spec
+from seqtrojan.folders import folder_lock, make_output_folder
 from seqtrojan.jobs import JobsConfig, TrainJob, make_backend
 from seqtrojan.presets import resolve_preset
 from seqtrojan.report.sections.matrix import matrix_page
@@ -266,8 +267,14 @@ def offline_scores(cfg: MatrixConfig, jobs: Sequence[TrainJob], zoo_dir: Path, l
 
 
 def run_matrix(cfg: MatrixConfig, out: Path, scale: str = "custom", log: Callable[[str], None] = print) -> MatrixResult:
-    """Train what is not trained yet, measure what is not measured yet, write ``matrix.json`` and return it."""
-    out.mkdir(parents=True, exist_ok=True)
+    """Train what is not trained yet, measure what is not measured yet, write ``matrix.json`` and return it. The
+    jobs are made (and a config they refuse is refused) before ``out`` is; ``out`` is held by this process alone."""
+    matrix_jobs(cfg, out / "runs")
+    with folder_lock(make_output_folder(out, "--out"), "matrix folder"):
+        return _run_matrix(cfg, out, scale, log)
+
+
+def _run_matrix(cfg: MatrixConfig, out: Path, scale: str, log: Callable[[str], None]) -> MatrixResult:
     runs, measured_dir = out / "runs", out / "measured"
     first, second = matrix_jobs(cfg, runs)
     backend = make_backend(cfg.jobs)

@@ -46,6 +46,7 @@ from seqtrojan.experiments.specs import AgentSpec, experiment_from_spec
 from seqtrojan.experiments.stages import Stage, StageContext, run_stages
 from seqtrojan.experiments.tradeoff import TradeoffConfig, measure_tradeoff_agent, summarise_penalties, tradeoff_agents
 from seqtrojan.experiments.tradeoff import settings as tradeoff_settings
+from seqtrojan.folders import folder_lock, make_output_folder
 from seqtrojan.jobs import JobBackend, JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 from seqtrojan.presets import resolve_preset
 from seqtrojan.report.figures import frames_to_text, plot_trajectory_pair, run_pair
@@ -141,9 +142,15 @@ class ReproduceContext(StageContext):
 
 
 def reproduce(config: ReproduceConfig, out: Path, scale: str = "custom", log=print) -> Path:
-    """Run every stage not yet done; return the report's path."""
+    """Run every stage not yet done; return the report's path. The headline jobs are made (and a config they refuse
+    is refused) before ``out`` is; ``out`` is held by this process alone."""
     layout = RunLayout(out)
-    out.mkdir(parents=True, exist_ok=True)
+    headline_jobs(config, layout)
+    with folder_lock(make_output_folder(out, "--out"), "reproduction folder"):
+        return _reproduce(config, layout, scale, log)
+
+
+def _reproduce(config: ReproduceConfig, layout: RunLayout, scale: str, log) -> Path:
     layout.config.write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
     context = ReproduceContext(layout, log, Timings(layout.timings), config, scale, time.perf_counter())
     run_stages(reproduce_stages(config), context)

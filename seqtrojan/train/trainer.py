@@ -17,8 +17,10 @@ from the update count (the ones in flight at the stop are dropped; every finishe
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as _dt
+import errno
 import json
 import math
 import re
@@ -48,8 +50,9 @@ from seqtrojan.agent.checkpoint import (
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.core import EnvState
-from seqtrojan.errors import CheckpointError, ConfigError
+from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.evaluation.batched import evaluate_on_env
+from seqtrojan.folders import folder_lock, make_output_folder
 from seqtrojan.serde import from_dict, load_yaml, short_repr, to_dict
 from seqtrojan.train.curriculum import Curriculum, EpisodeCounts
 from seqtrojan.train.gae import compute_gae
@@ -124,10 +127,29 @@ def train(
         torch.set_num_threads(cfg.run.threads)
     device = _device(cfg)
     MIXING_RULES.get(cfg.backdoor.mixing)  # an unknown rule is refused before the run folder exists
-    env_spec(cfg.env)  # and so is an env that cannot be made or whose spaces no agent takes (made once, remembered)
-    run_dir = Path(resume) if resume is not None else _new_run_dir(cfg)
+    spec = env_spec(cfg.env)  # and so is an env that cannot be made or whose spaces no agent takes (made once)
+    cfg.ppo.check_rollout_memory(spec.obs_dim)  # and a rollout buffer larger than memory
+    run_dir = _resumed_run_dir(resume) if resume is not None else _new_run_dir(cfg)
+    env, state = _set_up(cfg, device, resume is not None)  # a refused start model or penalty leaves no run folder
+    with contextlib.ExitStack() as held:
+        try:
+            if resume is None:
+                make_output_folder(run_dir, "run folder")
+            held.enter_context(folder_lock(run_dir))  # one writer per run folder, for the whole training
+        except SeqTrojanError:
+            env.close()
+            raise
+        return _train_locked(cfg, resume, callback, device, run_dir, env, state)
 
-    env, state = _set_up(cfg, device, resume is not None)
+
+def _train_locked(
+    cfg: ExperimentConfig, resume: str | Path | None, callback: UpdateCallback | None, device: torch.device,
+    run_dir: Path, env: BatchedEnv, state: TrainerState,
+) -> TrainResult:  # fmt: skip
+    """:func:`train` once the run folder is this process's."""
+    if resume is None:
+        _refuse_finished_run(run_dir)  # again under the lock: a run of the same name may have ended meanwhile
+        _write_config(run_dir, cfg)
     exact = _resume(run_dir, cfg, env, state) if resume is not None else None
     env.set_stage_weights(state.curriculum.weights())
     env.set_trojan_probability(state.mixer.probabilities())
@@ -457,6 +479,7 @@ def _progress_info(scalars: dict[str, Any]) -> str:
 
 
 def _new_run_dir(cfg: ExperimentConfig) -> Path:
+    """The folder of a new run (made only once the run is set up), refused if it holds a run already."""
     if cfg.is_grid:
         grid = cfg.grids[-1]
         where = f"{grid.size}x{grid.size}h{grid.holes}"
@@ -464,10 +487,19 @@ def _new_run_dir(cfg: ExperimentConfig) -> Path:
         where = re.sub(r"[^A-Za-z0-9_.-]+", "_", getattr(cfg.env, "id", "env")).strip("_")
     name = cfg.run.name or f"{where}_s{cfg.run.seed}_{_dt.datetime.now():%Y%m%d-%H%M%S}"
     run_dir = Path(cfg.run.out_dir) / name
+    _refuse_finished_run(run_dir)
+    return run_dir
+
+
+def _refuse_finished_run(run_dir: Path) -> None:
     if (run_dir / "checkpoints" / "latest.txt").exists():
         raise ConfigError(f"run directory {str(run_dir)!r} already holds a run; resume it with --resume {run_dir}")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    _write_config(run_dir, cfg)
+
+
+def _resumed_run_dir(resume: str | Path) -> Path:
+    run_dir = Path(resume)
+    if not run_dir.is_dir():
+        raise ConfigError(f"--resume {str(run_dir)!r} is not a run folder")
     return run_dir
 
 
@@ -507,8 +539,25 @@ def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -
     random generators, the penalties' state (``penalty.<name>.<key>``), the env's episode tensors (``env.*``) and
     the collector's carried tensors (``collector.*``) in trainer.safetensors; counters, curriculum, mixing,
     optimizer groups and a Gymnasium env's episode records (``episodes``) in trainer.json; then points
-    ``latest.txt`` at it."""
+    ``latest.txt`` at it. Every file is written to a temp file and renamed, ``latest.txt`` last: a write that fails
+    (a full disk) leaves the previous checkpoint the latest, removes the new folder and is one CheckpointError."""
     folder = run_dir / "checkpoints" / f"step_{state.global_step:012d}"
+    new = not folder.exists()
+    try:
+        return _write_checkpoint(run_dir, folder, cfg, state)
+    except (OSError, CheckpointError) as err:  # save_agent's own refusals (a full disk, NaN weights) included
+        if new:
+            shutil.rmtree(folder, ignore_errors=True)
+        if isinstance(err, CheckpointError):
+            raise
+        problem = "disk full" if err.errno == errno.ENOSPC else "cannot write"
+        raise CheckpointError(
+            f"{problem} while writing the checkpoint {str(folder)!r}: {err.strerror or err}; the previous checkpoint "
+            "is kept"
+        ) from None
+
+
+def _write_checkpoint(run_dir: Path, folder: Path, cfg: ExperimentConfig, state: TrainerState) -> Path:
     save_agent(folder, state.agent, cfg, label=state.label, env_steps=state.global_step)
     tensors, groups = _optimizer_tensors(state.optimizer)
     tensors["rng.collector"] = state.collector.generator.get_state()
@@ -518,7 +567,9 @@ def save_checkpoint(run_dir: Path, cfg: ExperimentConfig, state: TrainerState) -
     if env_state is not None:  # the env can restore its episodes in flight: keep what the collector carries too
         tensors.update({f"env.{k}": v for k, v in env_state.tensors.items()})
         tensors.update({f"collector.{k}": v for k, v in state.collector.state_tensors().items()})
-    save_file(tensors, str(folder / "trainer.safetensors"))
+    tmp = folder / "trainer.safetensors.tmp"
+    save_file(tensors, str(tmp))
+    tmp.replace(folder / "trainer.safetensors")
     record: dict[str, Any] = {
         "env_steps": state.global_step,
         "update": state.update,

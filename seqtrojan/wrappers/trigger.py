@@ -34,10 +34,12 @@ _OPTIONS = ("trojan", "trigger_step", "off_step")
 
 
 def _step_range(value: Any, what: str, minimum: int = 0) -> tuple[int, int]:
-    try:
-        lo, hi = (int(v) for v in value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{what} must be an inclusive range [lo, hi] of steps, got {short_repr(value)}") from None
+    """``[lo, hi]``: a list or tuple of two integers (a string such as "12" or a float is refused, never read as
+    digits or truncated)."""
+    integers = isinstance(value, (list, tuple)) and len(value) == 2
+    if not integers or any(isinstance(v, bool) or not isinstance(v, (int, np.integer)) for v in value):
+        raise ConfigError(f"{what} must be an inclusive range [lo, hi] of integer steps, got {short_repr(value)}")
+    lo, hi = (int(v) for v in value)
     if not minimum <= lo <= hi:
         raise ConfigError(f"{what}={short_repr(value)} must satisfy {minimum} <= lo <= hi")
     return lo, hi

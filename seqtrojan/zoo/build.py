@@ -39,6 +39,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from seqtrojan.agent.card import MAX_CARD_BYTES, load_json, read_regular_file
 from seqtrojan.cell_types import CELL_TYPES, cell_names
 from seqtrojan.config import (
     AgentConfig,
@@ -63,6 +64,14 @@ TRIGGER_VALUES = ("trigger", "hole", "empty", "wall")
 DEFAULT_TRIGGER_VALUES = ("trigger", "hole", "wall")
 """'empty' is left out by default: a patch of empty cells over cells that are usually empty is invisible"""
 LABELS = ("clean", "backdoored")
+MAX_LABEL_BYTES = 64 << 10
+"""largest ``label.json`` read (a real one is a few hundred bytes)"""
+MAX_ZOO_CONFIG_BYTES = 1 << 20
+"""largest ``zoo.json`` read (a real one is a few KiB)"""
+MAX_MANIFEST_BYTES = 256 << 20
+"""largest ``manifest.json`` read (about 1 KiB per model); a larger or malformed one is rebuilt from the models"""
+_MANIFEST_ITEMS = 1 << 22
+"""most entries and values the manifest may hold (one entry per model, a few dozen values each)"""
 
 
 @dataclass(frozen=True)
@@ -305,11 +314,9 @@ def read_label(folder: Path) -> dict[str, Any]:
     ``functional_backdoor`` null or a boolean. Anything else is a one-line :class:`CheckpointError`."""
     path = folder / "label.json"
     try:
-        truth = json.loads(path.read_text())
+        truth = read_json_file(path, MAX_LABEL_BYTES)
     except FileNotFoundError:
         raise CheckpointError(f"no label.json in {str(folder)!r}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise CheckpointError(f"{str(path)!r} is not valid JSON: {_one_line(err)}") from None
     if not isinstance(truth, dict):
         raise CheckpointError(f"{str(path)!r} must be a JSON object, got {type(truth).__name__}")
     if truth.get("label") not in LABELS:
@@ -456,7 +463,8 @@ def build_zoo(
 
 def _card_metrics(folder: Path) -> dict[str, Any]:
     """The metrics in a finished model's ``card.json`` (checked when the model was verified)."""
-    metrics = json.loads((folder / "card.json").read_text()).get("metrics", {})
+    card = read_json_file(folder / "card.json", MAX_CARD_BYTES)
+    metrics = card.get("metrics", {}) if isinstance(card, dict) else {}
     return metrics if isinstance(metrics, dict) else {}
 
 
@@ -476,8 +484,8 @@ def _check_zoo_config(cfg: ZooConfig, root: Path) -> None:
         write_json_atomic(path, current)
         return
     try:
-        stored: Any = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        stored: Any = read_json_file(path, MAX_ZOO_CONFIG_BYTES)
+    except (OSError, CheckpointError):
         stored = None
     if not isinstance(stored, dict):
         if any((root / "models").glob("*/card.json")):
@@ -502,8 +510,8 @@ def _read_manifest(path: Path, log: Callable[[str], None]) -> dict[str, dict[str
     if not path.exists():
         return {}
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        data = read_json_file(path, MAX_MANIFEST_BYTES, max_values=_MANIFEST_ITEMS, max_items=_MANIFEST_ITEMS)
+    except (OSError, CheckpointError) as err:
         log(f"zoo: manifest.json is corrupt ({_one_line(err)}); rebuilding it from the model folders")
         return {}
     if not isinstance(data, list) or not all(isinstance(e, dict) and isinstance(e.get("id"), str) for e in data):
@@ -559,6 +567,15 @@ def _build_lock(root: Path, log: Callable[[str], None]) -> Iterator[None]:
             workers.truncate(0)
             fcntl.flock(workers, fcntl.LOCK_UN)
         yield
+
+
+def read_json_file(path: Path, limit: int, **bounds: int) -> Any:
+    """A JSON file the zoo reads (``label.json``, ``zoo.json``, ``manifest.json``, a card's metrics), as untrusted
+    input: a regular file (a FIFO is refused, never waited on) of at most ``limit`` bytes, parsed by the card's
+    bounded parser (depth, values, duplicate keys; ``bounds`` raise its value and entry limits). A refusal is one
+    :class:`CheckpointError` line; a missing file raises ``FileNotFoundError``."""
+    where = repr(str(path))
+    return load_json(read_regular_file(path, limit, where), where, **bounds)
 
 
 def write_json_atomic(path: Path, data: Any) -> None:

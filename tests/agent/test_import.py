@@ -10,6 +10,7 @@ import dataclasses
 import io
 import json
 import pickle
+import struct
 import zipfile
 
 import gymnasium as gym
@@ -691,3 +692,81 @@ def test_a_gym_import_is_checked_against_the_env_the_config_builds(sb3_minigrid,
     _, loaded, card = load_agent(tmp_path / "b")
     assert card["label"] == "backdoored" and loaded.backdoor == cfg.backdoor and card["provenance"]["label_stated"]
     assert loaded.env == cfg.env
+
+
+# ---------------------------------------------------------------------- refusals: sizes, bombs, values (#28)
+
+
+def _lying_zip(path, payload: bytes, declared: int):
+    """A zip whose 'data' entry's headers (local and central) declare ``declared`` bytes but whose deflated data
+    unpacks to ``payload`` (a zip bomb with a lying size header)."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("data", payload)
+        z.writestr("policy.pth", b"PK")
+    raw = bytearray(path.read_bytes())
+    struct.pack_into("<I", raw, 22, declared)  # the local header's uncompressed size
+    struct.pack_into("<I", raw, raw.index(b"PK\x01\x02") + 24, declared)  # the central directory's
+    path.write_bytes(bytes(raw))
+    return path
+
+
+def _cleanrl_file(path, **changes):
+    torch.manual_seed(0)
+    sd = {**CleanRLAgent(54, 4).state_dict(), **changes}
+    torch.save(sd, path)
+    return path
+
+
+def _deflated_torch_file(path):
+    buf = io.BytesIO(_torch_archive(CleanRLAgent(54, 4).state_dict()))
+    with zipfile.ZipFile(buf) as src, zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as dst:
+        for info in src.infolist():
+            dst.writestr(info.filename, src.read(info))
+    return path
+
+
+NAN_BIAS = torch.tensor([0.0, float("nan"), 0.0, 0.0])
+BOUNDED_IMPORTS = {
+    # case: (source, file maker, patched limits, message)
+    "lying zip header": (
+        "sb3", lambda p: _lying_zip(p, b" " * (8 << 20), 1000), {}, r"'data' entry of .* cannot be read: Bad CRC",
+    ),
+    "tensor over the cap": (
+        "cleanrl", lambda p: _cleanrl_file(p, **{"critic.bias": torch.zeros(5000)}), {"MAX_PARAMETERS": 4096},
+        r"tensor 'critic.bias' has dtype torch.float32 and shape \[5000\] .* at most 8 dimensions and 4096 numbers",
+    ),
+    "file over the cap": (
+        "cleanrl", _cleanrl_file, {"MAX_FILE_PARAMETERS": 1000}, r"holds \d+ numbers in its tensors, more than .* 1000",
+    ),
+    "network over the cap": (
+        "cleanrl", _cleanrl_file, {"MAX_PARAMETERS": 3000},
+        r"the imported network would have \d+ parameters, more than the limit of 3000",
+    ),
+    "NaN weight": ("cleanrl", lambda p: _cleanrl_file(p, **{"actor.bias": NAN_BIAS}), {}, "NaN or infinite values"),
+    "infinite weight": (
+        "cleanrl", lambda p: _cleanrl_file(p, **{"critic.bias": torch.tensor([float("inf")])}), {},
+        r"NaN or infinite values \(imported as \['value_head.bias'\]\)",
+    ),
+    "compressed torch archive": ("cleanrl", _deflated_torch_file, {}, "compressed entries"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(BOUNDED_IMPORTS))
+def test_import_refuses_unbounded_or_non_finite_weights_before_building(tmp_path, monkeypatch, capsys, case):
+    source, make, limits, message = BOUNDED_IMPORTS[case]
+    path = make(tmp_path / ("in.zip" if source == "sb3" else "in.pt"))
+    for name, value in limits.items():
+        monkeypatch.setattr(imports, name, value)
+    monkeypatch.setattr(imports, "build_agent", lambda *a, **k: pytest.fail("the network was built"))
+    returned = []
+    read = zipfile.ZipExtFile.read
+    spy = lambda self, n=-1: returned.append(len(out := read(self, n))) or out  # noqa: E731
+    monkeypatch.setattr(zipfile.ZipExtFile, "read", spy)
+    with pytest.raises(CheckpointError, match=message):
+        import_agent(source, path, tmp_path / "out", obs_dim=54, num_actions=4)
+    assert sum(returned) <= 1001  # a lying header: never more than it declares (+1) is decompressed
+    flags = ["--obs-dim", "54", "--actions", "4"] if source == "cleanrl" else []
+    assert main(["import", str(path), "--from", source, "--out", str(tmp_path / "out"), *flags]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("seqtrojan import: error: ") and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import errno
 import json
 import signal
 from pathlib import Path
@@ -11,9 +12,10 @@ from pathlib import Path
 import pytest
 import torch
 
+from seqtrojan.agent import checkpoint as checkpoint_module
 from seqtrojan.agent.checkpoint import load_agent, read_safetensors
 from seqtrojan.config import BackdoorConfig, PPOConfig
-from seqtrojan.errors import ConfigError
+from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.train import trainer as trainer_module
 from seqtrojan.train.trainer import load_run_config, train, train_or_resume
 from tests.train.resume import logged_rows, straight_and_resumed
@@ -265,3 +267,32 @@ def test_an_unknown_mixing_rule_is_refused_before_the_run_folder_exists(tmp_path
     with pytest.raises(ConfigError, match=r"unknown mixing 'halves'; known: exact, running, fixed"):
         train(cfg)
     assert not (tmp_path / "refused").exists()
+
+
+@pytest.mark.parametrize("fails", ["trainer.safetensors", "model.safetensors"])
+def test_a_full_disk_is_one_line_and_keeps_the_previous_checkpoint(smoke_config, monkeypatch, fails):
+    cfg = dataclasses.replace(
+        smoke_config, ppo=dataclasses.replace(smoke_config.ppo, total_steps=1024, num_envs=16, rollout_steps=32,
+                                              num_minibatches=1, update_epochs=1),
+        run=dataclasses.replace(smoke_config.run, name="r", checkpoint_every=512, eval_episodes=0),
+    )  # fmt: skip
+    module = trainer_module if fails == "trainer.safetensors" else checkpoint_module
+    real, calls = module.save_file, []
+
+    def save_file(tensors, path):
+        calls.append(path)
+        if len(calls) == 2:
+            Path(path).write_bytes(b"partial")
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(tensors, path)
+
+    monkeypatch.setattr(module, "save_file", save_file)
+    message = r"^disk full while writing the (checkpoint|model) '.*': No space left"
+    with pytest.raises(CheckpointError, match=message) as e:
+        train(cfg)
+    assert "\n" not in str(e.value)
+    checkpoints = Path(cfg.run.out_dir) / "r" / "checkpoints"
+    latest = (checkpoints / "latest.txt").read_text().strip()
+    assert sorted(p.name for p in checkpoints.iterdir()) == ["latest.txt", latest]  # the partial one is gone
+    assert not list(checkpoints.rglob("*.tmp"))
+    load_agent(checkpoints / latest)  # the previous checkpoint is whole

@@ -10,6 +10,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -338,3 +339,40 @@ def test_a_zoo_of_a_minigrid_env_builds_and_is_scored(tmp_path):
     assert [s.group for s in result.scores] == ["all", "gate_stats", "spectral"] and not result.rejected
     with pytest.raises(ConfigError, match="must be a Gymnasium env"):
         make_jobs(ZooConfig(clean=1, backdoored=1, env_preset="smoke"), tmp_path / "grid")
+
+
+def _label_file(folder: Path, case: str) -> None:
+    path = folder / "label.json"
+    if case == "FIFO":
+        os.mkfifo(path)
+    elif case == "oversized":
+        path.write_text(json.dumps({"label": "clean", "note": "x" * (64 << 10)}))
+    elif case == "deeply nested":
+        path.write_text('{"label": "clean", "variation": ' + "[" * 5000 + "]" * 5000 + "}")
+    elif case == "duplicate key":
+        path.write_text('{"label": "clean", "label": "backdoored"}')
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [("FIFO", "is not a regular file"), ("oversized", "larger than the 65536 bytes"),
+     ("deeply nested", "nests lists/objects more than 32 deep"), ("duplicate key", "duplicate key 'label'")],
+)  # fmt: skip
+def test_label_json_is_read_as_untrusted_input_without_blocking(tmp_path, case, message):
+    """label.json is refused in one line, never waited on (a FIFO), never read whole when oversized, never parsed
+    into a RecursionError; in any thread, within a second."""
+    _label_file(tmp_path, case)
+    outcome: list[BaseException | dict] = []
+
+    def read() -> None:
+        try:
+            outcome.append(zoo_build.read_label(tmp_path))
+        except BaseException as err:  # reported below
+            outcome.append(err)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    reader.join(timeout=5)
+    assert outcome, "read_label blocked"
+    (err,) = outcome
+    assert isinstance(err, SeqTrojanError) and message in str(err) and "\n" not in str(err)
