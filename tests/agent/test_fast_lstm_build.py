@@ -207,3 +207,11 @@ def test_openmp_threads_sleep_instead_of_spinning_unless_the_user_chose():
     assert _gomp_spin_count() == "0"  # OMP_WAIT_POLICY=PASSIVE: no spinning that a busy machine pays for
     assert _gomp_spin_count(GOMP_SPINCOUNT="300000") == "300000"
     assert _gomp_spin_count(OMP_WAIT_POLICY="ACTIVE") != "0"
+
+
+def test_the_kernels_are_built_unless_the_pytorch_path_is_chosen():
+    """About 80 kernel tests skip where the extension is unavailable; this one fails instead, so that a broken build
+    cannot pass CI silently. ``SEQTROJAN_LSTM_BACKEND=torch`` says the PyTorch path is intended (then it skips)."""
+    if os.environ.get("SEQTROJAN_LSTM_BACKEND") == "torch":
+        pytest.skip("SEQTROJAN_LSTM_BACKEND=torch: the PyTorch path is intended")
+    assert fast_lstm.extension() is not None, f"the C++ kernels did not build: {fast_lstm.error()}"
