@@ -3,6 +3,7 @@ one line naming the holder's pid), and a holder killed with SIGKILL releases the
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
@@ -65,3 +66,30 @@ def test_an_output_path_that_is_a_file_is_refused(tmp_path):
     with pytest.raises(ConfigError, match=r"--out '.*f' exists and is not a folder"):
         make_output_folder(tmp_path / "f", "--out")
     assert make_output_folder(tmp_path / "a" / "b", "--out").is_dir()
+
+
+def test_a_held_run_folder_is_not_cleared_by_a_pipeline_and_an_import_into_a_held_folder_is_refused(tmp_path):
+    """train_or_resume clears a run folder left before a first checkpoint only when nobody writes it; an import
+    into a folder another import holds is refused, and nothing of the holder's is touched."""
+    from seqtrojan.agent.imports import import_agent
+    from seqtrojan.train.trainer import train_or_resume
+
+    run = tmp_path / "runs" / "r"
+    run.mkdir(parents=True)
+    (run / "metrics.jsonl").write_text("{}\n")  # the holder's files
+    cfg = ExperimentConfig(ppo=PPOConfig(num_envs=4, rollout_steps=4, num_minibatches=1))
+    cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, out_dir=str(tmp_path / "runs"), name="r"))
+    target = tmp_path / "imported"
+    target.mkdir()
+    holders = [_holder(run), _holder(target)]
+    try:
+        with pytest.raises(FolderInUse, match="is in use by another seqtrojan process"):
+            train_or_resume(cfg)
+        with pytest.raises(ConfigError, match="already exists and is not an empty folder"):
+            import_agent("sb3", tmp_path / "missing.zip", target)
+    finally:
+        for proc in holders:
+            proc.kill()
+            proc.wait()
+    assert (run / "metrics.jsonl").read_text() == "{}\n"
+    assert sorted(p.name for p in target.iterdir()) == [".lock"]

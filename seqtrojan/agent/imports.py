@@ -49,6 +49,7 @@ from seqtrojan.config import AgentConfig, ExperimentConfig
 from seqtrojan.env.codes import ACTION_SETS, CELL_NAMES
 from seqtrojan.env.config import EnvConfig
 from seqtrojan.errors import CheckpointError, ConfigError
+from seqtrojan.folders import LOCK_FILE, folder_lock, make_output_folder
 from seqtrojan.world import EnvSpec, env_spec
 
 __all__ = [
@@ -626,7 +627,14 @@ def import_agent(
     agent = build_agent(cfg, Architecture.of_config(cfg, spec.obs_dim, spec.num_actions, spec.image))
     agent.load_state_dict(dict(imported.tensors), strict=True)  # names and shapes were checked above
     provenance = provenance_of(imported, path, stated)
-    return save_agent(Path(out), agent.eval(), cfg, label=label, env_steps=imported.env_steps, provenance=provenance)
+    folder = make_output_folder(Path(out), "--out")
+    with folder_lock(folder, "import folder"):  # two imports into one new folder: the second finds it taken
+        if any(p.name != LOCK_FILE for p in folder.iterdir()):
+            raise ConfigError(f"{str(folder)!r} already exists and is not an empty folder: choose a new --out")
+        saved = save_agent(folder, agent.eval(), cfg, label=label, env_steps=imported.env_steps, provenance=provenance)
+        # a model folder holds its two files only; a racer that still opens the old lock then finds them and stops
+        (folder / LOCK_FILE).unlink(missing_ok=True)
+    return saved
 
 
 def read_foreign(

@@ -52,7 +52,7 @@ from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.core import EnvState
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.evaluation.batched import evaluate_on_env
-from seqtrojan.folders import folder_lock, make_output_folder
+from seqtrojan.folders import LOCK_FILE, folder_lock, make_output_folder
 from seqtrojan.serde import from_dict, load_yaml, short_repr, to_dict
 from seqtrojan.train.curriculum import Curriculum, EpisodeCounts
 from seqtrojan.train.gae import compute_gae
@@ -521,8 +521,13 @@ def train_or_resume(cfg: ExperimentConfig) -> tuple[Path, bool]:
         return run_dir / "model", False
     if (run_dir / "checkpoints" / "latest.txt").exists():
         return train(load_run_config(run_dir), resume=run_dir).model_dir, True
-    if run_dir.exists():
-        shutil.rmtree(run_dir)
+    if run_dir.exists():  # left before a first checkpoint: cleared, unless another process is writing it
+        with folder_lock(run_dir):
+            for leftover in run_dir.iterdir():
+                if leftover.is_dir():
+                    shutil.rmtree(leftover)
+                elif leftover.name != LOCK_FILE:
+                    leftover.unlink()
     return train(cfg).model_dir, True
 
 

@@ -110,7 +110,9 @@ def test_the_matrix_runs_on_a_minigrid_env_with_the_defenses_that_apply(tmp_path
     shipped = load_matrix_config("matrix_minigrid_smoke")
     assert shipped.attack_names == ("dedicated_code", "delayed", "state_camouflage", "from_clean",
                                     "weight_camouflage", "ewc")  # fmt: skip
-    assert shipped.online_names == ("state_monitor", "multivariate_monitor") and shipped.offline_names == ()
+    assert shipped.online_names == ("state_monitor", "multivariate_monitor")
+    assert shipped.offline_names == ("weight_detector",) and shipped.zoo is not None  # on a zoo of its env
+    assert shipped.zoo.env_preset == "minigrid_two_goals"
     assert load_matrix_config("smoke").online_names[-1] == "input_novelty"  # the grid world keeps all
     for field, name, message in (("attacks", "partial_patch", "grid-world cells"),
                                  ("online", "input_novelty", "reads grid-world views"),
