@@ -10,6 +10,7 @@ commands define after a local (lazy) import, and string annotations could not be
 import contextlib
 import dataclasses
 import difflib
+import errno
 import sys
 import types
 import typing
@@ -716,6 +717,15 @@ def main(argv: list[str] | None = None) -> int:
         COMMANDS[name][0](rest)
     except SeqTrojanError as err:
         print(f"seqtrojan {name}: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        if err.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        # a full disk while writing a log or a result file (checkpoints and models say so themselves, keeping the
+        # previous checkpoint): what was finished stays, and the run resumes once there is room
+        where = f" ({err.filename})" if err.filename else ""
+        print(f"seqtrojan {name}: error: disk full{where}: free some space and rerun (finished work is kept)",
+              file=sys.stderr)  # fmt: skip
         return 2
     except KeyboardInterrupt as err:
         print(f"seqtrojan {name}: {err or 'interrupted'}", file=sys.stderr)

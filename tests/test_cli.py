@@ -295,3 +295,28 @@ def test_refused_outputs_and_configs_write_nothing(tmp_path, capsys, monkeypatch
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1, err
     assert [p.name for p in tmp_path.iterdir()] == ["afile"]
+
+
+def test_a_full_disk_while_logging_is_one_line_and_keeps_finished_work(tmp_path, monkeypatch, capsys):
+    """Checkpoints and models report a full disk themselves; any other write (a log line) ends in one line too."""
+    import errno
+
+    from seqtrojan.train import logger
+
+    calls = []
+    real = logger.RunLogger.log
+
+    def log(self, step, scalars):
+        calls.append(step)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.jsonl_path))
+        real(self, step, scalars)
+
+    monkeypatch.setattr(logger.RunLogger, "log", log)
+    code = main(["train", "--config", str(ROOT / "configs" / "smoke.yaml"), "--ppo.total-steps", "4096",
+                 "--run.out-dir", str(tmp_path), "--run.name", "r", "--run.eval-episodes", "0",
+                 "--run.no-progress"])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert err.startswith("seqtrojan train: error: disk full (") and "metrics.jsonl" in err
+    assert len((tmp_path / "r" / "metrics.jsonl").read_text().splitlines()) == 1  # the finished update's line
