@@ -44,7 +44,7 @@ bench: setup
 	$(BIN)/python benchmarks/train_throughput.py
 
 docs: setup
-	$(BIN)/mkdocs build --strict -d site
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict -d site
 
 clean:
 	rm -rf $(VENV) outputs results site .pytest_cache .ruff_cache .mypy_cache
