@@ -1,12 +1,13 @@
 # Two commands on a fresh machine:
 #   make reproduce   set up, then run the main job: a small end-to-end reproduction (writes results/smoke/report.html)
 #   make test        set up, then lint and run the test suite
+# make docs builds the documentation site (mkdocs.yml, docs/) into site/, failing on any warning.
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup reproduce reproduce-paper demo test test-all lint bench clean
+.PHONY: setup reproduce reproduce-paper demo test test-all lint bench docs clean
 
 setup: $(STAMP)
 
@@ -15,7 +16,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet torch==2.13.0
-	$(BIN)/pip install --quiet -e ".[dev]"
+	$(BIN)/pip install --quiet -e ".[dev,docs]"
 	touch $(STAMP)
 
 reproduce: setup
@@ -42,5 +43,8 @@ bench: setup
 	$(BIN)/python benchmarks/env_throughput.py
 	$(BIN)/python benchmarks/train_throughput.py
 
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict -d site
+
 clean:
-	rm -rf $(VENV) outputs results .pytest_cache .ruff_cache .mypy_cache
+	rm -rf $(VENV) outputs results site .pytest_cache .ruff_cache .mypy_cache
