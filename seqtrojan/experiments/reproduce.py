@@ -2,7 +2,7 @@
 learning curves, the trajectory figure, the analysis of their internal states (response types, interventions,
 unintentional triggers, searches), and a self-contained HTML report beside the paper's numbers.
 
-    seqtrojan reproduce --scale smoke      # minutes on 2 cores: the README's main job
+    seqtrojan reproduce --scale smoke      # minutes on 2 cores: the main job (make reproduce)
     seqtrojan reproduce --scale paper      # the paper's setting (17x17/30 agents, 1000 trials, 10 seeds)
 
 :func:`reproduce` is a list of stages (:func:`reproduce_stages`: training (headline agents, curves, trade-off in one

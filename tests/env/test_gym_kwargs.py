@@ -1,4 +1,4 @@
-"""gym.make and the vector env take any EnvConfig field as a keyword argument, as the README says."""
+"""gym.make and the vector env take any EnvConfig field as a keyword argument, as docs/getting_started.md says."""
 
 from __future__ import annotations
 
