@@ -15,7 +15,7 @@ from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
 from seqtrojan.cell_types import cell_names
 from seqtrojan.config import AgentConfig, ExperimentConfig
-from seqtrojan.defense.mitigation import MitigationConfig, least_active_units, prune_units, run_mitigation
+from seqtrojan.defense.mitigation import MitigationConfig, least_active, least_active_units, prune_units, run_mitigation
 from seqtrojan.defense.monitor import (
     MonitorConfig,
     MonitoredPolicy,
@@ -104,10 +104,32 @@ def test_pruned_units_stay_silent(agent):
     trace = record_traces(pruned, CFG.env, [GRID], episodes=20, trojan=True, trigger_step=2)
     assert np.abs(trace.h[1][..., units]).max() == 0 and np.abs(trace.c[1][..., units]).max() == 0
     assert (np.delete(trace.h[1], units, axis=-1)[trace.mask] != 0).all()  # the others still work at every step
-    clean = record_traces(agent, CFG.env, [GRID], episodes=40, trojan=False, trigger_step=None, seed=0)
-    activity = np.abs(clean.h[1][clean.mask]).mean(0)  # mean |h| of each last-layer unit over running steps
-    assert sorted(units.tolist()) == sorted(np.argsort(activity)[:2].tolist())  # the two least active ones
     assert not torch.equal(agent.cells[1].weight_hh, pruned.cells[1].weight_hh)
+
+
+def test_least_active_picks_exactly_the_units_made_least_active():
+    """Activations built so that three units are the least active by mean |h| over the running steps, whatever
+    their sign, and the loudest at the steps that did not run; a unit always at -5 is the most active."""
+    rng = np.random.default_rng(0)
+    e, t, u = 6, 10, 12
+    h = rng.uniform(0.5, 1.0, size=(e, t, u)) * rng.choice([-1.0, 1.0], size=(e, t, u))  # (E, T, units)
+    quiet = [9, 2, 5]  # mean |h| 0.01, 0.02, 0.03: least active first
+    for rank, unit in enumerate(quiet):
+        h[..., unit] = (rank + 1) * 0.01 * rng.choice([-1.0, 1.0], size=(e, t))
+    h[..., 7] = -5.0
+    mask = np.ones((e, t), bool)
+    mask[:, 6:] = False  # steps 6-9 did not run: there the quiet units are the loudest of all
+    h[:, 6:, quiet] = 100.0
+    assert least_active(h, mask, 0.25).tolist() == quiet  # 3 of 12, in order
+    assert least_active(h, mask, 0.01).tolist() == quiet[:1]  # at least one
+    assert 7 not in least_active(h, mask, 11 / 12).tolist()  # all but the most active
+
+
+def test_least_active_units_finds_the_units_silenced_in_an_agent(agent):
+    """On the agent's own clean episodes: two last-layer units pruned beforehand (h = 0 at every step) are exactly
+    the quarter that least_active_units picks."""
+    silenced = prune_units(agent, 1, np.array([6, 1]))
+    assert sorted(least_active_units(silenced, CFG, GRID, episodes=40, fraction=0.25, seed=0).tolist()) == [1, 6]
 
 
 def test_mitigation_measures_before_and_after(tmp_path, agent):

@@ -90,7 +90,7 @@ def test_every_registered_detector_is_an_online_detector(measured, tmp_path):
     assert measured["multivariate_monitor"][1].units == measured["state_monitor"][1].units == (64, 32)
 
 
-@pytest.mark.parametrize("name", ["input_novelty", "multivariate_monitor"])
+@pytest.mark.parametrize("name", ["state_monitor", "input_novelty", "multivariate_monitor"])
 def test_detects_the_trigger_at_few_false_alarms(measured, name):
     result = measured[name][1]
     assert result.attack_success_undefended.value >= 0.9, "the tiny agent's backdoor did not train"
@@ -101,7 +101,7 @@ def test_detects_the_trigger_at_few_false_alarms(measured, name):
         assert arm.false_alarm.value <= 0.05 and arm.false_alarm.interval[0] <= CAL.false_alarm_target, arm
 
 
-@pytest.mark.parametrize("name", ["input_novelty", "multivariate_monitor"])
+@pytest.mark.parametrize("name", ["state_monitor", "input_novelty", "multivariate_monitor"])
 def test_the_reset_arm_cuts_the_attack_and_keeps_clean_success(measured, name):
     result = measured[name][1]
     assert result.trojan_reset.attack_success.value <= result.attack_success_undefended.value - 0.4, result
@@ -224,7 +224,8 @@ def test_bad_calibration_settings_are_refused(backdoored):
 
 
 def test_the_state_monitor_keeps_its_numbers(backdoored, measured):
-    """StateMonitor through the protocol scores exactly its own ``score``."""
+    """StateMonitor through the protocol scores exactly its own ``score`` (its effect: the parametrised tests above
+    and tests/defense/test_defense_effects.py)."""
     detector = measured["state_monitor"][0]
     assert isinstance(detector, StateMonitor)
     state = backdoored.initial_state(4)

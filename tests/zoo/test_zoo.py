@@ -4,6 +4,7 @@ folders and a failing model, and refuses a rerun with another config."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -198,11 +199,36 @@ def test_a_build_refuses_to_run_beside_another_build_or_its_workers(built, tmp_p
     assert logs[0].startswith("zoo: 4 of 4 models done")
 
 
-def test_ray_backend_builds_the_same_jobs(tmp_path):
+def built_models(zoo: Path) -> dict[str, dict]:
+    """Each model of a finished zoo by id: its manifest entry, its label.json, its card's metrics and recorded
+    SHA-256 (less the run's time and worker), and the SHA-256 of its weights file as written."""
+    models = {}
+    for e in manifest_of(zoo):
+        folder = zoo / "models" / e["id"]
+        card = json.loads((folder / "card.json").read_text())
+        untimed = {k: v for k, v in card["metrics"].items() if k != "train_seconds"}
+        models[e["id"]] = {
+            "entry": {k: v for k, v in e.items() if k not in ("seconds", "worker", "metrics")},
+            "label.json": json.loads((folder / "label.json").read_text()),
+            "metrics": ({k: v for k, v in e["metrics"].items() if k != "train_seconds"}, untimed),
+            "card": (card["label"], card["env_steps"], card["weights_sha256"]),
+            "weights": hashlib.sha256((folder / "model.safetensors").read_bytes()).hexdigest(),
+        }
+    return models
+
+
+def test_ray_backend_builds_the_same_models_as_the_serial_backend(tmp_path):
+    """The same zoo built on Ray and serially (one torch thread per job on both: a seed fixes a run bitwise only at a
+    fixed thread count): the same models, bitwise, under the same ids, with the same manifest entries and labels."""
     pytest.importorskip("ray")
     cfg = ZooConfig(**{**TINY.__dict__, "clean": 1, "backdoored": 1})
-    manifest = build_zoo(cfg, tmp_path / "zoo", workers=2, backend="ray", log=lambda *_: None)
-    assert [e["status"] for e in json.loads(manifest.read_text())] == ["done", "done"]
+    serial = build_zoo(cfg, tmp_path / "serial", backend="serial", threads=1, log=lambda *_: None).parent
+    ray = build_zoo(cfg, tmp_path / "ray", workers=2, backend="ray", threads=1, log=lambda *_: None).parent
+    expected = built_models(serial)
+    assert sorted(expected) == ["m0000", "m0001"] and {m["entry"]["status"] for m in expected.values()} == {"done"}
+    assert {m["entry"]["label"] for m in expected.values()} == {"clean", "backdoored"}
+    assert len({m["weights"] for m in expected.values()}) == 2  # two different models: a swap would show
+    assert built_models(ray) == expected
 
 
 def test_a_failing_model_is_marked_failed_while_the_others_finish_and_a_rerun_retries_it(built, tmp_path, monkeypatch):
