@@ -499,7 +499,7 @@ def _defend(argv: list[str]) -> None:
 
     @dataclasses.dataclass
     class DefendArgs:
-        """Run the online state monitor and the mitigations (fine-pruning, fine-tuning, unit reset) on a model."""
+        """Run the online state monitor and every registered mitigation (`seqtrojan defenses`) on a model."""
 
         model: Path
         """the model folder to defend (a grid-world model or a Gymnasium env's)"""
@@ -680,7 +680,10 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], None], str]] = {
     "train": (_train, "train an agent with recurrent PPO, grid world or Gymnasium env (--config, --resume RUN_DIR)"),
     "evaluate": (_evaluate, "success rates with 95% CIs: grid configs beside the paper's tables, or the model's env"),
     "analyze": (_analyze, "state traces, response types, interventions, unintentional triggers, search"),
-    "defend": (_defend, "online state monitors and mitigations (fine-pruning, fine-tuning, unit reset) on a model"),
+    "defend": (
+        _defend,
+        "online state monitors and mitigations (fine-pruning, fine-tuning, state bounds, ...) on a model",
+    ),
     "zoo": (_zoo, "zoo build: train clean and backdoored agents; zoo detect: offline detection scored like TrojAI"),
     "reproduce": (_reproduce, "train, evaluate, plot and write the HTML report (--scale smoke|paper)"),
     "matrix": (_matrix, "every attack against every defense over seeds (--scale smoke|paper) -> matrix.json"),

@@ -194,10 +194,13 @@ def test_one_cli_for_every_env_from_an_empty_folder(tmp_path, capsys, monkeypatc
     argv = ["defend", "--model", "R/mg/model", "--config.monitor.calibration-episodes", "40",
             "--config.monitor.false-alarm-target", "0.1", "--config.monitor.eval-episodes", "6",
             "--config.mitigation.finetune-steps", "0", "--config.mitigation.calibration-episodes", "8",
-            "--config.mitigation.eval-episodes", "6", "--config.oracle-episodes", "10", "--out", "D"]  # fmt: skip
+            "--config.mitigation.eval-episodes", "6", "--config.oracle-episodes", "10",
+            "--config.mitigation.state-bounds.quantile", "0.2", "--out", "D"]  # fmt: skip
     assert main(argv) == 0
     defense = json.loads((tmp_path / "D" / "defense.json").read_text())
-    assert defense["grid"] == "seqtrojan/MiniGridTwoGoals-v0" and set(defense["mitigation"]) == {"before", "pruned"}
+    assert defense["grid"] == "seqtrojan/MiniGridTwoGoals-v0"
+    assert set(defense["mitigation"]) == {"before", "pruned", "state_bounds"}
+    assert "[0.2, 0.8] quantiles" in defense["mitigation"]["state_bounds"]["title"]
 
 
 def test_the_gymnasium_commands_are_folded_into_the_one_cli(capsys):

@@ -73,7 +73,7 @@ def test_what_exists_is_registered():
     assert TRIGGERS.get("patch") is TriggerConfig and TRIGGERS.get("on_off") is OffTriggerConfig
     assert TRIGGERS.names() == ("patch", "on_off", "delayed", "in_distribution_patch", "partial_patch", "sequence")
     assert REWARDS.names() == ("env_rewards", "false_activation")
-    assert MITIGATIONS.names() == ("fine_pruning", "fine_tuning", "unit_reset")
+    assert MITIGATIONS.names() == ("fine_pruning", "fine_tuning", "state_bounds", "unit_reset")
     assert MONITORS.names() == ("state_monitor", "multivariate_monitor", "input_novelty")
     assert DETECTORS.names() == ("weight_detector", "behaviour_detector")
 
@@ -112,7 +112,8 @@ def test_a_registered_mitigation_reaches_the_results_the_json_and_the_report(tmp
     mcfg = MitigationConfig(finetune_steps=0, calibration_episodes=16, eval_episodes=16)
     rows = run_mitigation(agent, cfg, GridSpec(5, 1), mcfg, tmp_path)
 
-    assert list(rows) == ["before", "pruned", "identity"]  # no fine-tuning (0 steps), no oracle (no goal units)
+    # no fine-tuning (0 steps), no oracle (no goal units)
+    assert list(rows) == ["before", "pruned", "state_bounds", "identity"]
     assert len(seen) == 1 and seen[0].agent is agent
     # measured exactly as the untouched agent is: the same episodes and seed
     assert (rows["identity"].clean_success, rows["identity"].attack_success) == (
@@ -124,12 +125,13 @@ def test_a_registered_mitigation_reaches_the_results_the_json_and_the_report(tmp
     monitor = MonitorResult("5x5/1", 16, 3.0, (8, 4), normal, normal, trojan, trojan, half, half)
     result = DefenseResult("model", "backdoored", "5x5/1", "trigger", monitor, None, rows)
     loaded = load_json(DefenseResult, save_json(result, tmp_path / "defense.json"))
-    assert loaded == result and list(loaded.mitigation) == ["before", "pruned", "identity"]
+    assert loaded == result and list(loaded.mitigation) == ["before", "pruned", "state_bounds", "identity"]
     table = "".join(defense_section(loaded, None))
     table = table[table.index("<h3>Mitigation") :]
-    assert table.count("<tr>") == 4  # header, then one row per result, in order
+    assert table.count("<tr>") == 5  # header, then one row per result, in order
     pruned = f"pruned {len(rows['pruned'].units)} least-active units"
-    assert table.index("no mitigation") < table.index(pruned) < table.index("(identity)")
+    order = [table.index(title) for title in ("no mitigation", pruned, rows["state_bounds"].title, "(identity)")]
+    assert order == sorted(order)
     clean, attack = (rate(r) for r in (rows["identity"].clean_success, rows["identity"].attack_success))
     assert f"<td class='l'>the agent left as it is (identity)</td><td>{clean}</td><td>{attack}</td>" in table
 

@@ -4,6 +4,8 @@
   least active on the agent's own clean episodes (mean |h|) are pruned -- their gate weights and biases are zeroed,
   so their c and h stay 0 -- and the pruned agent is then fine-tuned with PPO on clean (normal-env) episodes.
 * **fine-tuning** alone on clean episodes.
+* **state bounds** (UNIT-style, needs no knowledge of the trigger): every unit's h and c is clipped at every step
+  to the range it takes on the agent's own clean episodes (:mod:`seqtrojan.defense.state_bounds`).
 * **resetting the step-type units** (an oracle upper bound: finding them needs trigger episodes): an intervention
   holds the goal units at their normal-env level at every step.
 
@@ -20,7 +22,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +36,7 @@ from seqtrojan.analysis.traces import record_traces
 from seqtrojan.analysis.unintentional import GoalUnits
 from seqtrojan.config import BackdoorConfig, CurriculumConfig, ExperimentConfig
 from seqtrojan.defense.results import MitigationArm, MitigationResult
+from seqtrojan.defense.state_bounds import StateBoundsConfig, calibrate_bounds
 from seqtrojan.env.config import GridSpec
 from seqtrojan.errors import ConfigError
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
@@ -47,8 +50,11 @@ class MitigationConfig:
     finetune_steps: int = 500_000
     """PPO env steps on clean episodes (0 skips fine-tuning)"""
     calibration_episodes: int = 300
+    """clean episodes that fine-pruning ranks units on and that state bounds are fitted on"""
     eval_episodes: int = 1000
     seed: int = 0
+    state_bounds: StateBoundsConfig = field(default_factory=StateBoundsConfig)
+    """the ``state_bounds`` mitigation's quantile, margin, parts and layers"""
 
 
 def measure(agent: RecurrentActorCritic, cfg: ExperimentConfig, grid: GridSpec | None, episodes: int, seed: int,
@@ -160,6 +166,16 @@ def fine_tuning(ctx: MitigationContext) -> dict[str, MitigationArm]:
     tuned = finetune(ctx.agent, ctx.cfg, ctx.grid, ctx.mcfg.finetune_steps, ctx.out / "fine_tuning", ctx.mcfg.seed,
                      ctx.label)  # fmt: skip
     return {"fine_tuned": ctx.measure(tuned, "fine-tuning on clean episodes")}
+
+
+@MITIGATIONS.register("state_bounds", "clip every unit's h and c at every step to its range on clean episodes (UNIT)")
+def state_bounds(ctx: MitigationContext) -> dict[str, MitigationArm]:
+    sb = ctx.mcfg.state_bounds
+    bounds = calibrate_bounds(ctx.agent, ctx.cfg.env, ctx.grid, sb, episodes=ctx.mcfg.calibration_episodes,
+                              seed=ctx.mcfg.seed)  # fmt: skip
+    title = (f"every unit clipped to its clean [{sb.quantile:g}, {1 - sb.quantile:g}] quantiles "
+             f"+- {sb.margin:g} sd ({'+'.join(sb.parts)})")  # fmt: skip
+    return {"state_bounds": ctx.measure(ctx.agent, title, intervention=bounds.clipper())}
 
 
 @MITIGATIONS.register("unit_reset", "hold the step-type units at their normal level (oracle: needs the trigger)")

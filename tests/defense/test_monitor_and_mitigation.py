@@ -140,7 +140,8 @@ def test_mitigation_measures_before_and_after(tmp_path, agent):
     for arm in ("fine_tuning", "fine_pruning"):
         for folder in (tmp_path / arm / "start", tmp_path / arm / "finetune" / "model"):
             assert read_card(folder).label == "backdoored", folder
-    assert list(result) == ["before", "pruned", "fine_pruned", "fine_tuned"]  # no oracle without goal units
+    # no oracle without goal units
+    assert list(result) == ["before", "pruned", "fine_pruned", "fine_tuned", "state_bounds"]
     assert all(arm.clean_success.n == arm.attack_success.n == 32 for arm in result.values())
     assert len(result["pruned"].units) == 2  # a quarter of the last layer's 8 units
     assert result["pruned"].title == "pruned 2 least-active units" and result["before"].units == ()

@@ -49,7 +49,11 @@ def test_every_attack_and_seed_is_trained_measured_and_saved_typed(tiny_matrix):
     )
     for a in result.agents:
         assert a.attack_success.n == 24 and a.clean_success.n == 24
-        assert set(a.online) == set(cfg.online_names) and set(a.mitigation) == {"fine_pruned", "fine_tuned"}
+        assert set(a.online) == set(cfg.online_names) and set(a.mitigation) == {
+            "fine_pruned",
+            "fine_tuned",
+            "state_bounds",
+        }
         assert set(a.offline_scores) == set(cfg.offline_names)
         card = json.loads((out / "runs" / a.agent / "model" / "card.json").read_text())
         assert card["seed"] == a.seed and card["label"] == ("clean" if a.attack == "clean" else "backdoored")
@@ -133,9 +137,9 @@ def test_the_matrix_runs_on_a_minigrid_env_with_the_defenses_that_apply(tmp_path
     )
     for a in result.agents:
         assert set(a.online) == {"state_monitor", "multivariate_monitor"} and a.natural_trigger is None
-        assert set(a.mitigation) == {"fine_pruned", "fine_tuned"} and a.attack_success.n == 12
+        assert set(a.mitigation) == {"fine_pruned", "fine_tuned", "state_bounds"} and a.attack_success.n == 12
     assert {(c.defense, c.kind) for c in result.cells} == {
         ("state_monitor", "online"), ("multivariate_monitor", "online"), ("fine_pruned", "mitigation"),
-        ("fine_tuned", "mitigation"),
+        ("fine_tuned", "mitigation"), ("state_bounds", "mitigation"),
     }  # fmt: skip
     assert (tmp_path / "report.html").read_text().count("MiniGridTwoGoals") >= 1
