@@ -3,6 +3,7 @@
     python benchmarks/state_bounds.py --out /tmp/sb                     # in_distribution_patch, 3 seeds, smoke scale
     python benchmarks/state_bounds.py --attacks in_distribution_patch,sequence,dedicated_code --out /tmp/sb
     python benchmarks/state_bounds.py --steps 500000 --settings 0,0.01,0.05,0.01/0/c --out /tmp/sb
+    python benchmarks/state_bounds.py --attacks state_camouflage/1.0,state_camouflage/0.5 --out /tmp/sb  # adaptive
 
 Agents: the matrix smoke preset's backdoor settings (7x7/3, LSTM 64-32, curriculum 5x5/0 -> 5x5/1 -> 7x7/3, running
 mixing, 1M env steps unless ``--steps``), each attack's recipe from ``ATTACKS``, training seeds ``0..seeds-1``
@@ -10,8 +11,11 @@ mixing, 1M env steps unless ``--steps``), each attack's recipe from ``ATTACKS``,
 
 Per agent: bounds fitted on ``--calibration`` clean (normal-env) episodes (seed 0), then ``--episodes`` fresh
 episodes (seed 1000003) per env without a defense and with each setting; the same episodes for every arm. A setting
-is ``quantile[/margin[/parts]]`` (parts: ``hc``, ``h`` or ``c``). Printed: each seed's rates, then per attack and
-arm the mean +- sd over seeds and the pooled rate with its 95% Wilson interval.
+is ``quantile[/margin[/parts]]`` (parts: ``hc``, ``h`` or ``c``). An attack ``state_camouflage/M`` is the
+registered monitor-aware recipe (weight 5) with the |z| margin ``M`` instead of 2.5: the attacker who knows the
+bounds keeps the trojan states within M clean sd of the clean mean (about the central 68% of a unit's clean range
+at M = 1, where ``state_bounds`` keeps the central 90% at its default q = 0.05). Printed: each seed's rates, then
+per attack and arm the mean +- sd over seeds and the pooled rate with its 95% Wilson interval.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.agent.state import Intervention
 from seqtrojan.defense.state_bounds import StateBoundsConfig, clean_trace, fit_trace
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
-from seqtrojan.experiments.attacks import ATTACKS
+from seqtrojan.experiments.attacks import ATTACKS, with_attack
 from seqtrojan.experiments.matrix import load_matrix_config
 from seqtrojan.experiments.specs import experiment_from_spec
 from seqtrojan.stats import OverSeeds, Rate
@@ -62,11 +66,16 @@ def setting_name(cfg: StateBoundsConfig) -> str:
 
 def train_agent(attack: str, seed: int, out: Path, steps: int | None):
     mcfg = load_matrix_config("smoke")
-    name = f"{attack}_s{seed}"
+    recipe, _, margin = attack.partition("/")
+    name = f"{recipe}_m{margin}_s{seed}" if margin else f"{attack}_s{seed}"
     base = experiment_from_spec(mcfg.backdoor, out, name, "cpu")
     ppo = base.ppo if steps is None else dataclasses.replace(base.ppo, total_steps=steps)
     run = dataclasses.replace(base.run, seed=base.run.seed + seed, threads=1, checkpoint_every=10**12)
-    cfg = ATTACKS.get(attack).configure(dataclasses.replace(base, ppo=ppo, run=run))
+    cfg = ATTACKS.get(recipe).configure(dataclasses.replace(base, ppo=ppo, run=run))
+    if margin:  # the attacker who knows the bounds: a tighter camouflage margin
+        if recipe != "state_camouflage":
+            raise SystemExit(f"a margin applies to state_camouflage only, got {attack!r}")
+        cfg = with_attack(cfg, "state_camouflage", margin=float(margin))
     model_dir, _ = train_or_resume(cfg)
     agent, loaded, _ = load_agent(model_dir)
     return agent.eval(), loaded
