@@ -54,9 +54,9 @@ except ImportError:  # not POSIX: no build lock, and the PyTorch path is used
 _CSRC = Path(__file__).parent / "csrc"
 # One extension for all cells: fast_lstm.cpp (LSTM, peephole LSTM and the Python module), gru.cpp,
 # band_attention.cpp, layer_norm.cpp, bias_relu.cpp and window_step.cpp (the Transformer's attention, norms, MLP
-# activation and rollout step), common.h.
+# activation and rollout step), sparse_input.cpp (a first layer's product with a one-hot observation), common.h.
 _SOURCES = tuple(_CSRC / name for name in ("fast_lstm.cpp", "gru.cpp", "band_attention.cpp", "layer_norm.cpp",
-                                           "bias_relu.cpp", "window_step.cpp"))  # fmt: skip
+                                           "bias_relu.cpp", "window_step.cpp", "sparse_input.cpp"))  # fmt: skip
 _HEADERS = (_CSRC / "common.h",)
 _NAME = "seqtrojan_fast_lstm"
 # -fopenmp is required: at::parallel_for is an inline OpenMP template (without it the batch blocks run one after
@@ -322,6 +322,55 @@ def _gru_weight(w_ih: torch.Tensor, w_hh: torch.Tensor, b_ih: torch.Tensor, b_hh
     return wc
 
 
+# ---------------------------------------------------------------------------------------------- sparse inputs
+SPARSE_MIN_INPUTS = 128
+"""inputs narrower than this always take the dense product (the grid world's 54: one GEMM is cheaper)"""
+SPARSE_MAX_DENSITY = 0.2
+"""the largest share of nonzero entries for which :func:`sparse_project` beats the dense product here (MiniGrid's
+one-hot view: 0.15)"""
+
+
+def is_sparse_input(x: torch.Tensor) -> bool:
+    """Whether a layer's input is worth projecting by :func:`sparse_project`: an observation (no gradient wanted
+    for it) of at least :data:`SPARSE_MIN_INPUTS` numbers, at most :data:`SPARSE_MAX_DENSITY` of them nonzero."""
+    if x.requires_grad or x.shape[-1] < SPARSE_MIN_INPUTS or x.numel() == 0:
+        return False
+    return int(torch.count_nonzero(x)) <= SPARSE_MAX_DENSITY * x.numel()
+
+
+class _SparseProjection(torch.autograd.Function):
+    """``x @ w.T`` for a mostly-zero ``x`` (N, I) that needs no gradient, differentiable in ``w`` (G, I)."""
+
+    @staticmethod
+    def forward(ctx, x, w):
+        x = x.contiguous()
+        out = x.new_empty(x.shape[0], w.shape[0])
+        assert _ext is not None  # callers run only after extension() loaded it
+        _ext.sparse_project(x, w.t().contiguous(), out)
+        ctx.save_for_backward(x)
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, d_out):
+        (x,) = ctx.saved_tensors
+        if not ctx.needs_input_grad[1]:
+            return None, None
+        d_wt = d_out.new_empty(x.shape[1], d_out.shape[1])
+        assert _ext is not None  # callers run only after extension() loaded it
+        _ext.sparse_project_grad(x, d_out.contiguous(), d_wt)
+        return None, d_wt.t()
+
+
+def sparse_project(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """``x @ w.T`` reading only the nonzero entries of ``x`` (N, I), which gets no gradient; ``w`` (G, I) does.
+
+    For a one-hot observation (MiniGrid's view: 500 numbers, 75 ones) this replaces the first layer's dense product,
+    the largest part of a training step on such envs; the sums run in another order than the GEMM's, so results
+    agree with the dense product to float rounding, not bit for bit."""
+    return _SparseProjection.apply(x, w)
+
+
 # ---------------------------------------------------------------------------------------------- autograd
 class _MaskedLSTMLayer(torch.autograd.Function):
     """One LSTM layer over T steps; the state is multiplied by ``keep[t]`` before step t.
@@ -330,7 +379,7 @@ class _MaskedLSTMLayer(torch.autograd.Function):
     (the kernels compile the peephole terms out, so the plain path is not slowed)."""
 
     @staticmethod
-    def forward(ctx, x, keep, h0, c0, w_ih, w_hh, b_ih, b_hh, return_c_seq: bool, peephole=None):
+    def forward(ctx, x, keep, h0, c0, w_ih, w_hh, b_ih, b_hh, return_c_seq: bool, peephole=None, projected=None):
         steps, batch, n_in = x.shape
         hidden = w_hh.shape[1]
         k = n_in + hidden + 1
@@ -345,7 +394,7 @@ class _MaskedLSTMLayer(torch.autograd.Function):
         assert _ext is not None  # callers run only after extension() loaded it
         _ext.lstm_fwd_cat(
             x.contiguous(), keep, h0.contiguous(), c0.contiguous(), wc, peep, xh, gates, h_seq, c_seq, c_prev,
-            num_chunks(batch),
+            num_chunks(batch), None if projected is None else projected.contiguous(),
         )  # fmt: skip
         # c_seq is an output when return_c_seq: kept on ctx as an attribute it would make a reference cycle
         # (output -> grad_fn -> ctx -> output) that frees only with the cyclic GC: measured, a state-camouflage
@@ -359,6 +408,7 @@ class _MaskedLSTMLayer(torch.autograd.Function):
         pooled = (xh, gates, c_prev) if return_c_seq else (xh, gates, c_seq, c_prev)
         ctx.releaser = _Releaser(*pooled)
         ctx.return_c_seq = return_c_seq
+        ctx.projected = projected is not None
         ctx.set_materialize_grads(False)
         if return_c_seq:
             return h_seq, c_seq
@@ -388,10 +438,11 @@ class _MaskedLSTMLayer(torch.autograd.Function):
         dp_parts = None if peep is None else gates.new_empty(chunks, 3, hidden)
         dh0 = gates.new_empty(batch, hidden)
         dc0 = gates.new_empty(batch, hidden)
+        d_projected = gates.new_empty(steps, batch, four_h) if ctx.projected and need[10] else None
         assert _ext is not None  # callers run only after extension() loaded it
         _ext.lstm_bwd_cat(
             gates, c_seq, c_prev, keep, wc, peep, xh, n_in, d_h_seq, d_c_seq, d_c_last, dx, dw_parts, dp_parts, dh0,
-            dc0,
+            dc0, d_projected,
         )  # fmt: skip
         dwc = dw_parts.sum(0) if chunks > 1 else dw_parts[0]  # (4H, K)
         dw_ih = dwc[:, :n_in].contiguous() if need[4] else None
@@ -400,7 +451,7 @@ class _MaskedLSTMLayer(torch.autograd.Function):
         dpeep = dp_parts.sum(0) if dp_parts is not None and need[9] else None
         return (
             dx, None, dh0 if need[2] else None, dc0 if need[3] else None, dw_ih, dw_hh,
-            db if need[6] else None, db if need[7] else None, None, dpeep,
+            db if need[6] else None, db if need[7] else None, None, dpeep, d_projected,
         )  # fmt: skip
 
 
@@ -452,9 +503,21 @@ class _MaskedGRULayer(torch.autograd.Function):
 
 def unroll_layer(cell: torch.nn.LSTMCell, x, keep, h0, c0, return_c_seq: bool):
     """(T, B, I) through one layer; returns (h_seq (T, B, H), c_seq (T, B, H) or final c (B, H))."""
+    return _unroll_lstm(cell, x, keep, h0, c0, return_c_seq, None)
+
+
+def _unroll_lstm(cell: torch.nn.Module, x, keep, h0, c0, return_c_seq: bool, peephole):
+    """A plain (``peephole`` None) or peephole LSTM layer over (T, B, I); a mostly-zero input that needs no
+    gradient (a one-hot observation) is projected by :func:`sparse_project` and the kernel runs on the rest."""
+    w_ih, w_hh, b_ih, b_hh = (_param(cell, name) for name in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"))
+    if not is_sparse_input(x):
+        return _MaskedLSTMLayer.apply(x, keep, h0, c0, w_ih, w_hh, b_ih, b_hh, return_c_seq, peephole, None)
+    steps, batch, _ = x.shape
+    projected = sparse_project(x.reshape(steps * batch, -1), w_ih).view(steps, batch, -1)
+    no_input, no_weight = x.new_empty(steps, batch, 0), w_ih.detach().new_empty(w_ih.shape[0], 0)
     return _MaskedLSTMLayer.apply(
-        x, keep, h0, c0, cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh, return_c_seq, None
-    )
+        no_input, keep, h0, c0, no_weight, w_hh, b_ih, b_hh, return_c_seq, peephole, projected
+    )  # fmt: skip
 
 
 def _param(module: torch.nn.Module, name: str) -> torch.Tensor:
@@ -476,10 +539,7 @@ def unroll_peephole_layer(
 
     ``cell`` holds nn.LSTMCell's four tensors and ``peephole`` (3, H) = rows (p_i, p_f, p_o); with the masked
     state cp = c_{t-1} * keep[t]: i = sig(z_i + p_i cp), f = sig(z_f + p_f cp), o = sig(z_o + p_o c_t)."""
-    return _MaskedLSTMLayer.apply(
-        x, keep.contiguous(), h0, c0, cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh, return_c_seq,
-        cell.peephole,
-    )  # fmt: skip
+    return _unroll_lstm(cell, x, keep.contiguous(), h0, c0, return_c_seq, _param(cell, "peephole"))
 
 
 def unroll_gru_layer(

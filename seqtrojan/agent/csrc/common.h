@@ -134,3 +134,7 @@ void bias_relu_bwd(const at::Tensor& dy, const at::Tensor& y, at::Tensor& dx, at
 void window_layer_step(const at::Tensor& x, const at::Tensor& keep, const at::Tensor& cache,
                        const std::vector<at::Tensor>& params, const std::vector<double>& eps, at::Tensor& h_out,
                        at::Tensor& slots_out, int64_t nchunks);
+
+// ---- a linear map that reads only the nonzero entries of its input (sparse_input.cpp), bound in the same module
+void sparse_project(const at::Tensor& X, const at::Tensor& Wt, at::Tensor& out);
+void sparse_project_grad(const at::Tensor& X, const at::Tensor& dOut, at::Tensor& dWt);

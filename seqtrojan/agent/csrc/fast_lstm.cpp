@@ -11,6 +11,9 @@
 //   XH  (T,B,K)     row (t,b) = [x_t | h_{t-1} * M[t] | 1]  (the GEMM input of step t; saved for dW)
 //   S   (T,B,4H)    gate activations [i, f, g, o] (after sigmoid/tanh), saved for backward
 //   Hs  (T,B,H)     h_t (unmasked output), C (T,B,H) c_t (unmasked), CP (T,B,H) c_{t-1} * M[t]
+//   G   (T,B,4H)    optional: the input projection computed elsewhere (sparse_input.cpp, for one-hot inputs),
+//                   added to the GEMM's result; the layer is then called with I = 0 (X is (T,B,0)), and the
+//                   backward writes dZ (T,B,4H), the pre-activation gradients, for that projection's weights.
 //
 // Forward, step t:  S[t] = XH[t] Wc^T  (ONE GEMM: input projection + recurrence + bias), then the
 //                   fused gate math, which also writes the next step's masked h into XH[t+1].
@@ -58,7 +61,7 @@ using namespace fastrnn;
 template <typename T, bool PEEP>
 void fwd_cat_impl(const at::Tensor& X, const at::Tensor& M, const at::Tensor& h0, const at::Tensor& c0,
                   const at::Tensor& Wc, const T* p_, at::Tensor XH, at::Tensor S, at::Tensor Hs, at::Tensor C,
-                  at::Tensor CP, int64_t nchunks) {
+                  at::Tensor CP, int64_t nchunks, const T* g_) {
   const int64_t TT = X.size(0), B = X.size(1), I = X.size(2), H4 = Wc.size(0), H = H4 / 4, K = I + H + 1;
   const T* x_ = X.data_ptr<T>();
   const T* m_ = M.data_ptr<T>();
@@ -89,11 +92,12 @@ void fwd_cat_impl(const at::Tensor& X, const at::Tensor& M, const at::Tensor& h0
         T* xht = xh_ + (t * B + b0) * K;
         const T* xt = x_ + (t * B + b0) * I;
         for (int64_t r = 0; r < nb; ++r) {  // [x_t | . | 1]
-          std::memcpy(xht + r * K, xt + r * I, sizeof(T) * I);
+          if (I > 0) std::memcpy(xht + r * K, xt + r * I, sizeof(T) * I);
           xht[r * K + K - 1] = T(1);
         }
         T* st = s_ + (t * B + b0) * H4;
-        gemm('T', 'N', (int)H4, (int)nb, (int)K, T(1), w_, (int)K, xht, (int)K, T(0), st, (int)H4);
+        if (g_) std::memcpy(st, g_ + (t * B + b0) * H4, sizeof(T) * nb * H4);  // a projected input: added
+        gemm('T', 'N', (int)H4, (int)nb, (int)K, T(1), w_, (int)K, xht, (int)K, g_ ? T(1) : T(0), st, (int)H4);
         const int64_t so = (t * B + b0) * H;
         const bool has_next = t + 1 < TT;
         for (int64_t r = 0; r < nb; ++r) {
@@ -141,7 +145,7 @@ void bwd_cat_impl(const at::Tensor& S, const at::Tensor& C, const at::Tensor& CP
                   const at::Tensor& Wc, const T* p_, const at::Tensor& XH, int64_t I, const at::Tensor& dHs,
                   const c10::optional<at::Tensor>& dCs, const at::Tensor& dcT,
                   c10::optional<at::Tensor> dX, at::Tensor dWparts, T* dpp_, at::Tensor dh0, at::Tensor dc0,
-                  int64_t nchunks) {
+                  int64_t nchunks, T* dz_out) {
   const int64_t TT = S.size(0), B = S.size(1), H4 = S.size(2), H = H4 / 4, K = I + H + 1;
   const T* s_ = S.data_ptr<T>();
   const T* c_ = C.data_ptr<T>();
@@ -220,6 +224,7 @@ void bwd_cat_impl(const at::Tensor& S, const at::Tensor& C, const at::Tensor& CP
             }
           }
         }
+        if (dz_out) std::memcpy(dz_out + (t * B + b0) * H4, dz.data(), sizeof(T) * nb * H4);
         // [dx_t | dh_{t-1}] = dZ_t @ Wc[:, cols]   (row-major out(nb x N) = dZ(nb x 4H) W(4H x N), ld K)
         gemm('N', 'N', (int)N, (int)nb, (int)H4, T(1), wsrc, (int)K, dz.data(), (int)H4, T(0),
              out.data(), (int)N);
@@ -325,7 +330,7 @@ void check_peephole(const at::Tensor& P, int64_t H, const at::Tensor& like) {
 // P: peephole weights (3,H), or None for the plain LSTM.
 void lstm_fwd_cat(at::Tensor X, at::Tensor M, at::Tensor h0, at::Tensor c0, at::Tensor Wc,
                   c10::optional<at::Tensor> P, at::Tensor XH, at::Tensor S, at::Tensor Hs, at::Tensor C,
-                  at::Tensor CP, int64_t nchunks) {
+                  at::Tensor CP, int64_t nchunks, c10::optional<at::Tensor> G) {
   for (auto* p : {&X, &M, &h0, &c0, &Wc, &XH, &S, &Hs, &C, &CP}) check(*p, "tensor");
   TORCH_CHECK(X.dim() == 3 && Wc.dim() == 2 && Wc.size(0) % 4 == 0);
   const int64_t TT = X.size(0), B = X.size(1), I = X.size(2), H = Wc.size(0) / 4, K = I + H + 1;
@@ -336,11 +341,16 @@ void lstm_fwd_cat(at::Tensor X, at::Tensor M, at::Tensor h0, at::Tensor c0, at::
   for (auto* p : {&M, &h0, &c0, &Wc, &XH, &S, &Hs, &C, &CP})
     TORCH_CHECK(p->scalar_type() == X.scalar_type(), "dtype mismatch");
   if (P.has_value()) check_peephole(*P, H, X);
+  if (G.has_value()) {
+    check(*G, "G");
+    TORCH_CHECK(G->numel() == TT * B * 4 * H && G->scalar_type() == X.scalar_type(), "G must be (T,B,4H)");
+  }
   AT_DISPATCH_FLOATING_TYPES(X.scalar_type(), "lstm_fwd_cat", [&] {
+    const scalar_t* g = G.has_value() ? G->data_ptr<scalar_t>() : nullptr;
     if (P.has_value())
-      fwd_cat_impl<scalar_t, true>(X, M, h0, c0, Wc, P->data_ptr<scalar_t>(), XH, S, Hs, C, CP, nchunks);
+      fwd_cat_impl<scalar_t, true>(X, M, h0, c0, Wc, P->data_ptr<scalar_t>(), XH, S, Hs, C, CP, nchunks, g);
     else
-      fwd_cat_impl<scalar_t, false>(X, M, h0, c0, Wc, nullptr, XH, S, Hs, C, CP, nchunks);
+      fwd_cat_impl<scalar_t, false>(X, M, h0, c0, Wc, nullptr, XH, S, Hs, C, CP, nchunks, g);
   });
 }
 
@@ -348,7 +358,8 @@ void lstm_fwd_cat(at::Tensor X, at::Tensor M, at::Tensor h0, at::Tensor c0, at::
 void lstm_bwd_cat(at::Tensor S, at::Tensor C, at::Tensor CP, at::Tensor M, at::Tensor Wc,
                   c10::optional<at::Tensor> P, at::Tensor XH, int64_t I, at::Tensor dHs,
                   c10::optional<at::Tensor> dCs, at::Tensor dcT, c10::optional<at::Tensor> dX,
-                  at::Tensor dWparts, c10::optional<at::Tensor> dPparts, at::Tensor dh0, at::Tensor dc0) {
+                  at::Tensor dWparts, c10::optional<at::Tensor> dPparts, at::Tensor dh0, at::Tensor dc0,
+                  c10::optional<at::Tensor> dZ) {
   for (auto* p : {&S, &C, &CP, &M, &Wc, &XH, &dHs, &dcT, &dWparts, &dh0, &dc0}) check(*p, "tensor");
   if (dCs.has_value()) check(*dCs, "dCs");
   if (dX.has_value()) check(*dX, "dX");
@@ -367,13 +378,18 @@ void lstm_bwd_cat(at::Tensor S, at::Tensor C, at::Tensor CP, at::Tensor M, at::T
                 dPparts->size(2) == H && dPparts->scalar_type() == S.scalar_type(),
                 "dPparts must be (nchunks, 3, H)");
   }
+  if (dZ.has_value()) {
+    check(*dZ, "dZ");
+    TORCH_CHECK(dZ->numel() == TT * B * 4 * H && dZ->scalar_type() == S.scalar_type(), "dZ must be (T,B,4H)");
+  }
   AT_DISPATCH_FLOATING_TYPES(S.scalar_type(), "lstm_bwd_cat", [&] {
+    scalar_t* dz = dZ.has_value() ? dZ->data_ptr<scalar_t>() : nullptr;
     if (P.has_value())
       bwd_cat_impl<scalar_t, true>(S, C, CP, M, Wc, P->data_ptr<scalar_t>(), XH, I, dHs, dCs, dcT, dX, dWparts,
-                                   dPparts->data_ptr<scalar_t>(), dh0, dc0, dWparts.size(0));
+                                   dPparts->data_ptr<scalar_t>(), dh0, dc0, dWparts.size(0), dz);
     else
       bwd_cat_impl<scalar_t, false>(S, C, CP, M, Wc, nullptr, XH, I, dHs, dCs, dcT, dX, dWparts, nullptr, dh0,
-                                    dc0, dWparts.size(0));
+                                    dc0, dWparts.size(0), dz);
   });
 }
 
@@ -423,4 +439,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bias_relu_fwd", &bias_relu_fwd, "a linear layer's bias and a ReLU on its product, in place");
   m.def("bias_relu_bwd", &bias_relu_bwd, "the backward of bias_relu_fwd, with the bias gradient");
   m.def("window_layer_step", &window_layer_step, "one no-grad step of a windowed Transformer layer");
+  m.def("sparse_project", &sparse_project, "X W^T reading only X's nonzero entries (one-hot inputs)");
+  m.def("sparse_project_grad", &sparse_project_grad, "the weight gradient X^T dOut of sparse_project");
 }
