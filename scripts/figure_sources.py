@@ -24,10 +24,11 @@ Pages read: README.md, docs/*.md and docs/commands/*.md (docs/api/ holds only mk
   (``section 5.2``), commit hashes, file paths;
 - plain integers (counts such as ``3 seeds`` or ``1000 episodes``) and whole numbers of millions (``5M env
   steps``): budgets and settings far more often than measurements;
-- settings written in prose: a number right after ``default``, ``weight``, ``margin``, ``target``, ``q =``, ``lr``,
-  ``learning rate``, ``entropy``, ``lambda``, ``smoothing``, ``probability``, ``prevalence``, ``mixing``,
-  ``fixed``, ``clip(``, ``at least``, ``at most`` (a bracket or colon between them allowed), a comparison (``>= 0.9``, ``≥``, ``<=``, ``=``), or before ``interval``/``CI``/``Wilson`` (``95%
-  interval``), ``target`` or, after ``at``, ``false alarms`` (``at a 1% false-alarm target``: an operating point);
+- settings written in prose: a number right after ``default``, ``weight``, ``margin``, ``target``, ``q =``,
+  ``lr``, ``learning rate``, ``entropy``, ``lambda``, ``smoothing``, ``probability``, ``prevalence``, ``mixing``,
+  ``fixed``, ``clip(``, ``at least``, ``at most`` or a comparison (``>= 0.9``, ``≥``, ``<=``, ``=``), a bracket
+  or colon between them allowed; a number before ``interval``, ``CI``, ``Wilson`` (``95% interval``) or
+  ``target``; and after ``at``, a number before ``false alarms`` (``at 1% false alarms``: an operating point);
 - every number of a reference table, one with a ``default`` column (config fields and their defaults).
 
 **What counts as a source** (searched in this order):
@@ -36,7 +37,7 @@ Pages read: README.md, docs/*.md and docs/commands/*.md (docs/api/ holds only mk
 (c) ``paper``: the figure's value is one of the paper's (``seqtrojan/paper/paper_results.json``) and it is quoted as
     the paper's: in a table column headed ``paper``, or in a sentence that says ``paper``;
 (d) ``unsourced observation``: the figure's own block says ``no stored command`` (stated, not hidden);
-(b) ``command+date``: a command in backticks (a code span starting with ``python``, ``seqtrojan``, ``make``,
+(b) ``command+date``: a command in backticks or ``<code>`` (a code span starting with ``python``, ``seqtrojan``, ``make``,
     ``pytest``, ``PYTHONPATH=``, ``.venv/bin/`` or ``/usr/bin/time``, or a command line of a shell code block)
     and a date ``YYYY-MM-DD``, both in the same place;
 (a) again, or (b), in the places around the block, nearest first:
@@ -86,7 +87,7 @@ FIGURE = re.compile(
     r")"
 )
 MASKS = [
-    re.compile(r"``.+?``|`[^`]+`", re.S),  # code spans (a span may cross a line break)
+    re.compile(r"``.+?``|`[^`]+`|<code>.+?</code>", re.S),  # code spans (a span may cross a line break)
     re.compile(r"\]\([^)]*\)"),  # link targets
     re.compile(r"<[^>\n]+>"),  # HTML tags
     re.compile(r"\b\d{4}-\d{2}(?:-\d{2})?(?:/\d{2})?\b"),  # dates: 2026-12-02, 2026-11, 2026-12-01/02
@@ -282,8 +283,8 @@ def commands_in(block: Block) -> list[str]:
         if block.language not in SHELL_LANGUAGES:
             return []
         return [line.split(" #")[0].strip() for line in block.lines if COMMAND.match(line.strip())]
-    spans = re.findall(r"``(.+?)``|`([^`]+)`", block.text, re.S)
-    return [" ".join(s.split()) for pair in spans for s in pair if s and COMMAND.match(" ".join(s.split()))]
+    spans = re.findall(r"``(.+?)``|`([^`]+)`|<code>(.+?)</code>", block.text, re.S)
+    return [" ".join(s.split()) for group in spans for s in group if s and COMMAND.match(" ".join(s.split()))]
 
 
 def _command_and_date(places: Iterable[Block]) -> str | None:
@@ -507,8 +508,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     for path, heading in result.stale:
         print(f"stale: {path} '{heading}' has no unsourced figure left: remove it from PENDING")
     if args.check and not result.ok:
-        print(f"{len(result.missing)} figure(s) without a source: state the command and date that made each (or its "
-              "committed data under docs/data/) in its paragraph, its table's caption or its section's first paragraph")  # fmt: skip
+        print(
+            f"{len(result.missing)} figure(s) without a source: state the command and date that made each (or its "
+            "committed data under docs/data/) in its paragraph, its table's caption or its section's first paragraph"
+        )
         return 1
     return 0
 
