@@ -36,7 +36,8 @@ Pages read: README.md, docs/*.md and docs/commands/*.md (docs/api/ holds only mk
 (a) ``data``: a committed file under ``docs/data/`` (it must exist) named in the figure's own block;
 (c) ``paper``: the figure's value is one of the paper's (``seqtrojan/paper/paper_results.json``) and it is quoted as
     the paper's: in a table column headed ``paper``, or in a sentence that says ``paper``;
-(d) ``unsourced observation``: the figure's own block says ``no stored command`` (stated, not hidden);
+(d) ``unsourced observation``: the figure's own block, or its table's caption, says ``no stored command`` (stated,
+    not hidden);
 (b) ``command+date``: a command in backticks or ``<code>`` (a code span starting with ``python``, ``seqtrojan``, ``make``,
     ``pytest``, ``PYTHONPATH=``, ``.venv/bin/`` or ``/usr/bin/time``, or a command line of a shell code block)
     and a date ``YYYY-MM-DD``, both in the same place;
@@ -311,9 +312,11 @@ def find_source(figure: Figure, block: Block, context: Context, paper: frozenset
         return Source("data", "block", data)
     if figure.value in paper and ("paper" in figure.column.lower() or "paper" in figure.sentence.lower()):
         return Source("paper", "block", "paper_results.json (quoted as the paper's)")
-    stated = UNSOURCED.search(block.text)
-    if stated:
-        return Source("unsourced observation", "block", stated.group(0))
+    labelled: list[tuple[Place, Block | None]] = [("block", block), ("caption", context.caption)]
+    for label_place, label_block in labelled:
+        stated = UNSOURCED.search(label_block.text) if label_block is not None else None
+        if stated:
+            return Source("unsourced observation", label_place, stated.group(0))
     places: list[tuple[Place, list[Block]]] = [("block", [block])]
     if context.caption is not None:
         places.append(("caption", [context.caption]))
