@@ -26,10 +26,11 @@ Pages read: README.md, docs/*.md and docs/commands/*.md (docs/api/ holds only mk
   steps``): budgets and settings far more often than measurements;
 - settings written in prose: a number right after ``default``, ``weight``, ``margin``, ``target``, ``q =``,
   ``lr``, ``learning rate``, ``entropy``, ``lambda``, ``smoothing``, ``probability``, ``prevalence``, ``mixing``,
-  ``fixed``, ``clip(``, ``at least``, ``at most`` or a comparison (``>= 0.9``, ``≥``, ``<=``, ``=``), a bracket
+  ``fixed``, ``clip(``, ``at least``, ``at most``, ``above``, ``below``, ``exceed`` or a comparison (``>= 0.9``, ``≥``, ``<=``, ``=``), a bracket
   or colon between them allowed; a number before ``interval``, ``CI``, ``Wilson`` (``95% interval``) or
   ``target``; and after ``at``, a number before ``false alarms`` (``at 1% false alarms``: an operating point);
-- every number of a reference table, one with a ``default`` column (config fields and their defaults).
+- every number of a reference table, one with a ``default`` column (config fields and their defaults);
+- in a command's comment, a number of thousands or millions of steps (``# ... (1.5M steps)``: its budget).
 
 **What counts as a source** (searched in this order):
 
@@ -103,16 +104,18 @@ MASKS = [
 ]
 SETTING_BEFORE = re.compile(
     r"(?:\bdefault|\bweight|\bmargin|\btarget|\bq\s?=|\bq|\blr|\blearning rate|\bentropy|\bent_coef|\blambda|"
-    r"\bsmoothing|\bprobability|\bprevalence|\bmixing|\bfixed|\bclip\(|\bat least|\bat most|>=|<=|≥|≤|[<>=])"
+    r"\bsmoothing|\bprobability|\bprevalence|\bmixing|\bfixed|\bclip\(|\bat least|\bat most|\babove|\bbelow|"
+    r"\bexceed|>=|<=|≥|≤|[<>=])"
     r"\s*(?:of\s|at\s|is\s)?[(:]?\s*$"
 )
 SETTING_AFTER = re.compile(r"^\s*(?:\(?Wilson|\(?confidence|t-interval|interval|CI|target|false-alarm target)")
+BUDGET_AFTER = re.compile(r"^\s*(?:env\s)?steps\b")  # in a command's comment, "(1.5M steps)" is its budget
 OPERATING_POINT = re.compile(r"\bat (?:a |the |under )?$")
 FALSE_ALARMS_AFTER = re.compile(r"^\s*false[- ]alarm")
 COMMAND = re.compile(r"^(?:python3?|seqtrojan|make|pytest|PYTHONPATH=\S+|\.venv/bin/\S+|/usr/bin/time)(?:\s|$)")
 DATE = re.compile(r"\b20\d\d-\d\d-\d\d\b")
 DATA_PATH = re.compile(r"docs/data/[\w./-]+\.\w+")
-UNSOURCED = re.compile(r"no stored command", re.I)
+UNSOURCED = re.compile(r"no\s+stored\s+command", re.I)
 SENTENCE_END = re.compile(r"[.!?;](?=\s)")
 
 PENDING: dict[tuple[str, str], str] = {
@@ -354,9 +357,8 @@ def paper_values(path: Path = PAPER_RESULTS) -> frozenset[float]:
 
 
 def _is_setting(masked: str, start: int, end: int) -> bool:
-    before = masked[max(0, start - 25) : start]
-    before = before.split("\n")[-1] if "\n" in before else before
-    after = masked[end : end + 25]
+    before = masked[max(0, start - 25) : start].replace("\n", " ")
+    after = masked[end : end + 25].replace("\n", " ")
     if SETTING_BEFORE.search(before) or SETTING_AFTER.match(after):
         return True
     return bool(OPERATING_POINT.search(before) and FALSE_ALARMS_AFTER.match(after))
@@ -385,7 +387,7 @@ def figures_in(block: Block, path: str) -> list[Figure]:
         if block.language not in SHELL_LANGUAGES:
             return []
         comments = tuple(line.split(" #", 1)[1] if " #" in line else "" for line in block.lines)
-        return _figures(comments, block.start, path, header=None)
+        return _figures(comments, block.start, path, header=None, comments=True)
     if block.kind == "table":
         header = [cell.strip() for cell in block.lines[0].strip().strip("|").split("|")]
         if any(cell.strip("` ").lower() == "default" for cell in header):
@@ -394,7 +396,9 @@ def figures_in(block: Block, path: str) -> list[Figure]:
     return _figures(block.lines, block.start, path, header=None)
 
 
-def _figures(lines: Sequence[str], first: int, path: str, header: list[str] | None) -> list[Figure]:
+def _figures(
+    lines: Sequence[str], first: int, path: str, header: list[str] | None, comments: bool = False
+) -> list[Figure]:
     text = "\n".join(lines)
     masked = _mask(text)
     line_starts = [0]
@@ -403,6 +407,8 @@ def _figures(lines: Sequence[str], first: int, path: str, header: list[str] | No
     found: list[Figure] = []
     for m in FIGURE.finditer(masked):
         if _is_setting(masked, m.start(), m.end()):
+            continue
+        if comments and m.group(0)[-1] in "kM" and BUDGET_AFTER.match(masked[m.end() :]):
             continue
         row = max(i for i, s in enumerate(line_starts) if s <= m.start())
         column = ""
