@@ -32,18 +32,20 @@ Pages read: README.md, docs/*.md and docs/commands/*.md (docs/api/ holds only mk
 - every number of a reference table, one with a ``default`` column (config fields and their defaults);
 - in a command's comment, a number of thousands or millions of steps (``# ... (1.5M steps)``: its budget).
 
-**What counts as a source** (searched in this order):
+**What counts as a source**, nearest first:
 
-(a) ``data``: a committed file under ``docs/data/`` (it must exist) named in the figure's own block;
-(c) ``paper``: the figure is a rate (``0.934``) equal to one of the paper's (``seqtrojan/paper/paper_results.json``)
-    and quoted as the paper's: in a table column headed ``paper``, or in a sentence that names the paper (the
-    "paper scale" and the "paper's setting" do not count; in prose, neither do 0, 1, a mean ± sd or a range);
-(d) ``unsourced observation``: the figure's own block, or its table's caption, says ``no stored command`` (stated,
-    not hidden);
-(b) ``command+date``: a command, in backticks or ``<code>`` (a code span that starts with ``python``,
-    ``seqtrojan``, ``make``, ``pytest``, ``PYTHONPATH=``, ``.venv/bin/`` or ``/usr/bin/time``) or a command line
-    of a shell code block, and a date ``YYYY-MM-DD``, both in the same place;
-(a) or (b) in one of these places, nearest first:
+- ``paper``: the figure is a rate (``0.934``) equal to one of the paper's (``seqtrojan/paper/paper_results.json``)
+  and quoted as the paper's: in a table column headed ``paper``, or in a sentence that names the paper (the "paper
+  scale" and the "paper's setting" do not count; in prose, neither do 0, 1, a mean ± sd or a range);
+- ``unsourced observation``: the figure's own sentence says ``no stored command`` (stated, not hidden);
+- then, in the figure's own block, its caption, and its section's intro, in that order, the first of:
+  ``data``, a committed file under ``docs/data/`` (it must exist) named there; ``command+date``, a command (a code
+  span, in backticks or ``<code>``, that starts with ``python``, ``seqtrojan``, ``make``, ``pytest``,
+  ``PYTHONPATH=``, ``.venv/bin/`` or ``/usr/bin/time``, or a command line of a shell code block) and a date
+  ``YYYY-MM-DD``, both there; ``unsourced observation``, the words ``no stored command`` there (block or caption
+  only).
+
+The places:
 
 - the figure's own block: its paragraph, list item (with its continuation lines) or table; for a figure in a
   shell block's comment, that line (its command and a date in its comment);
@@ -315,16 +317,11 @@ def _data_file(places: Iterable[Block]) -> str | None:
 
 def find_source(figure: Figure, block: Block, context: Context, paper: frozenset[float]) -> Source | None:
     """The nearest source of a figure (see the module's docstring), or None."""
-    data = _data_file([block])
-    if data:
-        return Source("data", "block", data)
     if _quotes_the_paper(figure, paper):
         return Source("paper", "block", "paper_results.json (quoted as the paper's)")
-    labelled: list[tuple[Place, Block | None]] = [("block", block), ("caption", context.caption)]
-    for label_place, label_block in labelled:
-        stated = UNSOURCED.search(label_block.text) if label_block is not None else None
-        if stated:
-            return Source("unsourced observation", label_place, stated.group(0))
+    stated = UNSOURCED.search(figure.sentence)
+    if stated:  # its own sentence says so, whatever else the paragraph names
+        return Source("unsourced observation", "block", stated.group(0))
     places: list[tuple[Place, list[Block]]] = [("block", [block])]
     if context.caption is not None:
         places.append(("caption", [context.caption]))
@@ -337,6 +334,9 @@ def find_source(figure: Figure, block: Block, context: Context, paper: frozenset
         found = _command_and_date(where)
         if found:
             return Source("command+date", place, found)
+        stated = UNSOURCED.search(where[0].text) if place != "section intro" else None
+        if stated:  # said in the paragraph, or in the caption of its table or list
+            return Source("unsourced observation", place, stated.group(0))
     return None
 
 

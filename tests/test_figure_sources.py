@@ -171,3 +171,11 @@ def test_an_observation_stated_as_without_a_stored_command_is_its_own_kind():
 def test_a_comment_is_sourced_by_its_own_line():
     block = "```bash\nseqtrojan cells --scale paper   # 73 min here on 2026-12-02\nseqtrojan cells   # 40 min\n```\n"
     assert sources(block) == {"73 min": "command+date", "40 min": None}
+
+
+def test_the_label_belongs_to_its_sentence_when_the_paragraph_also_names_a_run():
+    text = (
+        "## S\n\nIntro.\n\nSeed 0 reached 0.942 in the run of 2026-12-01 (`seqtrojan reproduce --scale headline`). "
+        "With 1 thread it reached 0.966 (one run, no stored command).\n"
+    )
+    assert sources(text) == {"0.942": "command+date", "0.966": "unsourced observation"}
