@@ -59,11 +59,11 @@ def _gymnasium(
     phase: str, trojan_probability: float | Sequence[float], registered_only: bool,
 ) -> BatchedEnv:  # fmt: skip
     from seqtrojan.world.gymnasium import GymnasiumBatchedEnv
+    from seqtrojan.world.workers import WorkerBatchedEnv
 
     p = float(torch.as_tensor(trojan_probability, dtype=torch.float64).reshape(-1)[0])
-    batched = GymnasiumBatchedEnv(
-        env, num_envs, 0, device, phase=phase, trojan_probability=p, registered_only=registered_only
-    )
+    kind = WorkerBatchedEnv if env.vectorization == "workers" else GymnasiumBatchedEnv
+    batched = kind(env, num_envs, 0, device, phase=phase, trojan_probability=p, registered_only=registered_only)
     batched.reset(seed)
     return batched
 

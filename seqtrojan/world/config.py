@@ -19,6 +19,8 @@ Cell = tuple[int, int]
 
 MAX_TRIGGER_STEP = 1 << 20
 """latest first step a trigger may be drawn at (a bound, so that a range like (0, 2**63) is refused when read)"""
+MAX_WORKERS = 64
+"""most worker processes of ``vectorization: workers``"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,9 +98,13 @@ class GymnasiumEnvConfig:
     fast_view: bool = True
     """a MiniGrid env computes its partial view with :mod:`seqtrojan.minigrid.fast_obs` (the same observation as
     MiniGrid's ``gen_obs``, several times faster); false: MiniGrid's own method"""
-    vectorization: Literal["sync", "async"] = "sync"
+    vectorization: Literal["sync", "workers", "async"] = "sync"
     """sync: every env steps in this process (a checkpoint then holds each env's episode in flight, so a resumed run
-    continues bitwise); async: one process per env (Gymnasium's AsyncVectorEnv; for envs whose step is slow)"""
+    continues bitwise); workers: the envs split among ``workers`` processes stepped at the same time
+    (:mod:`seqtrojan.world.workers`; bitwise the results of sync, checkpoints included); async: one process per env
+    (Gymnasium's AsyncVectorEnv; for envs whose step is slow; episodes in flight are not checkpointed)"""
+    workers: int = 2
+    """processes of ``vectorization: workers`` (at most one per env): on a 2-core machine, 2"""
     trigger: WrapperTriggerConfig | None = None
     """the trigger wrapper (None: the env as it is; a backdoored run needs one)"""
 
@@ -109,6 +115,8 @@ class GymnasiumEnvConfig:
             isinstance(self.num_actions, bool) or not isinstance(self.num_actions, int) or self.num_actions < 1
         ):
             raise ConfigError(f"env.num_actions must be a positive integer or null, got {short_repr(self.num_actions)}")
+        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or not 1 <= self.workers <= MAX_WORKERS:
+            raise ConfigError(f"env.workers must be an integer in [1, {MAX_WORKERS}], got {short_repr(self.workers)}")
         if not isinstance(self.fast_view, bool):
             raise ConfigError(f"env.fast_view must be true or false, got {short_repr(self.fast_view)}")
         if "render_mode" in self.kwargs and self.kwargs["render_mode"] is not None:
@@ -123,6 +131,8 @@ class GymnasiumEnvConfig:
         out.update(observation=self.observation, num_actions=self.num_actions, fast_view=self.fast_view)
         if self.vectorization != "sync":
             out["vectorization"] = self.vectorization
+        if self.vectorization == "workers":
+            out["workers"] = self.workers
         out["trigger"] = to_dict(self.trigger)
         return out
 

@@ -69,9 +69,11 @@ def episode_env(
             env.with_grid(where), episodes, seed=seed, device=device, grids=stages, trojan_probability=p, phase="eval"
         )
     from seqtrojan.world.gymnasium import GymnasiumBatchedEnv
+    from seqtrojan.world.workers import WorkerBatchedEnv
 
-    if env.vectorization != "sync":  # the episode loop steps envs without resetting them: in this process
+    if env.vectorization == "async":  # the episode loop steps envs without resetting them: not Gymnasium's vector env
         env = dataclasses.replace(env, vectorization="sync")
-    batched = GymnasiumBatchedEnv(env, episodes, 0, device, phase="eval", trojan_probability=p)
+    kind = WorkerBatchedEnv if env.vectorization == "workers" else GymnasiumBatchedEnv
+    batched = kind(env, episodes, 0, device, phase="eval", trojan_probability=p)
     batched.reset(seed)
     return batched
