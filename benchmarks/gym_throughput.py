@@ -17,6 +17,8 @@ Three figures, each in env steps per second (one env step = one action of one en
     loop steps, and the "env rate" the earlier Gymnasium trainer was compared with (0.4 of it in 2026-12-02).
 (b) seam: the same env through ``GymnasiumBatchedEnv`` with B envs (B = the preset's ``ppo.num_envs``) and random
     torch actions drawn up front: (a) plus the seam's overhead (per-env loop, the episode recorder, numpy -> torch).
+    With ``--workers N``: the envs split among N worker processes (``env.vectorization: workers``), as (c) then
+    trains; the ratio (c)/(b) compares training with the random-action rate of the same vectorisation.
 (c) train: ``seqtrojan.train.trainer.train`` with the preset's PPO settings for ``--steps`` env steps
     (``run.eval_episodes 0``, ``run.progress False``, ``run.threads --threads``, a temporary ``out_dir``): the
     median of the logged ``charts/steps_per_second`` over the updates after the first (rollout + GAE + PPO update;
@@ -24,7 +26,9 @@ Three figures, each in env steps per second (one env step = one action of one en
     includes the first update and the logging; not the set-up, nor the final save). Assumes the trainer's own
     policy: its episodes get shorter as it learns, and backdoor mixing moves the trojan share.
 
-Then the ratios (c)/(a) and (c)/(v), for both (c) figures. With ``--rounds N`` every figure is measured N times, the
+Then the ratios (c)/(a) and (c)/(v), for both (c) figures, and (c)/(b). ``--dense-first-layer`` trains (c) with the
+first layer's dense product on the one-hot view instead of :func:`seqtrojan.agent.fast_lstm.sparse_project` (the
+A/B of that change). With ``--rounds N`` every figure is measured N times, the
 rounds interleaved (a drift in the machine's other load hits all three alike): the median and the range are printed, and
 every measurement goes to ``--json``. The header gives the versions, the CPU count and the load average; run it alone
 on the machine (a load average above about 1 per core makes the figures meaningless).
@@ -50,10 +54,12 @@ import torch
 import gymnasium
 import numpy as np
 
+from seqtrojan.agent import fast_lstm
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.presets import resolve_preset
 from seqtrojan.serde import from_dict, load_yaml
-from seqtrojan.world.gymnasium import GymnasiumBatchedEnv, find_trigger, make_gym_env
+from seqtrojan.world import make_batched_env
+from seqtrojan.world.gymnasium import find_trigger, make_gym_env
 from seqtrojan.wrappers import trigger_vector_env
 
 PRESETS = ("minigrid_two_goals", "minigrid_memory")
@@ -61,11 +67,17 @@ WARMUP = 200
 """untimed steps (per env) before (a) and (b) are timed"""
 
 
+WORKERS = 0
+"""``--workers``: 0 leaves the preset's vectorisation (sync); N > 0 runs (b) and (c) on N env worker processes"""
+
+
 def load_config(preset: str, overrides: dict[str, Any] | None = None) -> ExperimentConfig:
-    """The preset's config, with ``overrides`` (section -> {key: value}) applied."""
+    """The preset's config, with ``overrides`` (section -> {key: value}) applied, and ``--workers``."""
     raw = load_yaml(resolve_preset(preset))
     for section, values in (overrides or {}).items():
         raw.setdefault(section, {}).update(values)
+    if WORKERS:
+        raw["env"].update(vectorization="workers", workers=WORKERS)
     return from_dict(ExperimentConfig, raw)
 
 
@@ -110,9 +122,10 @@ def vector_rate(cfg: ExperimentConfig, steps: int, seed: int, trojan_probability
 
 
 def seam_rate(cfg: ExperimentConfig, steps: int, seed: int, trojan_probability: float) -> float:
-    """(b): env steps per second of ``GymnasiumBatchedEnv`` with ``ppo.num_envs`` envs and random torch actions."""
+    """(b): env steps per second of the batched env training makes (``GymnasiumBatchedEnv``, or with ``--workers``
+    ``WorkerBatchedEnv``) with ``ppo.num_envs`` envs and random torch actions."""
     b = cfg.ppo.num_envs
-    env = GymnasiumBatchedEnv(cfg.env, b, seed=seed)
+    env = make_batched_env(cfg.env, b, seed=seed)
     env.set_trojan_probability(trojan_probability)
     env.reset(seed=seed)
     rounds = max(1, steps // b)
@@ -180,7 +193,18 @@ def main() -> None:
     parser.add_argument("--trojan-probability", type=float, default=0.0, help="the trigger's share in (a) and (b)")
     parser.add_argument("--parts", default="avbc", help="which figures to measure: any of a, v, b, c")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    parser.add_argument(
+        "--workers", type=int, default=0, help="run (b) and (c) with env.vectorization workers and this many workers"
+    )
+    parser.add_argument(
+        "--dense-first-layer", action="store_true",
+        help="(c) with the first layer's dense product instead of the sparse one (for an A/B of that change)",
+    )  # fmt: skip
     args = parser.parse_args()
+    global WORKERS
+    WORKERS = args.workers
+    if args.dense_first_layer:
+        fast_lstm.SPARSE_MIN_INPUTS = 1 << 62
     torch.set_num_threads(args.threads)
     cfg = load_config(args.preset)
 
@@ -190,6 +214,7 @@ def main() -> None:
     meta = {
         "preset": args.preset, "num_envs": cfg.ppo.num_envs, "train_steps": args.steps, "env_steps": args.env_steps,
         "threads": args.threads, "rounds": args.rounds, "trojan_probability": args.trojan_probability,
+        "workers": args.workers, "dense_first_layer": args.dense_first_layer,
         "python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
         "gymnasium": gymnasium.__version__, "minigrid": minigrid.__version__, "cpu_count": os.cpu_count(),
         "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
@@ -221,6 +246,8 @@ def main() -> None:
         if "vector_sps" in run and "logged_sps" in run:
             run["ratio_vector_logged"] = run["logged_sps"] / run["vector_sps"]
             run["ratio_vector_loop"] = run["loop_sps"] / run["vector_sps"]
+        if "seam_sps" in run and "logged_sps" in run:
+            run["ratio_seam_logged"] = run["logged_sps"] / run["seam_sps"]
         runs.append(run)
         shown = {k: round(v, 3) if isinstance(v, float) else v for k, v in run.items() if k != "load_avg"}
         print(f"  round {r + 1}: {shown}  (load {run['load_avg'][0]:.2f})", flush=True)
@@ -231,13 +258,14 @@ def main() -> None:
     lines = [
         ("(a) env, one env, random actions", "env_sps", summary),
         (f"(v) vector, SyncVectorEnv B={cfg.ppo.num_envs}", "vector_sps", summary),
-        (f"(b) seam, GymnasiumBatchedEnv B={cfg.ppo.num_envs}", "seam_sps", summary),
+        (f"(b) seam, B={cfg.ppo.num_envs}{f', {args.workers} workers' if args.workers else ''}", "seam_sps", summary),
         ("(c) train, logged median", "logged_sps", summary),
         ("(c) train, env steps / loop wall time", "loop_sps", summary),
         ("(c)/(a), logged median", "ratio_logged", ratio_summary),
         ("(c)/(a), loop wall time", "ratio_loop", ratio_summary),
         ("(c)/(v), logged median", "ratio_vector_logged", ratio_summary),
         ("(c)/(v), loop wall time", "ratio_vector_loop", ratio_summary),
+        ("(c)/(b), logged median", "ratio_seam_logged", ratio_summary),
     ]
     print("steps per second:")
     for label, key, show in lines:
