@@ -557,20 +557,37 @@ def unroll_gru_layer(
 # ---------------------------------------------------------------------------------------------- inference steps
 @torch.no_grad()
 def step_stack(cells, x, keep, states, weight_cache: dict):
-    """One no-grad step of all layers in one call; ``states`` is a list of (h, c). Returns new (h, c) per layer."""
-    wcs = []
-    for cell in cells:
+    """One no-grad step of all layers in one call; ``states`` is a list of (h, c). Returns new (h, c) per layer.
+
+    A one-hot observation (:func:`is_sparse_input`) is projected by :func:`sparse_project` for the first layer,
+    whose kernel step then multiplies only ``[h | 1]``."""
+    sparse = is_sparse_input(x)
+    wcs, projected = [], None
+    for i, cell in enumerate(cells):
         params = (cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh)
-        key = tuple((id(p), p._version) for p in params)  # optimizer steps and load_state_dict bump versions
+        split = sparse and i == 0
+        key = (split, *((id(p), p._version) for p in params))  # optimizer steps and load_state_dict bump versions
         if weight_cache.get(id(cell), (None,))[0] != key:
-            weight_cache[id(cell)] = (key, _lstm_weight(*params))
-        wcs.append(weight_cache[id(cell)][1])
+            if split:  # [W_hh | b] for the kernel, W_ih^T for the projection
+                built = (_lstm_weight(params[0][:, :0], *params[1:]), params[0].t().contiguous())
+            else:
+                built = (_lstm_weight(*params), None)
+            weight_cache[id(cell)] = (key, built)
+        wc, w_t = weight_cache[id(cell)][1]
+        wcs.append(wc)
+        if w_t is not None:
+            projected = x.new_empty(x.shape[0], w_t.shape[1])
+            assert _ext is not None  # callers run only after extension() loaded it
+            _ext.sparse_project(x.contiguous(), w_t, projected)
     hs = [h.contiguous() for h, _ in states]
     cs = [c.contiguous() for _, c in states]
     out_h = [torch.empty_like(h) for h in hs]
     out_c = [torch.empty_like(c) for c in cs]
+    x_in = x.new_empty(x.shape[0], 0) if projected is not None else x.contiguous()
     assert _ext is not None  # callers run only after extension() loaded it
-    _ext.lstm_stack_step(x.contiguous(), keep.contiguous(), hs, cs, wcs, [], out_h, out_c, num_chunks(x.shape[0]))
+    _ext.lstm_stack_step(
+        x_in, keep.contiguous(), hs, cs, wcs, [], out_h, out_c, num_chunks(x.shape[0]), projected
+    )  # fmt: skip
     return list(zip(out_h, out_c))
 
 
@@ -603,7 +620,7 @@ def step_peephole_layer(
     assert _ext is not None  # callers run only after extension() loaded it
     _ext.lstm_stack_step(
         x.contiguous(), keep.contiguous(), [h], [c], [wc], [_param(cell, "peephole").contiguous()], [out_h], [out_c],
-        num_chunks(x.shape[0]),
+        num_chunks(x.shape[0]), None,
     )  # fmt: skip
     return out_h, out_c
 

@@ -97,3 +97,27 @@ def test_the_sparse_path_is_taken_on_a_one_hot_view(monkeypatch):
     obs = one_hot_view(4 * 3).float().view(4, 3, 500)
     net.unroll(obs, net.initial_state(3), torch.zeros(4, 3, dtype=torch.bool))
     assert calls == [torch.Size([12, 500])]
+
+
+def test_a_rollout_step_on_a_one_hot_view_equals_the_dense_step_and_follows_weight_updates(monkeypatch):
+    """The policy's no-grad step (what collects the rollouts) with the projected first layer: the same (h, c) and
+    outputs as the dense kernel step, also after the weights change (the cached transposed weight is rebuilt)."""
+    torch.manual_seed(1)
+    net = RecurrentActorCritic(500, 7, (16, 8))
+    obs = one_hot_view(12).float()
+    state = net.initial_state(12)
+    keep = torch.ones(12, dtype=torch.bool)
+    for _ in range(2):
+        outputs = []
+        for sparse in (True, False):
+            monkeypatch.setattr(fast_lstm, "SPARSE_MIN_INPUTS", 128 if sparse else 10**9)
+            with torch.no_grad():
+                outputs.append(net.step(obs, state, ~keep))
+        (ours, theirs) = outputs
+        torch.testing.assert_close(ours.logits, theirs.logits)
+        for mine, ref in zip(ours.state.layers, theirs.state.layers):
+            torch.testing.assert_close(mine.h, ref.h)
+            torch.testing.assert_close(mine.c, ref.c)
+        state = ours.state
+        with torch.no_grad():
+            net.cells[0].weight_ih.add_(0.5)  # an optimizer step: the next step must read the new weights

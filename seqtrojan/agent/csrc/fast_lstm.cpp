@@ -258,7 +258,7 @@ template <typename T, bool PEEP>
 void step_impl(const at::Tensor& X, const at::Tensor& M, const std::vector<at::Tensor>& hs,
                const std::vector<at::Tensor>& cs, const std::vector<at::Tensor>& Wcs,
                const std::vector<at::Tensor>& Ps, std::vector<at::Tensor>& hs_out,
-               std::vector<at::Tensor>& cs_out, int64_t nchunks) {
+               std::vector<at::Tensor>& cs_out, int64_t nchunks, const T* g0_) {
   const int64_t B = X.size(0), I0 = X.size(1), L = (int64_t)Wcs.size();
   const T* m_ = M.data_ptr<T>();
   at::parallel_for(0, nchunks, 1, [&](int64_t k0, int64_t k1) {
@@ -280,12 +280,14 @@ void step_impl(const at::Tensor& X, const at::Tensor& M, const std::vector<at::T
         for (int64_t r = 0; r < nb; ++r) {
           const T m = m_[b0 + r];
           T* row = xh.data() + r * K;
-          std::memcpy(row, in + r * ld_in, sizeof(T) * I);
+          if (I > 0) std::memcpy(row, in + r * ld_in, sizeof(T) * I);
           for (int64_t j = 0; j < H; ++j) row[I + j] = h_[r * H + j] * m;
           row[K - 1] = T(1);
         }
+        const bool projected = l == 0 && g0_ != nullptr;  // the first layer's input projection, computed elsewhere
+        if (projected) std::memcpy(g.data(), g0_ + b0 * H4, sizeof(T) * nb * H4);
         gemm('T', 'N', (int)H4, (int)nb, (int)K, T(1), Wcs[l].data_ptr<T>(), (int)K, xh.data(), (int)K,
-             T(0), g.data(), (int)H4);
+             projected ? T(1) : T(0), g.data(), (int)H4);
         T* ho = hs_out[l].data_ptr<T>() + b0 * H;
         T* co = cs_out[l].data_ptr<T>() + b0 * H;
         for (int64_t r = 0; r < nb; ++r) {
@@ -394,9 +396,10 @@ void lstm_bwd_cat(at::Tensor S, at::Tensor C, at::Tensor CP, at::Tensor M, at::T
 }
 
 // Ps: one peephole (3,H_l) per layer, or empty for the plain LSTM.
+// G0: optional (B, 4H_0), the first layer's input projection computed elsewhere (X is then (B, 0)).
 void lstm_stack_step(at::Tensor X, at::Tensor M, std::vector<at::Tensor> hs, std::vector<at::Tensor> cs,
                      std::vector<at::Tensor> Wcs, std::vector<at::Tensor> Ps, std::vector<at::Tensor> hs_out,
-                     std::vector<at::Tensor> cs_out, int64_t nchunks) {
+                     std::vector<at::Tensor> cs_out, int64_t nchunks, c10::optional<at::Tensor> G0) {
   check(X, "X"); check(M, "M");
   const int64_t B = X.size(0), L = (int64_t)Wcs.size();
   TORCH_CHECK(L >= 1 && (int64_t)hs.size() == L && (int64_t)cs.size() == L && (int64_t)hs_out.size() == L &&
@@ -416,12 +419,17 @@ void lstm_stack_step(at::Tensor X, at::Tensor M, std::vector<at::Tensor> hs, std
     if (!Ps.empty()) check_peephole(Ps[l], H, X);
     I = H;
   }
+  if (G0.has_value()) {
+    check(*G0, "G0");
+    TORCH_CHECK(G0->numel() == B * Wcs[0].size(0) && G0->scalar_type() == X.scalar_type(), "G0 must be (B, 4H_0)");
+  }
   nchunks = std::max<int64_t>(1, std::min(nchunks, B));
   AT_DISPATCH_FLOATING_TYPES(X.scalar_type(), "lstm_stack_step", [&] {
+    const scalar_t* g0 = G0.has_value() ? G0->data_ptr<scalar_t>() : nullptr;
     if (Ps.empty())
-      step_impl<scalar_t, false>(X, M, hs, cs, Wcs, Ps, hs_out, cs_out, nchunks);
+      step_impl<scalar_t, false>(X, M, hs, cs, Wcs, Ps, hs_out, cs_out, nchunks, g0);
     else
-      step_impl<scalar_t, true>(X, M, hs, cs, Wcs, Ps, hs_out, cs_out, nchunks);
+      step_impl<scalar_t, true>(X, M, hs, cs, Wcs, Ps, hs_out, cs_out, nchunks, g0);
   });
 }
 
