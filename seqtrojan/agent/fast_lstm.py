@@ -459,7 +459,7 @@ class _MaskedGRULayer(torch.autograd.Function):
     """One GRU layer over T steps; the state is multiplied by ``keep[t]`` before step t."""
 
     @staticmethod
-    def forward(ctx, x, keep, h0, w_ih, w_hh, b_ih, b_hh):
+    def forward(ctx, x, keep, h0, w_ih, w_hh, b_ih, b_hh, projected=None):
         steps, batch, n_in = x.shape
         hidden = w_hh.shape[1]
         dtype = x.dtype
@@ -468,12 +468,16 @@ class _MaskedGRULayer(torch.autograd.Function):
         gates = _pool_get((steps, batch, 4 * hidden), dtype)
         h_seq = x.new_empty(steps, batch, hidden)
         assert _ext is not None  # callers run only after extension() loaded it
-        _ext.gru_fwd_cat(x.contiguous(), keep, h0.contiguous(), wc, xh, gates, h_seq, num_chunks(batch))
+        _ext.gru_fwd_cat(
+            x.contiguous(), keep, h0.contiguous(), wc, xh, gates, h_seq, num_chunks(batch),
+            None if projected is None else projected.contiguous(),
+        )  # fmt: skip
         # backward reads h_{t-1} from xh, so h_seq (an output) is not saved: no reference cycle through ctx
         ctx.save_for_backward(keep)
         ctx.buffers = (wc, xh, gates)
         ctx.releaser = _Releaser(xh, gates)
         ctx.n_in = n_in
+        ctx.projected = projected is not None
         ctx.set_materialize_grads(False)
         return h_seq
 
@@ -491,14 +495,15 @@ class _MaskedGRULayer(torch.autograd.Function):
         chunks = num_chunks(batch)
         dw_parts = gates.new_empty(chunks, four_h, k)
         dh0 = gates.new_empty(batch, hidden)
+        d_projected = gates.new_empty(steps, batch, four_h) if ctx.projected and need[7] else None
         assert _ext is not None  # callers run only after extension() loaded it
-        _ext.gru_bwd_cat(gates, keep, wc, xh, n_in, d_h_seq, dx, dw_parts, dh0)
+        _ext.gru_bwd_cat(gates, keep, wc, xh, n_in, d_h_seq, dx, dw_parts, dh0, d_projected)
         dwc = dw_parts.sum(0) if chunks > 1 else dw_parts[0]  # (4H, K), rows r, z, n_x, n_h
         dw_ih = dwc[:h3, :n_in].contiguous() if need[3] else None
         dw_hh = torch.cat([dwc[:h2, n_in : k - 1], dwc[h3:, n_in : k - 1]]) if need[4] else None
         db_ih = dwc[:h3, k - 1].contiguous() if need[5] else None
         db_hh = torch.cat([dwc[:h2, k - 1], dwc[h3:, k - 1]]) if need[6] else None
-        return dx, None, dh0 if need[2] else None, dw_ih, dw_hh, db_ih, db_hh
+        return dx, None, dh0 if need[2] else None, dw_ih, dw_hh, db_ih, db_hh, d_projected
 
 
 def unroll_layer(cell: torch.nn.LSTMCell, x, keep, h0, c0, return_c_seq: bool):
@@ -551,7 +556,19 @@ def unroll_gru_layer(
     ``return_states`` is accepted so that callers treat every cell alike; it changes nothing here, because the
     GRU's whole state is h, which h_seq already holds at every step."""
     del return_states
-    return _MaskedGRULayer.apply(x, keep.contiguous(), h0, cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh)
+    w_ih, w_hh, b_ih, b_hh = (_param(cell, name) for name in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"))
+    if not is_sparse_input(x):
+        return _MaskedGRULayer.apply(x, keep.contiguous(), h0, w_ih, w_hh, b_ih, b_hh, None)
+    steps, batch, _ = x.shape
+    projected = _gru_projection(x.reshape(steps * batch, -1), w_ih).view(steps, batch, -1)
+    no_input, no_weight = x.new_empty(steps, batch, 0), w_ih.detach().new_empty(w_ih.shape[0], 0)
+    return _MaskedGRULayer.apply(no_input, keep.contiguous(), h0, no_weight, w_hh, b_ih, b_hh, projected)
+
+
+def _gru_projection(x: torch.Tensor, w_ih: torch.Tensor) -> torch.Tensor:
+    """A GRU kernel's projected input (N, 4H): rows r, z, n_x from :func:`sparse_project`, n_h zero."""
+    projected = sparse_project(x, w_ih)  # (N, 3H)
+    return torch.cat([projected, projected.new_zeros(projected.shape[0], projected.shape[1] // 3)], 1)
 
 
 # ---------------------------------------------------------------------------------------------- inference steps
@@ -596,16 +613,19 @@ def step_stack(cells, x, keep, states, weight_cache: dict):
 _STEP_WEIGHTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _step_weight(cell: torch.nn.Module, build) -> torch.Tensor:
+def _step_weight(cell: torch.nn.Module, build, kind: str) -> torch.Tensor:
+    """``build(*cell's four tensors)``, cached per cell and ``kind`` (the matrix ``build`` makes) until a parameter
+    is replaced or changed."""
     params = (cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh)
     versions = tuple(p._version for p in params)
     try:
-        cached = _STEP_WEIGHTS.get(cell)
+        kinds = _STEP_WEIGHTS.setdefault(cell, {})
     except TypeError:  # a cell that takes no weak reference: no cache
         return build(*params)
+    cached = kinds.get(kind)
     if cached is None or cached[1] != versions or any(a is not b for a, b in zip(cached[0], params)):
         cached = (params, versions, build(*params))
-        _STEP_WEIGHTS[cell] = cached
+        kinds[kind] = cached
     return cached[2]
 
 
@@ -616,7 +636,7 @@ def step_peephole_layer(
     """One no-grad step of one peephole LSTM layer; ``keep`` (B,) multiplies (h, c) first. Returns (h, c)."""
     h, c = h.contiguous(), c.contiguous()
     out_h, out_c = torch.empty_like(h), torch.empty_like(c)
-    wc = _step_weight(cell, _lstm_weight)
+    wc = _step_weight(cell, _lstm_weight, "lstm")
     assert _ext is not None  # callers run only after extension() loaded it
     _ext.lstm_stack_step(
         x.contiguous(), keep.contiguous(), [h], [c], [wc], [_param(cell, "peephole").contiguous()], [out_h], [out_c],
@@ -627,10 +647,19 @@ def step_peephole_layer(
 
 @torch.no_grad()
 def step_gru_layer(cell: torch.nn.Module, x: torch.Tensor, keep: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-    """One no-grad step of one GRU layer; ``keep`` (B,) multiplies h first. Returns the new h."""
+    """One no-grad step of one GRU layer; ``keep`` (B,) multiplies h first. Returns the new h. A one-hot input
+    (:func:`is_sparse_input`) is projected by :func:`sparse_project`, the kernel multiplies ``[h | 1]`` only."""
     h = h.contiguous()
     out_h = torch.empty_like(h)
-    wc = _step_weight(cell, _gru_weight)
+    projected = None
+    if is_sparse_input(x):
+        wc = _step_weight(cell, lambda w_ih, *rest: _gru_weight(w_ih[:, :0], *rest), "gru without input")
+        projected = _gru_projection(x, _param(cell, "weight_ih"))
+        x = x.new_empty(x.shape[0], 0)
+    else:
+        wc = _step_weight(cell, _gru_weight, "gru")
     assert _ext is not None  # callers run only after extension() loaded it
-    _ext.gru_stack_step(x.contiguous(), keep.contiguous(), [h], [wc], [out_h], num_chunks(x.shape[0]))
+    _ext.gru_stack_step(
+        x.contiguous(), keep.contiguous(), [h], [wc], [out_h], num_chunks(x.shape[0]), projected
+    )  # fmt: skip
     return out_h

@@ -58,7 +58,7 @@ def test_only_wide_mostly_zero_inputs_without_gradient_take_the_sparse_product()
     assert not fast_lstm.is_sparse_input(narrow)  # the grid world's observation: one GEMM is cheaper
 
 
-@pytest.mark.parametrize("cell", ["lstm", "lstm_peephole"])
+@pytest.mark.parametrize("cell", ["lstm", "lstm_peephole", "gru"])
 def test_a_layer_on_a_one_hot_view_equals_the_dense_kernel_forward_and_backward(cell, monkeypatch):
     """The network's unroll (what PPO trains) with the sparse projection against the same network forced onto the
     dense kernel: outputs, final state and every parameter's gradient."""
@@ -79,7 +79,7 @@ def test_a_layer_on_a_one_hot_view_equals_the_dense_kernel_forward_and_backward(
         (out.logits.square().sum() + out.values.sum() + out.state.layers[0].c.sum()).backward()
         grads = [p.grad.clone() for p in net.parameters() if p.grad is not None]
         results.append((out.logits.detach(), out.values.detach(), out.state.layers[0].c.detach(), grads))
-    (logits, values, c, grads), (logits_ref, values_ref, c_ref, grads_ref) = results
+    (logits, values, c, grads), (logits_ref, values_ref, c_ref, grads_ref) = results  # c: the GRU's is empty
     torch.testing.assert_close(logits, logits_ref)
     torch.testing.assert_close(values, values_ref)
     torch.testing.assert_close(c, c_ref)
@@ -88,22 +88,24 @@ def test_a_layer_on_a_one_hot_view_equals_the_dense_kernel_forward_and_backward(
         torch.testing.assert_close(grad, grad_ref)
 
 
-def test_the_sparse_path_is_taken_on_a_one_hot_view(monkeypatch):
+@pytest.mark.parametrize("cell", ["lstm", "lstm_peephole", "gru"])
+def test_the_sparse_path_is_taken_on_a_one_hot_view(cell, monkeypatch):
     """The network really uses the sparse projection for such an input (so the tests above test what trains)."""
     calls = []
     original = fast_lstm.sparse_project
     monkeypatch.setattr(fast_lstm, "sparse_project", lambda x, w: calls.append(x.shape) or original(x, w))
-    net = RecurrentActorCritic(500, 7, (16, 8))
+    net = RecurrentActorCritic(500, 7, (16, 8), cell=cell)
     obs = one_hot_view(4 * 3).float().view(4, 3, 500)
     net.unroll(obs, net.initial_state(3), torch.zeros(4, 3, dtype=torch.bool))
     assert calls == [torch.Size([12, 500])]
 
 
-def test_a_rollout_step_on_a_one_hot_view_equals_the_dense_step_and_follows_weight_updates(monkeypatch):
+@pytest.mark.parametrize("cell", ["lstm", "gru"])
+def test_a_rollout_step_on_a_one_hot_view_equals_the_dense_step_and_follows_weight_updates(cell, monkeypatch):
     """The policy's no-grad step (what collects the rollouts) with the projected first layer: the same (h, c) and
-    outputs as the dense kernel step, also after the weights change (the cached transposed weight is rebuilt)."""
+    outputs as the dense kernel step, also after the weights change (the cached matrices are rebuilt)."""
     torch.manual_seed(1)
-    net = RecurrentActorCritic(500, 7, (16, 8))
+    net = RecurrentActorCritic(500, 7, (16, 8), cell=cell)
     obs = one_hot_view(12).float()
     state = net.initial_state(12)
     keep = torch.ones(12, dtype=torch.bool)

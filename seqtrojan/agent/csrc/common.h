@@ -105,11 +105,11 @@ inline void check(const at::Tensor& t, const char* name) {
 
 // ---- GRU entry points (gru.cpp), bound to Python in fast_lstm.cpp's PYBIND11_MODULE (one module for all cells)
 void gru_fwd_cat(at::Tensor X, at::Tensor M, at::Tensor h0, at::Tensor Wc, at::Tensor XH, at::Tensor S,
-                 at::Tensor Hs, int64_t nchunks);
+                 at::Tensor Hs, int64_t nchunks, c10::optional<at::Tensor> G);
 void gru_bwd_cat(at::Tensor S, at::Tensor M, at::Tensor Wc, at::Tensor XH, int64_t I, at::Tensor dHs,
-                 c10::optional<at::Tensor> dX, at::Tensor dWparts, at::Tensor dh0);
+                 c10::optional<at::Tensor> dX, at::Tensor dWparts, at::Tensor dh0, c10::optional<at::Tensor> dZ);
 void gru_stack_step(at::Tensor X, at::Tensor M, std::vector<at::Tensor> hs, std::vector<at::Tensor> Wcs,
-                    std::vector<at::Tensor> hs_out, int64_t nchunks);
+                    std::vector<at::Tensor> hs_out, int64_t nchunks, c10::optional<at::Tensor> G0);
 
 // ---- band attention of the windowed Transformer (band_attention.cpp), bound in the same module
 void band_attention_fwd(const at::Tensor& qkv, const at::Tensor& prefix, const at::Tensor& allowed,

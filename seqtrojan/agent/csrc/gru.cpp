@@ -30,7 +30,7 @@ using namespace fastrnn;
 
 template <typename T>
 void gru_fwd_impl(const at::Tensor& X, const at::Tensor& M, const at::Tensor& h0, const at::Tensor& Wc,
-                  at::Tensor XH, at::Tensor S, at::Tensor Hs, int64_t nchunks) {
+                  at::Tensor XH, at::Tensor S, at::Tensor Hs, int64_t nchunks, const T* g_) {
   const int64_t TT = X.size(0), B = X.size(1), I = X.size(2), H4 = Wc.size(0), H = H4 / 4, K = I + H + 1;
   const T* x_ = X.data_ptr<T>();
   const T* m_ = M.data_ptr<T>();
@@ -51,11 +51,12 @@ void gru_fwd_impl(const at::Tensor& X, const at::Tensor& M, const at::Tensor& h0
         T* xht = xh_ + (t * B + b0) * K;
         const T* xt = x_ + (t * B + b0) * I;
         for (int64_t r = 0; r < nb; ++r) {  // [x_t | . | 1]
-          std::memcpy(xht + r * K, xt + r * I, sizeof(T) * I);
+          if (I > 0) std::memcpy(xht + r * K, xt + r * I, sizeof(T) * I);
           xht[r * K + K - 1] = T(1);
         }
         T* st = s_ + (t * B + b0) * H4;
-        gemm('T', 'N', (int)H4, (int)nb, (int)K, T(1), w_, (int)K, xht, (int)K, T(0), st, (int)H4);
+        if (g_) std::memcpy(st, g_ + (t * B + b0) * H4, sizeof(T) * nb * H4);  // a projected input: added
+        gemm('T', 'N', (int)H4, (int)nb, (int)K, T(1), w_, (int)K, xht, (int)K, g_ ? T(1) : T(0), st, (int)H4);
         const bool has_next = t + 1 < TT;
         for (int64_t r = 0; r < nb; ++r) {
           T* gr = st + r * H4;
@@ -86,7 +87,7 @@ void gru_fwd_impl(const at::Tensor& X, const at::Tensor& M, const at::Tensor& h0
 template <typename T>
 void gru_bwd_impl(const at::Tensor& S, const at::Tensor& M, const at::Tensor& Wc, const at::Tensor& XH, int64_t I,
                   const at::Tensor& dHs, c10::optional<at::Tensor> dX, at::Tensor dWparts, at::Tensor dh0,
-                  int64_t nchunks) {
+                  int64_t nchunks, T* dz_out) {
   const int64_t TT = S.size(0), B = S.size(1), H4 = S.size(2), H = H4 / 4, K = I + H + 1;
   const T* s_ = S.data_ptr<T>();
   const T* m_ = M.data_ptr<T>();
@@ -132,6 +133,7 @@ void gru_bwd_impl(const at::Tensor& S, const at::Tensor& M, const at::Tensor& Wc
             dhpr[j] = dh * z;
           }
         }
+        if (dz_out) std::memcpy(dz_out + (t * B + b0) * H4, dz.data(), sizeof(T) * nb * H4);
         // [dx_t | dhp_t] += dZ_t @ Wc[:, cols]   (row-major out(nb x N) += dZ(nb x 4H) W(4H x N), ld K)
         gemm('N', 'N', (int)N, (int)nb, (int)H4, T(1), wsrc, (int)K, dz.data(), (int)H4, T(1),
              out.data(), (int)N);
@@ -154,7 +156,8 @@ void gru_bwd_impl(const at::Tensor& S, const at::Tensor& M, const at::Tensor& Wc
 // One no-grad step of a GRU stack; as the LSTM's step_impl, hs_out may alias hs.
 template <typename T>
 void gru_step_impl(const at::Tensor& X, const at::Tensor& M, const std::vector<at::Tensor>& hs,
-                   const std::vector<at::Tensor>& Wcs, std::vector<at::Tensor>& hs_out, int64_t nchunks) {
+                   const std::vector<at::Tensor>& Wcs, std::vector<at::Tensor>& hs_out, int64_t nchunks,
+                   const T* g0_) {
   const int64_t B = X.size(0), I0 = X.size(1), L = (int64_t)Wcs.size();
   const T* m_ = M.data_ptr<T>();
   at::parallel_for(0, nchunks, 1, [&](int64_t k0, int64_t k1) {
@@ -172,12 +175,14 @@ void gru_step_impl(const at::Tensor& X, const at::Tensor& M, const std::vector<a
         for (int64_t r = 0; r < nb; ++r) {
           const T m = m_[b0 + r];
           T* row = xh.data() + r * K;
-          std::memcpy(row, in + r * I, sizeof(T) * I);
+          if (I > 0) std::memcpy(row, in + r * I, sizeof(T) * I);
           for (int64_t j = 0; j < H; ++j) row[I + j] = h_[r * H + j] * m;
           row[K - 1] = T(1);
         }
+        const bool projected = l == 0 && g0_ != nullptr;  // the first layer's input projection, computed elsewhere
+        if (projected) std::memcpy(g.data(), g0_ + b0 * H4, sizeof(T) * nb * H4);
         gemm('T', 'N', (int)H4, (int)nb, (int)K, T(1), Wcs[l].data_ptr<T>(), (int)K, xh.data(), (int)K,
-             T(0), g.data(), (int)H4);
+             projected ? T(1) : T(0), g.data(), (int)H4);
         T* ho = hs_out[l].data_ptr<T>() + b0 * H;
         for (int64_t r = 0; r < nb; ++r) {
           const T* gr = g.data() + r * H4;
@@ -199,8 +204,9 @@ void gru_step_impl(const at::Tensor& X, const at::Tensor& M, const std::vector<a
 
 }  // namespace
 
+// G (optional, T,B,4H): the input projection computed elsewhere, added (rows r, z, n_x; n_h zero); X is (T,B,0)
 void gru_fwd_cat(at::Tensor X, at::Tensor M, at::Tensor h0, at::Tensor Wc, at::Tensor XH, at::Tensor S,
-                 at::Tensor Hs, int64_t nchunks) {
+                 at::Tensor Hs, int64_t nchunks, c10::optional<at::Tensor> G) {
   for (auto* p : {&X, &M, &h0, &Wc, &XH, &S, &Hs}) {
     check(*p, "tensor");
     TORCH_CHECK(p->scalar_type() == X.scalar_type(), "dtype mismatch");
@@ -210,14 +216,19 @@ void gru_fwd_cat(at::Tensor X, at::Tensor M, at::Tensor h0, at::Tensor Wc, at::T
   TORCH_CHECK(Wc.size(1) == K, "Wc must be (4H, I+H+1)");
   TORCH_CHECK(M.numel() == TT * B && h0.numel() == B * H);
   TORCH_CHECK(XH.numel() == TT * B * K && S.numel() == TT * B * 4 * H && Hs.numel() == TT * B * H);
+  if (G.has_value()) {
+    check(*G, "G");
+    TORCH_CHECK(G->numel() == TT * B * 4 * H && G->scalar_type() == X.scalar_type(), "G must be (T,B,4H)");
+  }
   nchunks = std::max<int64_t>(1, std::min(nchunks, B));
   AT_DISPATCH_FLOATING_TYPES(X.scalar_type(), "gru_fwd_cat", [&] {
-    gru_fwd_impl<scalar_t>(X, M, h0, Wc, XH, S, Hs, nchunks);
+    gru_fwd_impl<scalar_t>(X, M, h0, Wc, XH, S, Hs, nchunks, G.has_value() ? G->data_ptr<scalar_t>() : nullptr);
   });
 }
 
+// dZ (optional, T,B,4H): the GEMM outputs' gradients, for the weights of a projection computed elsewhere
 void gru_bwd_cat(at::Tensor S, at::Tensor M, at::Tensor Wc, at::Tensor XH, int64_t I, at::Tensor dHs,
-                 c10::optional<at::Tensor> dX, at::Tensor dWparts, at::Tensor dh0) {
+                 c10::optional<at::Tensor> dX, at::Tensor dWparts, at::Tensor dh0, c10::optional<at::Tensor> dZ) {
   for (auto* p : {&S, &M, &Wc, &XH, &dHs, &dWparts, &dh0}) {
     check(*p, "tensor");
     TORCH_CHECK(p->scalar_type() == S.scalar_type(), "dtype mismatch");
@@ -232,13 +243,19 @@ void gru_bwd_cat(at::Tensor S, at::Tensor M, at::Tensor Wc, at::Tensor XH, int64
   TORCH_CHECK(dWparts.dim() == 3 && dWparts.size(1) == 4 * H && dWparts.size(2) == K &&
               dWparts.size(0) >= 1 && dWparts.size(0) <= B, "dWparts must be (nchunks, 4H, K)");
   if (dX.has_value()) TORCH_CHECK(dX->numel() == TT * B * I);
+  if (dZ.has_value()) {
+    check(*dZ, "dZ");
+    TORCH_CHECK(dZ->numel() == TT * B * 4 * H && dZ->scalar_type() == S.scalar_type(), "dZ must be (T,B,4H)");
+  }
   AT_DISPATCH_FLOATING_TYPES(S.scalar_type(), "gru_bwd_cat", [&] {
-    gru_bwd_impl<scalar_t>(S, M, Wc, XH, I, dHs, dX, dWparts, dh0, dWparts.size(0));
+    gru_bwd_impl<scalar_t>(S, M, Wc, XH, I, dHs, dX, dWparts, dh0, dWparts.size(0),
+                           dZ.has_value() ? dZ->data_ptr<scalar_t>() : nullptr);
   });
 }
 
+// G0 (optional, B,4H_0): the first layer's input projection computed elsewhere; X is then (B,0)
 void gru_stack_step(at::Tensor X, at::Tensor M, std::vector<at::Tensor> hs, std::vector<at::Tensor> Wcs,
-                    std::vector<at::Tensor> hs_out, int64_t nchunks) {
+                    std::vector<at::Tensor> hs_out, int64_t nchunks, c10::optional<at::Tensor> G0) {
   check(X, "X"); check(M, "M");
   const int64_t B = X.size(0), L = (int64_t)Wcs.size();
   TORCH_CHECK(L >= 1 && (int64_t)hs.size() == L && (int64_t)hs_out.size() == L);
@@ -254,8 +271,12 @@ void gru_stack_step(at::Tensor X, at::Tensor M, std::vector<at::Tensor> hs, std:
     TORCH_CHECK(hs[l].numel() == B * H && hs_out[l].numel() == B * H);
     I = H;
   }
+  if (G0.has_value()) {
+    check(*G0, "G0");
+    TORCH_CHECK(G0->numel() == B * Wcs[0].size(0) && G0->scalar_type() == X.scalar_type(), "G0 must be (B, 4H_0)");
+  }
   nchunks = std::max<int64_t>(1, std::min(nchunks, B));
   AT_DISPATCH_FLOATING_TYPES(X.scalar_type(), "gru_stack_step", [&] {
-    gru_step_impl<scalar_t>(X, M, hs, Wcs, hs_out, nchunks);
+    gru_step_impl<scalar_t>(X, M, hs, Wcs, hs_out, nchunks, G0.has_value() ? G0->data_ptr<scalar_t>() : nullptr);
   });
 }
