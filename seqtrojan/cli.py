@@ -547,11 +547,25 @@ def _zoo(argv: list[str]) -> None:
 
     @dataclasses.dataclass
     class ZooDetect:
-        """Score offline backdoor detection from weights on a zoo (k-fold, ROC-AUC / cross-entropy / Brier)."""
+        """Score offline backdoor detection on a zoo. With --out: the benchmark leaderboard (every registered
+        benchmark detector fitted on the train split, scored on test and holdout: ROC-AUC, cross-entropy, Brier and
+        runtime with 95% bootstrap intervals; OUT/leaderboard.json; resumable). Without: the weight detector by
+        k-fold cross-validation (ZOO/detection.json)."""
 
         zoo: Path = Path("results/zoo")
+        out: Path | None = None
+        """the leaderboard's folder (splits.json, predictions/, leaderboard.json); none: the k-fold weight detector"""
         folds: int = 5
+        """k of the k-fold weight detector (without --out)"""
         seed: int = 0
+        """the split's and the bootstrap's seed (--out), the folds' seed (without)"""
+        test_share: float = 0.5
+        """share of each label's non-holdout models in the test split (--out)"""
+        holdout: tuple[str, ...] = ()
+        """FACTOR=VALUE pairs whose models only the holdout split holds (--out), e.g. 'lstm_sizes=[64, 32]' or
+        trigger_value=wall; factors: env, cell, lstm_sizes, trigger_value"""
+        detectors: tuple[str, ...] = ()
+        """the benchmark detectors to score (--out; default: every registered one)"""
 
     if not argv or argv[0] not in ("build", "detect"):
         print("usage: seqtrojan zoo {build,detect} [options]   (seqtrojan zoo build --help)", file=sys.stderr)
@@ -563,6 +577,9 @@ def _zoo(argv: list[str]) -> None:
         print(f"wrote {manifest}")
         return
     args = _cli(ZooDetect, argv[1:], "seqtrojan zoo detect")
+    if args.out is not None:
+        _zoo_leaderboard(args.zoo, args.out, args.seed, args.test_share, args.holdout, args.detectors)
+        return
     result = detect_zoo(args.zoo, args.folds, args.seed)
     save_json(result, args.zoo / DETECTION_FILE)
     table = Table(title=f"Offline detection on {args.zoo} (held-out, {result.scores[0].folds}-fold)")
@@ -578,6 +595,36 @@ def _zoo(argv: list[str]) -> None:
     for bad in result.rejected:
         print(f"rejected {bad.model}: {bad.reason}")
     print(f"wrote {args.zoo}/{DETECTION_FILE}")
+
+
+def _zoo_leaderboard(
+    zoo: Path, out: Path, seed: int, test_share: float, holdout: tuple[str, ...], detectors: tuple[str, ...]
+) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from seqtrojan.benchmark.leaderboard import LEADERBOARD_FILE, run_leaderboard
+    from seqtrojan.benchmark.splits import SplitConfig
+
+    held: dict[str, list[str]] = {}
+    for pair in holdout:
+        factor, sep, value = pair.partition("=")
+        if not sep or not factor or not value:
+            raise ConfigError(f"--holdout takes FACTOR=VALUE pairs, got {pair!r}")
+        held.setdefault(factor.strip(), []).append(value.strip())
+    splits = SplitConfig(test_share, {k: tuple(v) for k, v in held.items()}, seed=seed)
+    board = run_leaderboard(zoo, out, splits, detectors or None)
+    table = Table(title=f"Benchmark leaderboard on {zoo} (train {board.models['train']}, test {board.models['test']}, "
+                        f"holdout {board.models['holdout']})")  # fmt: skip
+    for col in ("detector", "split", "ROC-AUC", "cross-entropy", "Brier", "s / model"):
+        table.add_column(col, justify="right")
+    for d in board.detectors:
+        for r in d.splits:
+            s = r.scores
+            table.add_row(d.detector, r.split, s.roc_auc.text(), s.cross_entropy.text(), s.brier.text(),
+                          s.runtime_s.text(4))  # fmt: skip
+    Console().print(table)
+    print(f"wrote {out / LEADERBOARD_FILE}")
 
 
 def _list_registered(family: Literal["attack", "defense"], first: tuple[Any, ...], argv: list[str]) -> None:
@@ -607,11 +654,12 @@ def _attacks(argv: list[str]) -> None:
 
 def _defenses(argv: list[str]) -> None:
     import seqtrojan.defense.pipeline  # noqa: F401  (it imports any further module that registers a mitigation)
+    from seqtrojan.benchmark.detectors import DETECTORS as BENCHMARK_DETECTORS
     from seqtrojan.defense.mitigation import MITIGATIONS
     from seqtrojan.defense.monitor import MONITORS
     from seqtrojan.defense.offline import DETECTORS
 
-    _list_registered("defense", (MONITORS, DETECTORS, MITIGATIONS), argv)
+    _list_registered("defense", (MONITORS, DETECTORS, BENCHMARK_DETECTORS, MITIGATIONS), argv)
 
 
 def _import(argv: list[str]) -> None:

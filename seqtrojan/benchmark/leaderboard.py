@@ -1,0 +1,191 @@
+"""Score every registered detector on a zoo's test and holdout splits: ``seqtrojan zoo detect --zoo Z --out S``.
+
+1. The zoo's models are read with their truth (``label.json``) and factors; a model whose folder, card, weights
+   or label is malformed is listed as rejected with its reason (one line) and the rest go on.
+2. The splits (:mod:`seqtrojan.benchmark.splits`) are written to ``S/splits.json``.
+3. Each detector of :data:`~seqtrojan.benchmark.detectors.DETECTORS` is fitted on the train split's suspects
+   (:mod:`seqtrojan.benchmark.suspect`: networks and clean envs only) and asked for every test and holdout model's
+   probability, timed per model; its predictions go to ``S/predictions/<detector>.json`` as soon as it is done, so
+   a stopped run resumes with the detectors it had not finished (and a changed split scores them again).
+4. ``S/leaderboard.json``: per detector and split, ROC-AUC, cross-entropy, Brier score and mean runtime per model,
+   each with a 95% bootstrap interval over models, and the same by factor (env, cell, widths, attack).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from seqtrojan.benchmark.detectors import DETECTORS
+from seqtrojan.benchmark.scoring import BOOTSTRAP_ROUNDS, Scores, score, score_by_factor
+from seqtrojan.benchmark.splits import (
+    ATTACK_FACTORS,
+    SplitConfig,
+    ZooEntry,
+    assign_splits,
+    check_trainable,
+    model_factors,
+)
+from seqtrojan.benchmark.suspect import Suspect, load_suspect
+from seqtrojan.defense.results import Rejected
+from seqtrojan.errors import ConfigError, SeqTrojanError
+from seqtrojan.serde import from_dict, to_dict
+
+LEADERBOARD_FILE = "leaderboard.json"
+SPLITS_FILE = "splits.json"
+
+
+@dataclass(frozen=True)
+class ModelPrediction:
+    model_id: str
+    split: str
+    label: int
+    probability: float
+    seconds: float
+
+
+@dataclass(frozen=True)
+class DetectorPredictions:
+    """One detector's answers (what ``predictions/<detector>.json`` holds)."""
+
+    detector: str
+    splits: dict[str, str]
+    """the split assignment they were made under (a resume checks it)"""
+    fit_seconds: float
+    predictions: tuple[ModelPrediction, ...]
+
+
+@dataclass(frozen=True)
+class SplitResult:
+    split: str
+    scores: Scores
+    by_factor: dict[str, dict[str, Scores]]
+
+
+@dataclass(frozen=True)
+class DetectorResult:
+    detector: str
+    description: str
+    fit_seconds: float
+    splits: tuple[SplitResult, ...]
+
+
+@dataclass(frozen=True)
+class Leaderboard:
+    zoo: str
+    models: dict[str, int]
+    """models per split"""
+    rejected: tuple[Rejected, ...]
+    detectors: tuple[DetectorResult, ...]
+
+
+def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected]]:
+    """Every usable model of ``zoo/models`` as an entry (truth) and a suspect (what detectors see), and the
+    rejected ones with their reasons."""
+    from seqtrojan.zoo.build import read_label
+
+    folder = zoo / "models"
+    if not folder.is_dir():
+        raise SeqTrojanError(f"{str(zoo)!r} is not a zoo (no models/ folder)")
+    entries, suspects, rejected = [], [], []
+    for path in sorted(p for p in folder.iterdir() if p.is_dir()):
+        try:
+            truth = read_label(path)
+            suspect = load_suspect(path)
+        except SeqTrojanError as err:
+            rejected.append(Rejected(path.name, " ".join(str(err).split())))
+            continue
+        entries.append(ZooEntry(path.name, path, int(truth["label"] == "backdoored"), model_factors(truth)))
+        suspects.append(suspect)
+    return entries, suspects, rejected
+
+
+def run_leaderboard(
+    zoo: Path, out: Path, splits: SplitConfig | None = None, detectors: Sequence[str] | None = None,
+    rounds: int = BOOTSTRAP_ROUNDS, log: Callable[[str], None] = print,
+) -> Leaderboard:  # fmt: skip
+    """Fit and score ``detectors`` (default: every registered one) on ``zoo``; see the module docstring."""
+    names = list(detectors) if detectors is not None else DETECTORS.names()
+    for name in names:
+        DETECTORS.get(name)  # an unknown name is refused before anything is read or written
+    cfg = splits or SplitConfig()
+    entries, suspects, rejected = read_zoo(zoo)
+    for r in rejected:
+        log(f"rejected {r.model}: {r.reason}")
+    assignment = assign_splits(entries, cfg)
+    check_trainable(entries, assignment)
+    out.mkdir(parents=True, exist_ok=True)
+    _write(out / SPLITS_FILE, assignment)
+    results = []
+    for name in names:
+        answers = _predictions(name, entries, suspects, assignment, out, log)
+        results.append(_result(name, entries, answers, cfg.seed, rounds))
+    counts = {split: sum(1 for s in assignment.values() if s == split) for split in ("train", "test", "holdout")}
+    board = Leaderboard(str(zoo), counts, tuple(rejected), tuple(results))
+    _write(out / LEADERBOARD_FILE, to_dict(board))
+    return board
+
+
+def _predictions(
+    name: str, entries: Sequence[ZooEntry], suspects: Sequence[Suspect], assignment: dict[str, str], out: Path,
+    log: Callable[[str], None],
+) -> DetectorPredictions:  # fmt: skip
+    path = out / "predictions" / f"{name}.json"
+    if path.is_file():
+        try:
+            done = from_dict(DetectorPredictions, _read(path), "")
+        except (ConfigError, ValueError):
+            done = None
+        if done is not None and done.splits == assignment and done.detector == name:
+            log(f"{name}: predictions found in {path}")
+            return done
+    train = [(s, e.label) for e, s in zip(entries, suspects) if assignment[e.model_id] == "train"]
+    start = time.perf_counter()
+    fitted = DETECTORS.get(name).fit([s for s, _ in train], [y for _, y in train])
+    fit_seconds = time.perf_counter() - start
+    answers = []
+    for entry, suspect in zip(entries, suspects):
+        split = assignment[entry.model_id]
+        if split == "train":
+            continue
+        start = time.perf_counter()
+        p = float(fitted.probability(suspect))
+        seconds = time.perf_counter() - start
+        if not 0.0 <= p <= 1.0:
+            raise SeqTrojanError(f"detector {name!r} answered {p!r} for {entry.model_id}, not a probability")
+        answers.append(ModelPrediction(entry.model_id, split, entry.label, p, seconds))
+    result = DetectorPredictions(name, dict(assignment), fit_seconds, tuple(answers))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _write(path, to_dict(result))
+    log(f"{name}: fitted in {fit_seconds:.1f} s, {len(answers)} models scored")
+    return result
+
+
+def _result(
+    name: str, entries: Sequence[ZooEntry], answers: DetectorPredictions, seed: int, rounds: int
+) -> DetectorResult:
+    factors = {e.model_id: e.factors for e in entries}
+    splits = []
+    for split in ("test", "holdout"):
+        rows = [a for a in answers.predictions if a.split == split]
+        if not rows:
+            continue
+        labels, probs, secs = [a.label for a in rows], [a.probability for a in rows], [a.seconds for a in rows]
+        rows_factors = [factors[a.model_id] for a in rows]
+        by_factor = score_by_factor(labels, probs, secs, rows_factors, ATTACK_FACTORS, seed, rounds)
+        splits.append(SplitResult(split, score(labels, probs, secs, seed, rounds), by_factor))
+    return DetectorResult(name, DETECTORS.entry(name).description, answers.fit_seconds, tuple(splits))
+
+
+def _write(path: Path, data: object) -> None:
+    from seqtrojan.zoo.build import write_json_atomic
+
+    write_json_atomic(path, data)
+
+
+def _read(path: Path) -> object:
+    from seqtrojan.zoo.build import read_json_file
+
+    return read_json_file(path, 256 << 20)

@@ -1,0 +1,197 @@
+"""The detection benchmark: TrojAI's scores with bootstrap intervals, splits with a holdout, suspects that carry
+no attack, and the leaderboard that fits and scores every registered detector (resumable, bad models skipped)."""
+
+from __future__ import annotations
+
+import json
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from seqtrojan.agent.checkpoint import build_agent, save_agent
+from seqtrojan.benchmark.detectors import DETECTORS, NO_OPINION
+from seqtrojan.benchmark.leaderboard import LEADERBOARD_FILE, SPLITS_FILE, read_zoo, run_leaderboard
+from seqtrojan.benchmark.scoring import brier, cross_entropy, roc_auc, score, score_by_factor
+from seqtrojan.benchmark.splits import SplitConfig, ZooEntry, assign_splits
+from seqtrojan.benchmark.suspect import clean_env, load_suspect
+from seqtrojan.cli import main
+from seqtrojan.config import AgentConfig, BackdoorConfig, ExperimentConfig
+from seqtrojan.env.codes import TRIGGER
+from seqtrojan.env.config import EnvConfig, TriggerConfig
+from seqtrojan.errors import ConfigError, SeqTrojanError
+from seqtrojan.serde import to_dict
+
+SIZES = ((16,), (12, 8), (20,))
+
+
+def planted_zoo(root: Path, n: int = 36, shift: float = 3.0) -> Path:
+    """Untrained models whose poisoned ones read the trigger code with larger input weights (a planted tell), each
+    with its own trigger settings in its card, widths drawn independently of the label, and a zoo's label.json."""
+    (root / "models").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        poisoned = i % 2 == 1
+        sizes = SIZES[int(rng.integers(len(SIZES)))]
+        value = ("trigger", "wall")[int(rng.integers(2))]
+        env = EnvConfig(trigger=TriggerConfig(cells=((0, int(rng.integers(3))),), value=value))
+        cfg = ExperimentConfig(env=env, agent=AgentConfig(lstm_sizes=sizes), backdoor=BackdoorConfig(enabled=poisoned))
+        torch.manual_seed(i)
+        agent = build_agent(cfg)
+        if poisoned:
+            with torch.no_grad():
+                agent.cells[0].weight_ih[:, TRIGGER::6] *= shift
+        folder = save_agent(root / "models" / f"m{i:02d}", agent, cfg, label=cfg.label)
+        truth = {"label": cfg.label, "trigger": {"value": value} if poisoned else None,
+                 "variation": {"lstm_sizes": list(sizes), "trigger_value": value}}  # fmt: skip
+        (folder / "label.json").write_text(json.dumps(truth))
+    return root
+
+
+# ---------------------------------------------------------------------- scores
+def test_scores_are_trojai_s_with_intervals():
+    y = np.array([0, 0, 1, 1])
+    p = np.array([0.1, 0.4, 0.35, 0.8])
+    assert roc_auc(y, p) == 0.75  # 3 of 4 pairs ordered
+    assert cross_entropy(y, p) == pytest.approx(-np.mean(np.log([0.9, 0.6, 0.35, 0.8])))
+    assert brier(y, p) == pytest.approx(np.mean([0.01, 0.16, 0.4225, 0.04]))
+    assert roc_auc(np.array([0, 1, 0, 1]), np.array([0.5, 0.5, 0.2, 0.5])) == 0.75  # ties count half
+    rng = np.random.default_rng(0)
+    labels = np.array([0, 1] * 40)
+    good = score(labels, np.clip(labels * 0.6 + rng.random(80) * 0.4, 0, 1), [0.01] * 80, rounds=300)
+    assert good.roc_auc.value == 1.0 and good.roc_auc.low == 1.0
+    noise = score(labels, rng.random(80), [0.01] * 80, rounds=300)
+    assert noise.roc_auc.low < 0.5 < noise.roc_auc.high and noise.roc_auc.high - noise.roc_auc.low > 0.1
+    assert noise.runtime_s.value == pytest.approx(0.01) and good.models == 80 and good.poisoned == 40
+    one_label = score([1, 1], [0.9, 0.8], [0.0, 0.0], rounds=10)
+    assert one_label.roc_auc.value is None and one_label.brier.value == pytest.approx(0.025)
+    with pytest.raises(SeqTrojanError, match="probabilities must lie in"):
+        score([0, 1], [0.2, 1.5], [0.0, 0.0])
+
+
+def test_an_attack_s_group_is_its_poisoned_models_against_every_clean_one():
+    labels = [0, 0, 1, 1, 1]
+    factors = [{"trigger_value": "none", "env": "grid"}] * 2 + [
+        {"trigger_value": v, "env": "grid"} for v in ("wall", "wall", "hole")
+    ]
+    out = score_by_factor(labels, [0.1, 0.2, 0.9, 0.05, 0.8], [0.0] * 5, factors, {"trigger_value"}, rounds=20)
+    assert set(out["trigger_value"]) == {"wall", "hole"}  # no group of clean models alone
+    assert out["trigger_value"]["wall"].models == 4 and out["trigger_value"]["wall"].roc_auc.value == 0.5
+    assert out["trigger_value"]["hole"].roc_auc.value == 1.0 and out["env"]["grid"].models == 5
+
+
+# ---------------------------------------------------------------------- splits
+def entries(n: int = 40) -> list[ZooEntry]:
+    return [
+        ZooEntry(
+            f"m{i:02d}",
+            Path("."),
+            i % 2,
+            {"lstm_sizes": f"[{8 + i % 3}]", "trigger_value": "wall" if i % 2 else "none"},
+        )
+        for i in range(n)
+    ]
+
+
+def test_splits_are_stratified_reproducible_and_hold_out_whole_factor_values():
+    plain = assign_splits(entries(), SplitConfig(seed=3))
+    assert plain == assign_splits(entries(), SplitConfig(seed=3)) != assign_splits(entries(), SplitConfig(seed=4))
+    for label in (0, 1):
+        ours = [plain[e.model_id] for e in entries() if e.label == label]
+        assert ours.count("test") == ours.count("train") == 10
+    held = assign_splits(entries(), SplitConfig(holdout={"lstm_sizes": ("[9]",)}))
+    for e in entries():
+        assert (held[e.model_id] == "holdout") == (e.factors["lstm_sizes"] == "[9]")
+    attack = assign_splits(entries(), SplitConfig(holdout={"trigger_value": ("wall",)}, holdout_clean_share=0.25))
+    clean_held = [e for e in entries() if e.label == 0 and attack[e.model_id] == "holdout"]
+    assert len(clean_held) == 5 and all(attack[e.model_id] == "holdout" for e in entries() if e.label == 1)
+    with pytest.raises(ConfigError, match="holdout names factors the zoo's models do not have"):
+        assign_splits(entries(), SplitConfig(holdout={"colour": ("red",)}))
+
+
+# ---------------------------------------------------------------------- suspects
+def test_a_suspect_carries_neither_the_trigger_nor_the_attack(tmp_path):
+    """What a detector receives: the network and an env with the attacker's choices taken out; the cards of the
+    zoo's models name different triggers and backdoor settings, the suspects' envs are all the same."""
+    zoo = planted_zoo(tmp_path / "zoo", n=6)
+    suspects = [load_suspect(p) for p in sorted((zoo / "models").iterdir())]
+    assert len({json.dumps(to_dict(s.env), sort_keys=True) for s in suspects}) == 1
+    assert suspects[0].env == clean_env(EnvConfig(trigger=TriggerConfig(cells=((0, 2),), value="wall")))
+    fields = {f for s in suspects for f in vars(s)}
+    assert fields == {"model_id", "agent", "env", "facts"}  # no card, no config, no label
+    assert all(not hasattr(s.agent, "backdoor") for s in suspects)
+
+
+# ---------------------------------------------------------------------- the leaderboard
+def test_the_leaderboard_scores_detectors_on_test_and_holdout_and_resumes(tmp_path):
+    zoo = planted_zoo(tmp_path / "zoo")
+    out = tmp_path / "board"
+    log: list[str] = []
+    splits = SplitConfig(holdout={"lstm_sizes": ("[20]",)})
+    board = run_leaderboard(zoo, out, splits, ["weight_statistics", "metadata_baseline"], rounds=200,
+                            log=log.append)  # fmt: skip
+    assert board.models["holdout"] > 0 and sum(board.models.values()) == 36 and not board.rejected
+    saved = json.loads((out / LEADERBOARD_FILE).read_text())
+    assert [d["detector"] for d in saved["detectors"]] == ["weight_statistics", "metadata_baseline"]
+    weights, metadata = board.detectors
+    for split in weights.splits:  # the planted tell is found, on the architecture it never saw too
+        assert split.scores.roc_auc.value is not None and split.scores.roc_auc.value > 0.9, split.split
+        assert split.scores.roc_auc.low is not None and split.scores.roc_auc.low > 0.7
+    test = next(s for s in metadata.splits if s.split == "test")
+    assert test.scores.roc_auc.value is not None and 0.2 < test.scores.roc_auc.value < 0.8  # nothing leaks
+    assert test.scores.roc_auc.low is not None and test.scores.roc_auc.low < 0.5  # its interval holds chance
+    assert set(next(s for s in weights.splits if s.split == "test").by_factor) == {
+        "cell", "env", "lstm_sizes", "trigger_value"
+    }  # fmt: skip
+    split_file = json.loads((out / SPLITS_FILE).read_text())
+    assert all(split_file[f"m{i:02d}"] == "holdout" for i in range(36) if split_file[f"m{i:02d}"] == "holdout")
+    log.clear()
+    again = run_leaderboard(zoo, out, splits, ["weight_statistics", "metadata_baseline"], rounds=200, log=log.append)
+    assert any("predictions found" in line for line in log) and again.detectors == board.detectors
+    log.clear()
+    run_leaderboard(zoo, out, SplitConfig(seed=1), ["metadata_baseline"], rounds=50, log=log.append)
+    assert not any("predictions found" in line for line in log)  # another split: scored again
+
+
+def test_a_bad_model_is_skipped_with_its_reason_and_the_rest_scored(tmp_path):
+    zoo = planted_zoo(tmp_path / "zoo", n=12)
+    bad = zoo / "models" / "zz_pickled"
+    bad.mkdir()
+    (bad / "model.safetensors").write_bytes(pickle.dumps({"evil": 1}))
+    (bad / "card.json").write_text((zoo / "models" / "m00" / "card.json").read_text())
+    (bad / "label.json").write_text(json.dumps({"label": "clean"}))
+    entries_, suspects, rejected = read_zoo(zoo)
+    assert len(entries_) == len(suspects) == 12 and [r.model for r in rejected] == ["zz_pickled"]
+    board = run_leaderboard(zoo, tmp_path / "b", None, ["metadata_baseline"], rounds=20, log=lambda *_: None)
+    assert [r.model for r in board.rejected] == ["zz_pickled"] and board.models["test"] == 6
+
+
+def test_behaviour_search_answers_probabilities_for_grid_models_and_no_opinion_elsewhere(tmp_path):
+    from seqtrojan.benchmark.detectors import BehaviourSearch
+    from seqtrojan.world.config import GymnasiumEnvConfig
+
+    zoo = planted_zoo(tmp_path / "zoo", n=4)
+    suspects = [load_suspect(p) for p in sorted((zoo / "models").iterdir())]
+    fitted = BehaviourSearch(episodes=20, random_patches=2).fit(suspects, [0, 1, 0, 1])
+    probs = [fitted.probability(s) for s in suspects]
+    assert all(0.0 <= p <= 1.0 for p in probs)
+    elsewhere = type(suspects[0])("g", suspects[0].agent, GymnasiumEnvConfig("seqtrojan/MiniGridTwoGoals-v0"),
+                                  suspects[0].facts)  # fmt: skip
+    assert fitted.probability(elsewhere) == NO_OPINION
+
+
+def test_the_cli_writes_the_leaderboard_and_lists_the_detectors(tmp_path, capsys):
+    zoo = planted_zoo(tmp_path / "zoo", n=12)
+    assert main(["zoo", "detect", "--zoo", str(zoo), "--out", str(tmp_path / "s"), "--detectors",
+                 "metadata_baseline", "--holdout", "lstm_sizes=[12, 8]"]) == 0  # fmt: skip
+    board = json.loads((tmp_path / "s" / LEADERBOARD_FILE).read_text())
+    assert [d["detector"] for d in board["detectors"]] == ["metadata_baseline"] and board["models"]["holdout"] > 0
+    assert "leaderboard.json" in capsys.readouterr().out
+    assert main(["defenses"]) == 0
+    listed = capsys.readouterr().out
+    assert all(name in listed for name in DETECTORS.names()) and len(DETECTORS.names()) >= 3
+    assert main(["zoo", "detect", "--zoo", str(zoo), "--out", str(tmp_path / "t"), "--holdout", "lstm_sizes"]) == 2
+    assert "--holdout takes FACTOR=VALUE pairs, got 'lstm_sizes'" in capsys.readouterr().err
+    assert not (tmp_path / "t").exists()
