@@ -600,9 +600,6 @@ def _zoo(argv: list[str]) -> None:
 def _zoo_leaderboard(
     zoo: Path, out: Path, seed: int, test_share: float, holdout: tuple[str, ...], detectors: tuple[str, ...]
 ) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
     from seqtrojan.benchmark.leaderboard import LEADERBOARD_FILE, run_leaderboard
     from seqtrojan.benchmark.splits import SplitConfig
 
@@ -614,16 +611,27 @@ def _zoo_leaderboard(
         held.setdefault(factor.strip(), []).append(value.strip())
     splits = SplitConfig(test_share, {k: tuple(v) for k, v in held.items()}, seed=seed)
     board = run_leaderboard(zoo, out, splits, detectors or None)
-    table = Table(title=f"Benchmark leaderboard on {zoo} (train {board.models['train']}, test {board.models['test']}, "
-                        f"holdout {board.models['holdout']})")  # fmt: skip
-    for col in ("detector", "split", "ROC-AUC", "cross-entropy", "Brier", "s / model"):
-        table.add_column(col, justify="right")
+    print(f"benchmark leaderboard on {zoo}: train {board.models['train']}, test {board.models['test']}, holdout "
+          f"{board.models['holdout']} models; ROC-AUC with Newcombe's interval, cross-entropy and Brier with 95% "
+          "bootstrap intervals over models (the bootstrap's AUC interval is in leaderboard.json)")  # fmt: skip
+
+    def short(metric: Any) -> str:
+        if metric.value is None:
+            return "n/a"
+        return f"{metric.value:.3f}" + ("" if metric.low is None else f" [{metric.low:.2f}, {metric.high:.2f}]")
+
+    width = max(len(d.detector) for d in board.detectors)
+    print(
+        f"{'detector':<{width}}  split    n (poisoned)  {'ROC-AUC':<20}  {'cross-entropy':<20}  {'Brier':<20}  ms/model"
+    )
     for d in board.detectors:
         for r in d.splits:
-            s = r.scores
-            table.add_row(d.detector, r.split, s.roc_auc.text(), s.cross_entropy.text(), s.brier.text(),
-                          s.runtime_s.text(4))  # fmt: skip
-    Console().print(table)
+            sc = r.scores
+            print(
+                f"{d.detector:<{width}}  {r.split:<7}  {f'{sc.models} ({sc.poisoned})':<12}  "
+                f"{short(sc.roc_auc_newcombe):<20}  {short(sc.cross_entropy):<20}  {short(sc.brier):<20}  "
+                f"{1000 * (sc.runtime_s.value or 0.0):.1f}"
+            )
     print(f"wrote {out / LEADERBOARD_FILE}")
 
 

@@ -5,6 +5,10 @@ stratified by label so that every resample has both classes), and the same broke
 Cross-entropy and Brier score read the probabilities as given, so a detector that ranks well but is badly
 calibrated scores a good AUC and a poor cross-entropy, as in TrojAI; probabilities are clipped to [1e-6, 1 - 1e-6]
 for the cross-entropy (a detector saying 0 or 1 and being wrong costs 13.8 nats, not infinity).
+
+With few models a percentile bootstrap is too narrow: at a perfect separation every resample separates perfectly
+too, and the interval collapses to [1, 1]. The ROC-AUC therefore also carries Newcombe's score interval
+(:func:`seqtrojan.stats.auc_interval`, which does not collapse at 0 or 1); read that one on small splits.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from seqtrojan.errors import SeqTrojanError
+from seqtrojan.stats import auc_interval
 
 CLIP = 1e-6
 BOOTSTRAP_ROUNDS = 1000
@@ -44,6 +49,8 @@ class Scores:
     models: int
     poisoned: int
     roc_auc: Metric
+    roc_auc_newcombe: Metric
+    """the same ROC-AUC with Newcombe's score interval (honest on few models, see the module docstring)"""
     cross_entropy: Metric
     brier: Metric
     runtime_s: Metric
@@ -94,7 +101,13 @@ def score(
         values = [fn(y[s], p[s]) for s in samples]
         metrics[name] = Metric(fn(y, p), *_percentiles(values))
     runtime = Metric(float(t.mean()), *_percentiles([float(t[s].mean()) for s in samples]))
-    return Scores(len(y), int(y.sum()), metrics["roc_auc"], metrics["cross_entropy"], metrics["brier"], runtime)
+    auc = metrics["roc_auc"].value
+    newcombe = (
+        Metric(None, None, None) if auc is None else Metric(auc, *auc_interval(auc, int(y.sum()), int((1 - y).sum())))
+    )
+    return Scores(
+        len(y), int(y.sum()), metrics["roc_auc"], newcombe, metrics["cross_entropy"], metrics["brier"], runtime
+    )
 
 
 def score_by_factor(

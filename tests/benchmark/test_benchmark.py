@@ -195,3 +195,11 @@ def test_the_cli_writes_the_leaderboard_and_lists_the_detectors(tmp_path, capsys
     assert main(["zoo", "detect", "--zoo", str(zoo), "--out", str(tmp_path / "t"), "--holdout", "lstm_sizes"]) == 2
     assert "--holdout takes FACTOR=VALUE pairs, got 'lstm_sizes'" in capsys.readouterr().err
     assert not (tmp_path / "t").exists()
+
+
+def test_a_perfect_separation_of_few_models_keeps_an_honest_auc_interval():
+    """The bootstrap collapses to [1, 1] on 4 against 4 perfectly separated models; Newcombe's interval does not."""
+    out = score([0, 0, 0, 0, 1, 1, 1, 1], [0.1, 0.2, 0.3, 0.4, 0.6, 0.7, 0.8, 0.9], [0.0] * 8, rounds=200)
+    assert out.roc_auc.low == out.roc_auc.high == 1.0
+    assert out.roc_auc_newcombe.value == 1.0 and out.roc_auc_newcombe.low is not None
+    assert out.roc_auc_newcombe.low < 0.8
