@@ -49,3 +49,28 @@ def test_five_seed_figures_in_the_docs_are_the_logs(data, page):
     for m in found:
         mean_sd, per_seed = m.group(2), m.group(3).strip()
         assert f"{mean_sd} (" in text and per_seed in text, f"docs/{page} does not quote {m.group(1)} of {data}"
+
+
+LEADERBOARDS = [("benchmark/leaderboard_minigrid16.json", "benchmark.md")]
+"""a ``seqtrojan zoo detect --out`` leaderboard and the page holding its test-split table"""
+
+
+def _short(metric: dict) -> str:
+    return f"{metric['value']:.3f} [{metric['low']:.2f}, {metric['high']:.2f}]"
+
+
+@pytest.mark.parametrize(("data", "page"), LEADERBOARDS)
+def test_leaderboard_tables_in_the_docs_are_the_data(data, page):
+    import json
+
+    board = json.loads((DATA / data).read_text())
+    text = (ROOT / "docs" / page).read_text()
+    rows = 0
+    for detector in board["detectors"]:
+        for split in detector["splits"]:
+            s = split["scores"]
+            row = f"| {detector['detector']} | {_short(s['roc_auc_newcombe'])}"
+            assert row in text, f"docs/{page} lacks {row!r} of {data}"
+            assert f"| {_short(s['cross_entropy'])} | {_short(s['brier'])} |" in text
+            rows += 1
+    assert rows == 3
