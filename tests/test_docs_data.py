@@ -73,4 +73,4 @@ def test_leaderboard_tables_in_the_docs_are_the_data(data, page):
             assert row in text, f"docs/{page} lacks {row!r} of {data}"
             assert f"| {_short(s['cross_entropy'])} | {_short(s['brier'])} |" in text
             rows += 1
-    assert rows == 3
+    assert rows == len(board["detectors"]) >= 4

@@ -11,6 +11,9 @@ scores every registered one.
   that the splits leak nothing.
 - ``weight_statistics``: logistic regression on size-invariant statistics of the recurrent layers' weights
   (:func:`seqtrojan.agent.weight_stats.weight_features`, the weight detector's features).
+- ``query_response``: a meta-classifier (logistic regression) on the suspect's answers to a fixed probe set of
+  clean-env episodes, the same for every suspect: policy entropy, hidden-state magnitude and saturation, outcomes
+  (:func:`query_response_features`). Any env.
 - ``behaviour_search``: the trigger-free behaviour detector (:mod:`seqtrojan.defense.behaviour`: one-step view
   patches and the rise of episodes ending at the adversary's goal), its raw score calibrated to a probability by a
   logistic regression on the train split's scores. Grid-world suspects only; it answers 0.5 (no opinion) for others.
@@ -180,6 +183,74 @@ class _Abstaining:
         return self.model.probability(suspect)
 
 
+class _ProbeRecorder:
+    """Sums, over the running steps of a probe's episodes, what :func:`query_response_features` summarises."""
+
+    def __init__(self) -> None:
+        self.steps = 0
+        self.sums: dict[str, float] = {}
+
+    def add(self, name: str, values: torch.Tensor) -> None:
+        self.sums[name] = self.sums.get(name, 0.0) + float(values.sum())
+
+    def on_step(self, step: Any) -> None:
+        running = step.running
+        if step.logits is None or step.state is None or not bool(running.any()):
+            return
+        self.steps += int(running.sum())
+        probs = torch.softmax(step.logits[running], -1)
+        self.add("entropy", -(probs * torch.log(probs.clamp_min(1e-12))).sum(-1))
+        self.add("top_probability", probs.max(-1).values)
+        for i, layer in enumerate(step.state.layers):
+            h = layer.h[running]
+            self.add(f"layer{i}_h_abs", h.abs().mean(-1))
+            self.add(f"layer{i}_h_saturated", (h.abs() > 0.9).float().mean(-1))
+            self.add(f"layer{i}_h_spread", h.std(-1) if h.shape[-1] > 1 else torch.zeros(h.shape[0]))
+
+    def on_end(self, batch: Any) -> None:
+        self.batch = batch
+
+
+def query_response_features(suspect: Suspect, episodes: int = 64, seed: int = 0) -> dict[str, float]:
+    """The suspect's answers to a fixed probe: ``episodes`` clean-env episodes seeded alike for every suspect,
+    summarised as per-step means over its running steps (policy entropy and top probability; per layer the mean
+    |h|, the share of units with |h| > 0.9 and the spread of h across units; the layer index counted from the first,
+    so suspects of other depths share the first layers' features) and per-episode outcome shares and length."""
+    from seqtrojan.agent.policy import AgentPolicy
+    from seqtrojan.env.codes import OUTCOME_NAMES
+    from seqtrojan.env.rollout import run_episodes
+    from seqtrojan.world.episodes import episode_env
+
+    env = episode_env(suspect.env, None, episodes, trojan=False, seed=seed)
+    recorder = _ProbeRecorder()
+    try:
+        batch = run_episodes(env, AgentPolicy(suspect.agent, seed=seed), seed=seed, recorders=[recorder])
+    finally:
+        close = getattr(env, "close", None)
+        if close is not None:
+            close()
+    row = {name: total / max(recorder.steps, 1) for name, total in recorder.sums.items()}
+    row["length"] = float(batch.length.float().mean())
+    for code, name in enumerate(OUTCOME_NAMES[1:], start=1):
+        row[f"outcome_{name}"] = float((batch.outcome == code).float().mean())
+    return row
+
+
+@dataclass(frozen=True)
+class QueryResponse:
+    """A meta-classifier on the suspect's answers to a fixed probe set of clean episodes
+    (:func:`query_response_features`), TrojAI performers' common approach."""
+
+    episodes: int = 64
+    seed: int = 0
+
+    def fit(self, suspects: Sequence[Suspect], labels: Sequence[int]) -> FittedDetector:
+        def features(suspect: Suspect) -> dict[str, float]:
+            return query_response_features(suspect, self.episodes, self.seed)
+
+        return fit_features(features, suspects, labels)
+
+
 DETECTORS.register(
     "metadata_baseline", "architecture only (must score near 0.5: the splits leak nothing)", MetadataBaseline()
 )
@@ -187,4 +258,8 @@ DETECTORS.register("weight_statistics", "logistic regression on recurrent-weight
 DETECTORS.register(
     "behaviour_search", "one-step view patches that switch the goal, calibrated on train (grid world)",
     BehaviourSearch(),
+)  # fmt: skip
+DETECTORS.register(
+    "query_response", "meta-classifier on the policy's and state's answers to fixed clean probe episodes",
+    QueryResponse(),
 )  # fmt: skip

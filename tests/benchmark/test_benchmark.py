@@ -203,3 +203,28 @@ def test_a_perfect_separation_of_few_models_keeps_an_honest_auc_interval():
     assert out.roc_auc.low == out.roc_auc.high == 1.0
     assert out.roc_auc_newcombe.value == 1.0 and out.roc_auc_newcombe.low is not None
     assert out.roc_auc_newcombe.low < 0.8
+
+
+def test_query_response_reads_the_same_probe_for_every_suspect_and_any_env(tmp_path):
+    """Its features are the suspect's answers to fixed clean episodes: the same twice, different for another network,
+    and on a Gymnasium env too."""
+    from seqtrojan.benchmark.detectors import QueryResponse, query_response_features
+    from seqtrojan.benchmark.suspect import ModelFacts, Suspect
+    from seqtrojan.world.config import GymnasiumEnvConfig
+
+    zoo = planted_zoo(tmp_path / "zoo", n=4)
+    suspects = [load_suspect(p) for p in sorted((zoo / "models").iterdir())]
+    first = query_response_features(suspects[0], episodes=8)
+    assert first == query_response_features(suspects[0], episodes=8)
+    assert first != query_response_features(suspects[2], episodes=8)
+    assert {"entropy", "layer0_h_abs", "length", "outcome_user_goal"} <= set(first)
+    assert 0.0 <= first["outcome_user_goal"] <= 1.0 and first["length"] >= 1
+    two_goals = GymnasiumEnvConfig("seqtrojan/MiniGridTwoGoals-v0", kwargs={"size": 6, "agent_view_size": 5})
+    from seqtrojan.agent.network import RecurrentActorCritic
+
+    torch.manual_seed(0)
+    net = RecurrentActorCritic(500, 7, (8,))
+    gym_suspect = Suspect("g", net, two_goals, ModelFacts(net.obs_dim, net.num_actions, "lstm", (8,), 1))
+    assert query_response_features(gym_suspect, episodes=4)["length"] >= 1
+    fitted = QueryResponse(episodes=8).fit(suspects, [0, 1, 0, 1])
+    assert all(0.0 <= fitted.probability(s) <= 1.0 for s in suspects)
