@@ -111,10 +111,17 @@ def _pop_option(argv: list[str], name: str) -> tuple[str | None, list[str]]:
 
 
 def _cli_with_config_file(args_cls: type, config_cls: type, argv: list[str], prog: str):
-    """Parse ``args_cls`` (whose ``config`` field is a ``config_cls``) with tyro; ``--config-file FILE.yaml`` sets
-    that config's starting values (the layout of the matching section of configs/reproduce_*.yaml), and
-    ``--config.*`` flags override them."""
+    """Parse ``args_cls`` (whose ``config`` field is a ``config_cls``) with tyro; ``--config-file FILE.yaml`` or
+    ``--config PRESET|FILE`` (a shipped preset's name, e.g. benchmark_tiny) sets that config's starting values (the
+    layout of the matching section of configs/reproduce_*.yaml), and ``--config.*`` flags override them."""
+    from seqtrojan.presets import resolve_preset
+
     path, argv = _pop_option(argv, "--config-file")
+    preset, argv = _pop_option(argv, "--config")
+    if path is not None and preset is not None:
+        raise ConfigError(f"{prog} takes --config PRESET or --config-file FILE, not both")
+    if preset is not None:
+        path = str(resolve_preset(preset))
     if path is None:
         return _cli(args_cls, argv, prog)
     from seqtrojan.serde import from_dict, load_yaml
@@ -125,8 +132,8 @@ def _cli_with_config_file(args_cls: type, config_cls: type, argv: list[str], pro
     return _cli(args_cls, argv, prog, default=args_cls(config=config, **required))
 
 
-NOT_TRAINING_PRESETS = ("reproduce_", "matrix_", "cells_")
-"""shipped presets that are not training configs (reproduction scales, matrix and cells scales)"""
+NOT_TRAINING_PRESETS = ("reproduce_", "matrix_", "cells_", "benchmark_")
+"""shipped presets that are not training configs (reproduction scales, matrix and cells scales, benchmark zoos)"""
 
 
 def parse_experiment(argv: list[str], prog: str, description: str):
@@ -600,10 +607,12 @@ def _zoo(argv: list[str]) -> None:
 def _zoo_leaderboard(
     zoo: Path, out: Path, seed: int, test_share: float, holdout: tuple[str, ...], detectors: tuple[str, ...]
 ) -> None:
-    from seqtrojan.benchmark.leaderboard import LEADERBOARD_FILE, run_leaderboard
+    from seqtrojan.benchmark.leaderboard import LEADERBOARD_FILE, run_leaderboard, zoo_holdout
     from seqtrojan.benchmark.splits import SplitConfig
 
     held: dict[str, list[str]] = {}
+    if not holdout:  # the zoo's own (zoo.json), if it was built as a benchmark
+        held = {k: list(v) for k, v in zoo_holdout(zoo).items()}
     for pair in holdout:
         factor, sep, value = pair.partition("=")
         if not sep or not factor or not value:

@@ -81,6 +81,25 @@ class Leaderboard:
     detectors: tuple[DetectorResult, ...]
 
 
+def zoo_holdout(zoo: Path) -> dict[str, tuple[str, ...]]:
+    """The holdout a zoo was built with (``zoo.json``'s ``holdout``; empty for a zoo without one)."""
+    from seqtrojan.zoo.build import MAX_ZOO_CONFIG_BYTES, read_json_file
+
+    path = zoo / "zoo.json"
+    if not path.is_file():
+        return {}
+    try:
+        spec = read_json_file(path, MAX_ZOO_CONFIG_BYTES)
+    except (OSError, ValueError, SeqTrojanError) as err:
+        raise SeqTrojanError(f"{str(path)!r} is not a readable zoo config: {err}") from None
+    held = spec.get("holdout", {}) if isinstance(spec, dict) else None
+    if not isinstance(held, dict) or not all(
+        isinstance(k, str) and isinstance(v, list) and all(isinstance(x, str) for x in v) for k, v in held.items()
+    ):
+        raise SeqTrojanError(f"{str(path)!r}: holdout must map factor names to lists of values")
+    return {k: tuple(v) for k, v in held.items()}
+
+
 def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected]]:
     """Every usable model of ``zoo/models`` as an entry (truth) and a suspect (what detectors see), and the
     rejected ones with their reasons."""

@@ -126,6 +126,10 @@ class ZooConfig:
     """a Gymnasium zoo's trigger objects (MiniGrid object names)"""
     trigger_colors: tuple[str, ...] = ("purple", "yellow", "blue", "grey")
     """a Gymnasium zoo's trigger colours (MiniGrid colour names; the two-goal room's goals are green and red)"""
+    holdout: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    """as a detection benchmark (``seqtrojan zoo detect --out``): factor -> the values whose models only the holdout
+    split holds, e.g. ``lstm_sizes: ["[48, 24]"]`` (factors: env, cell, lstm_sizes, trigger_value; see
+    :mod:`seqtrojan.benchmark.splits`); a ``--holdout`` given to ``zoo detect`` replaces it"""
 
     def __post_init__(self) -> None:
         if self.clean < 0 or self.backdoored < 0 or self.clean + self.backdoored == 0:
@@ -142,6 +146,9 @@ class ZooConfig:
         lo, hi = self.trigger_cells
         if not 1 <= lo <= hi <= 9:
             raise ConfigError(f"trigger_cells={self.trigger_cells} must be a range within 1..9")
+        factors = ("env", "cell", "lstm_sizes", "trigger_value")
+        if not isinstance(self.holdout, dict) or any(k not in factors for k in self.holdout):
+            raise ConfigError(f"zoo holdout must map factors {list(factors)} to values, got {self.holdout!r}")
 
     @property
     def size(self) -> int:
@@ -149,6 +156,7 @@ class ZooConfig:
 
     OPTIONAL: ClassVar[tuple[str, ...]] = (
         "cell", "window", "stop", "rollout_steps", "learning_rate", "env_preset", "trigger_objects", "trigger_colors",
+        "holdout",
     )  # fmt: skip
     """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
     built before them is the same config"""

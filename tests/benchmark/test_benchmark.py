@@ -228,3 +228,25 @@ def test_query_response_reads_the_same_probe_for_every_suspect_and_any_env(tmp_p
     assert query_response_features(gym_suspect, episodes=4)["length"] >= 1
     fitted = QueryResponse(episodes=8).fit(suspects, [0, 1, 0, 1])
     assert all(0.0 <= fitted.probability(s) <= 1.0 for s in suspects)
+
+
+def test_benchmark_tiny_builds_and_every_registered_detector_is_scored(tmp_path, capsys):
+    """The commands of the docs, end to end: ``zoo build --config benchmark_tiny`` then ``zoo detect --out``; the
+    zoo's own holdout (an architecture) is used, and every registered detector gets a row per split."""
+    zoo, out = tmp_path / "Z", tmp_path / "S"
+    assert main(["zoo", "build", "--config", "benchmark_tiny", "--out", str(zoo), "--backend", "serial"]) == 0
+    assert len(list((zoo / "models").iterdir())) == 16
+    assert main(["zoo", "detect", "--zoo", str(zoo), "--out", str(out)]) == 0
+    board = json.loads((out / LEADERBOARD_FILE).read_text())
+    splits = json.loads((out / SPLITS_FILE).read_text())
+    sizes = {
+        p.name: json.loads((p / "label.json").read_text())["variation"]["lstm_sizes"]
+        for p in (zoo / "models").iterdir()
+    }
+    assert {m for m, s in splits.items() if s == "holdout"} == {m for m, w in sizes.items() if w == [12]}
+    assert [d["detector"] for d in board["detectors"]] == list(DETECTORS.names())
+    for detector in board["detectors"]:
+        assert {s["split"] for s in detector["splits"]} == {"test", "holdout"}, detector["detector"]
+        for split in detector["splits"]:
+            assert 0.0 <= split["scores"]["brier"]["value"] <= 1.0
+    assert "query_response" in capsys.readouterr().out
