@@ -162,10 +162,15 @@ def test_a_bad_model_is_skipped_with_its_reason_and_the_rest_scored(tmp_path):
     (bad / "model.safetensors").write_bytes(pickle.dumps({"evil": 1}))
     (bad / "card.json").write_text((zoo / "models" / "m00" / "card.json").read_text())
     (bad / "label.json").write_text(json.dumps({"label": "clean"}))
+    card = json.loads((zoo / "models" / "m01" / "card.json").read_text())
+    card["architecture"]["lstm_sizes"] = [99]  # the card no longer fits its weights
+    (zoo / "models" / "m01" / "card.json").write_text(json.dumps(card))
+    (zoo / "models" / "m02" / "label.json").write_text("[1, 2]")
     entries_, suspects, rejected = read_zoo(zoo)
-    assert len(entries_) == len(suspects) == 12 and [r.model for r in rejected] == ["zz_pickled"]
+    assert len(entries_) == len(suspects) == 10 and [r.model for r in rejected] == ["m01", "m02", "zz_pickled"]
+    assert all("\n" not in r.reason and r.reason for r in rejected)
     board = run_leaderboard(zoo, tmp_path / "b", None, ["metadata_baseline"], rounds=20, log=lambda *_: None)
-    assert [r.model for r in board.rejected] == ["zz_pickled"] and board.models["test"] == 6
+    assert [r.model for r in board.rejected] == ["m01", "m02", "zz_pickled"] and board.models["test"] == 5
 
 
 def test_behaviour_search_answers_probabilities_for_grid_models_and_no_opinion_elsewhere(tmp_path):
