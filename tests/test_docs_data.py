@@ -74,3 +74,16 @@ def test_leaderboard_tables_in_the_docs_are_the_data(data, page):
             assert f"| {_short(s['cross_entropy'])} | {_short(s['brier'])} |" in text
             rows += 1
     assert rows == len(board["detectors"]) >= 4
+
+
+def test_the_state_probe_ranges_in_the_docs_are_the_data():
+    import json
+
+    data = json.loads((DATA / "benchmark" / "state_probe_minigrid16.json").read_text())
+    text = " ".join((ROOT / "docs" / "benchmark.md").read_text().split())
+    for feature in ("divergence_max", "persistence_max"):
+        for label in ("clean", "backdoored"):
+            values = [m[feature] for m in data["models"] if m["label"] == label]
+            digits = 3 if feature == "divergence_max" else 2
+            shown = f"{min(values):.{digits}f}-{max(values):.{digits}f}"
+            assert shown in text, f"docs/benchmark.md lacks the {label} models' {feature} range {shown}"

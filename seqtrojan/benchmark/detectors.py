@@ -14,6 +14,9 @@ scores every registered one.
 - ``query_response``: a meta-classifier (logistic regression) on the suspect's answers to a fixed probe set of
   clean-env episodes, the same for every suspect: policy entropy, hidden-state magnitude and saturation, outcomes
   (:func:`query_response_features`). Any env.
+- ``state_probe``: one-step candidate inputs (in the observation's own encoding) replayed over recorded clean
+  episodes, and how far and how persistently they move the recurrent state once gone from view
+  (:mod:`seqtrojan.benchmark.state_probe`); grid world and MiniGrid views.
 - ``behaviour_search``: the trigger-free behaviour detector (:mod:`seqtrojan.defense.behaviour`: one-step view
   patches and the rise of episodes ending at the adversary's goal), its raw score calibrated to a probability by a
   logistic regression on the train split's scores. Grid-world suspects only; it answers 0.5 (no opinion) for others.
@@ -28,6 +31,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
 from seqtrojan.benchmark.suspect import Suspect
 from seqtrojan.cell_types import cell_names
 from seqtrojan.env.config import EnvConfig
@@ -141,7 +145,7 @@ class BehaviourSearch:
 
     def fit(self, suspects: Sequence[Suspect], labels: Sequence[int]) -> FittedDetector:
         search = _Search(self)
-        return _Abstaining(fit_features(search.features, suspects, labels), search)
+        return _Abstaining(fit_features(search.features, suspects, labels), lambda s: search.raw_score(s) is not None)
 
 
 @dataclass
@@ -172,15 +176,33 @@ class _Search:
 
 @dataclass(frozen=True)
 class _Abstaining:
-    """A fitted behaviour search: :data:`NO_OPINION` for a suspect the search does not apply to."""
+    """A fitted detector that answers :data:`NO_OPINION` for a suspect it does not apply to."""
 
     model: FeatureModel
-    search: _Search
+    applies: Callable[[Suspect], bool]
 
     def probability(self, suspect: Suspect) -> float:
-        if self.search.raw_score(suspect) is None:
+        if not self.applies(suspect):
             return NO_OPINION
         return self.model.probability(suspect)
+
+
+@dataclass(frozen=True)
+class StateProbe:
+    """The recurrent-state probe (:mod:`seqtrojan.benchmark.state_probe`): how far and how persistently one-step
+    candidate inputs move the state, the trigger gone from view; a logistic regression on the train split."""
+
+    settings: ProbeSettings = field(default_factory=ProbeSettings)
+
+    def fit(self, suspects: Sequence[Suspect], labels: Sequence[int]) -> FittedDetector:
+        cache: dict[int, dict[str, float]] = {}
+
+        def features(suspect: Suspect) -> dict[str, float]:
+            if id(suspect) not in cache:
+                cache[id(suspect)] = probe_features(suspect, self.settings)
+            return cache[id(suspect)]
+
+        return _Abstaining(fit_features(features, suspects, labels), lambda s: bool(features(s)))
 
 
 class _ProbeRecorder:
@@ -258,6 +280,10 @@ DETECTORS.register("weight_statistics", "logistic regression on recurrent-weight
 DETECTORS.register(
     "behaviour_search", "one-step view patches that switch the goal, calibrated on train (grid world)",
     BehaviourSearch(),
+)  # fmt: skip
+DETECTORS.register(
+    "state_probe", "one-step candidate inputs whose mark on the recurrent state persists after they are gone",
+    StateProbe(),
 )  # fmt: skip
 DETECTORS.register(
     "query_response", "meta-classifier on the policy's and state's answers to fixed clean probe episodes",

@@ -23,6 +23,7 @@ from seqtrojan.env.codes import TRIGGER
 from seqtrojan.env.config import EnvConfig, TriggerConfig
 from seqtrojan.errors import ConfigError, SeqTrojanError
 from seqtrojan.serde import to_dict
+from tests.conftest import ROOT
 
 SIZES = ((16,), (12, 8), (20,))
 
@@ -170,7 +171,8 @@ def test_a_bad_model_is_skipped_with_its_reason_and_the_rest_scored(tmp_path):
     assert len(entries_) == len(suspects) == 10 and [r.model for r in rejected] == ["m01", "m02", "zz_pickled"]
     assert all("\n" not in r.reason and r.reason for r in rejected)
     board = run_leaderboard(zoo, tmp_path / "b", None, ["metadata_baseline"], rounds=20, log=lambda *_: None)
-    assert [r.model for r in board.rejected] == ["m01", "m02", "zz_pickled"] and board.models["test"] == 4 and sum(board.models.values()) == 10
+    assert [r.model for r in board.rejected] == ["m01", "m02", "zz_pickled"]
+    assert board.models["test"] == 4 and sum(board.models.values()) == 10
 
 
 def test_behaviour_search_answers_probabilities_for_grid_models_and_no_opinion_elsewhere(tmp_path):
@@ -255,3 +257,30 @@ def test_benchmark_tiny_builds_and_every_registered_detector_is_scored(tmp_path,
         for split in detector["splits"]:
             assert 0.0 <= split["scores"]["brier"]["value"] <= 1.0
     assert "query_response" in capsys.readouterr().out
+
+
+def test_the_state_probe_sees_the_backdoor_s_mark_persist_and_nothing_without_memory():
+    """On the tiny backdoored fixture one-step candidate views leave a mark in the state that is still there (or
+    larger) four steps after they are gone; the same network without memory keeps nothing (the mechanism removed)."""
+    from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
+
+    suspect = load_suspect(ROOT / "tests" / "fixtures" / "tiny_backdoor")
+    features = probe_features(suspect, ProbeSettings())
+    assert features["divergence_max"] > 0.3 and features["persistence_max"] > 1.0
+    suspect.agent.memory = False
+    assert all(value == 0.0 for value in probe_features(suspect, ProbeSettings()).values())
+
+
+def test_state_probe_candidates_are_written_in_the_view_s_own_encoding():
+    from seqtrojan.benchmark.state_probe import ProbeSettings, candidates_for, minigrid_candidates
+    from seqtrojan.benchmark.suspect import ModelFacts, Suspect
+    from seqtrojan.world.config import GymnasiumEnvConfig
+
+    candidates = minigrid_candidates(500, 5)
+    assert len(candidates) == 3 * 3 * 6  # three positions of the far row, key / ball / box, six colours
+    for values, mask in candidates:
+        assert int(mask.sum()) == 40 and int(values.sum()) == 6  # two cells of 20 numbers, three ones each
+        assert bool((values <= mask).all()) and int(mask[100:].sum()) == 0  # only the far row (cells 0-4)
+    net = build_agent(ExperimentConfig(agent=AgentConfig(lstm_sizes=(8,))))
+    flat = GymnasiumEnvConfig("CartPole-v1", observation="flatten")
+    assert candidates_for(Suspect("f", net, flat, ModelFacts(4, 2, "lstm", (8,), 1)), ProbeSettings()) == []
