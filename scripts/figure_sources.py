@@ -126,7 +126,6 @@ PAPER_SCALE = re.compile(
 SENTENCE_END = re.compile(r"[.!?;]\**(?=\s)")
 
 PENDING: dict[tuple[str, str], str] = {
-    ("docs/speed.md", "Gymnasium envs (MiniGrid)"): "being re-measured in another change (2026-12-03)",
 }
 """Sections (page, heading) whose unsourced figures ``--check`` reports but tolerates while another change rewrites
 them. An entry without an unsourced figure left fails the check: remove it then."""
