@@ -125,8 +125,7 @@ PAPER_SCALE = re.compile(
 )
 SENTENCE_END = re.compile(r"[.!?;]\**(?=\s)")
 
-PENDING: dict[tuple[str, str], str] = {
-}
+PENDING: dict[tuple[str, str], str] = {}
 """Sections (page, heading) whose unsourced figures ``--check`` reports but tolerates while another change rewrites
 them. An entry without an unsourced figure left fails the check: remove it then."""
 
