@@ -74,7 +74,7 @@ def test_what_exists_is_registered():
     assert TRIGGERS.names() == ("patch", "on_off", "delayed", "in_distribution_patch", "partial_patch", "sequence")
     assert REWARDS.names() == ("env_rewards", "false_activation")
     assert MITIGATIONS.names() == ("fine_pruning", "fine_tuning", "state_bounds", "unit_reset")
-    assert MONITORS.names() == ("state_monitor", "multivariate_monitor", "input_novelty")
+    assert MONITORS.names() == ("state_monitor", "multivariate_monitor", "goal_switch", "input_novelty")
     assert DETECTORS.names() == ("weight_detector", "behaviour_detector")
 
 

@@ -91,7 +91,7 @@ def output_features(agent: RecurrentActorCritic, h: torch.Tensor, options: GoalS
 
 
 def _with_bias(r: np.ndarray) -> np.ndarray:
-    return np.concatenate([r, np.ones(r.shape[:-1] + (1,))], -1)
+    return np.concatenate([r, np.ones((*r.shape[:-1], 1))], -1)
 
 
 class GoalSwitchMonitor:
