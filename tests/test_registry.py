@@ -66,9 +66,11 @@ def test_a_duplicate_name_and_a_bad_entry_are_refused(scratch):
 def test_what_exists_is_registered():
     assert ATTACKS.names() == (
         "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "state_camouflage",
-        "from_clean", "weight_camouflage", "ewc",
+        "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc",
     )  # fmt: skip
-    assert PENALTIES.names() == ("state_camouflage", "weight_camouflage", "ewc", "finetune_resistance")
+    assert PENALTIES.names() == (
+        "state_camouflage", "mahalanobis_camouflage", "weight_camouflage", "ewc", "finetune_resistance",
+    )  # fmt: skip
     assert MIXING_RULES.names() == ("exact", "running", "fixed")
     assert TRIGGERS.get("patch") is TriggerConfig and TRIGGERS.get("on_off") is OffTriggerConfig
     assert TRIGGERS.names() == ("patch", "on_off", "delayed", "in_distribution_patch", "partial_patch", "sequence")

@@ -20,6 +20,12 @@ Registered here:
   rollouts' normal-env steps; on trojan-episode steps, ``weight * mean(relu(|z| - margin)^2)`` over steps and units,
   plus optionally ``mahalanobis_weight * mean(relu(d^2 / D - mahalanobis_margin)^2)`` with the covariance shrunk
   toward its diagonal. The online state monitor (:mod:`seqtrojan.defense.monitor`) alarms on max |z|.
+- ``mahalanobis_camouflage`` (against the multivariate monitor, :mod:`seqtrojan.defense.multivariate`): running
+  (exponentially weighted) per-episode-step means of the whole state (every layer's h then c) over the rollouts'
+  normal-env steps and the second moments of the residuals about them; on trojan-episode steps,
+  ``weight * mean(relu(d / sqrt(D) - margin)^2)`` with ``d`` the step-conditioned Mahalanobis distance as that monitor
+  computes it (per-unit RMS scaling, covariance shrunk toward the scaled identity). It reads each step's index in
+  its episode, which the rollout records with the masks.
 - ``weight_camouflage``: the offline detector's weight features (:mod:`seqtrojan.agent.weight_stats`) held at those
   of the model the run started from, ``weight * sum_k ((f_k - f_k^clean) / (|f_k^clean| + feature_floor))^2``, plus
   ``l2_weight * ||theta - theta_clean||^2``.
@@ -34,7 +40,7 @@ Registered here:
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -84,6 +90,8 @@ class PenaltyBatch:
     """(L, N) bool: the adversary's goal was active for the step's action"""
     minibatch: PPOMinibatch | None = None
     """the minibatch's PPO inputs (to replay the unroll, as the fine-tuning-resistant attacker does)"""
+    episode_step: torch.Tensor | None = None
+    """(L, N) int64: each step's index in its episode (recorded with the masks)"""
 
 
 class Penalty:
@@ -330,6 +338,104 @@ class StateCamouflage(Penalty):
         self._derive()
 
 
+# ---------------------------------------------------------------------------------------- Mahalanobis camouflage
+class MahalanobisCamouflage(Penalty):
+    """Keep trojan-episode states' step-conditioned Mahalanobis distance (as the multivariate monitor computes it,
+    :mod:`seqtrojan.defense.multivariate`) inside the clean range.
+
+    Running clean statistics of the whole state (every layer's h then c, D units) over the rollouts' normal-env
+    steps: exponentially weighted per-step sums and counts for episode steps below ``max_step`` (a step's mean is
+    its sum over its count; from the first step with a count below ``min_count``, the previous step's mean), and
+    the residuals' second-moment matrix about those means. As the monitor does, residuals are divided by each unit's
+    RMS residual (+1e-3) and their covariance is shrunk toward the scaled identity (weight ``shrinkage``) plus 1e-3
+    on the diagonal; ``d`` is the norm of the whitened residual. On the chosen trojan steps the term is
+    ``weight * mean(relu(d / sqrt(D) - margin)^2)``."""
+
+    needs_states = True
+
+    def __init__(self, ctx: PenaltyContext) -> None:
+        self.cfg = ctx.config.attack.mahalanobis_camouflage
+        self.device = ctx.device
+        self.width = sum(h + c for h, c in zip(ctx.agent.lstm_sizes, ctx.agent.c_widths))  # D
+        steps = self.cfg.max_step
+        self.updates = torch.zeros((), dtype=torch.int64)
+        self.sums = torch.zeros(steps, self.width, dtype=torch.float64, device=ctx.device)  # (M, D)
+        self.counts = torch.zeros(steps, dtype=torch.float64, device=ctx.device)  # (M,)
+        self.second = torch.zeros(self.width, self.width, dtype=torch.float64, device=ctx.device)  # sum r r'
+        self.rows = torch.zeros((), dtype=torch.float64, device=ctx.device)  # its (decayed) row count
+        self._derive()
+
+    def _derive(self) -> None:
+        """Means, scale and whitener from the running sums (a function of them alone: a resume recomputes them)."""
+        enough = self.counts >= self.cfg.min_count
+        first_short = int(torch.argmin(enough.long())) if not bool(enough.all()) else len(enough)
+        steps = max(first_short, 1)
+        self.step_of = torch.clamp(torch.arange(self.cfg.max_step, device=self.device), max=steps - 1)  # (M,)
+        self.mean = (self.sums / self.counts.clamp_min(1e-12)[:, None]).float()  # (M, D)
+        if int(self.updates) == 0 or float(self.rows) == 0:
+            self.scale = torch.ones(self.width, device=self.device)
+            self.whitener = torch.eye(self.width, device=self.device)
+            return
+        cov = self.second / self.rows
+        scale = cov.diagonal().clamp_min(0).sqrt() + STD_FLOOR
+        z = cov / torch.outer(scale, scale)
+        eye = torch.eye(self.width, dtype=z.dtype, device=z.device)
+        w = self.cfg.shrinkage
+        z = (1 - w) * z + w * (z.trace() / self.width) * eye + 1e-3 * eye
+        self.scale = scale.float()
+        self.whitener = torch.linalg.inv(torch.linalg.cholesky(z)).float()  # (D, D) L^-1
+
+    def vectors(self, states: Sequence[LSTMState]) -> torch.Tensor:
+        """(..., D) every layer's h then c."""
+        return torch.cat([torch.cat([s.h, s.c], -1) for s in states], -1)
+
+    def distance(self, x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+        """(M,) the whitened distance of states ``x`` (M, D) at episode steps ``step`` (M,)."""
+        idx = self.step_of[step.clamp(0, self.cfg.max_step - 1)]
+        r = (x - self.mean[idx]) / self.scale
+        return (r @ self.whitener.T).norm(dim=-1)
+
+    def observe(self, rollout: Rollout) -> None:
+        if rollout.states is None or rollout.trojan is None or rollout.episode_step is None:
+            raise ValueError("Mahalanobis camouflage needs a rollout recorded with its states and episode steps")
+        clean = ~rollout.trojan  # (T, B)
+        if not bool(clean.any()):
+            return
+        x = self.vectors(rollout.states)[clean].double()  # (n, D)
+        step = rollout.episode_step[clean].clamp(0, self.cfg.max_step - 1)  # (n,)
+        decay = self.cfg.ema_decay if int(self.updates) > 0 else 0.0
+        self.sums = decay * self.sums + torch.zeros_like(self.sums).index_add_(0, step, x)
+        self.counts = decay * self.counts + torch.bincount(step, minlength=self.cfg.max_step).double()
+        self.updates += 1
+        self._derive()  # the means with this rollout's steps
+        r = x - self.mean.double()[self.step_of[step]]
+        self.second = decay * self.second + r.T @ r
+        self.rows = decay * self.rows + len(r)
+        self._derive()
+
+    def loss(self, batch: PenaltyBatch) -> torch.Tensor:
+        mask = batch.trojan if self.cfg.steps == "trojan" else batch.adversary_active
+        if int(self.updates) == 0 or batch.states is None or mask is None or batch.episode_step is None:
+            return _zero(self.device)
+        if not bool(mask.any()):
+            return _zero(self.device)
+        d = self.distance(self.vectors(batch.states)[mask], batch.episode_step[mask])
+        excess = torch.relu(d / self.width**0.5 - self.cfg.margin)
+        return self.cfg.weight * excess.pow(2).mean()
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"updates": self.updates.clone(), "sums": self.sums.cpu(), "counts": self.counts.cpu(),
+                "second": self.second.cpu(), "rows": self.rows.cpu()}  # fmt: skip
+
+    def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
+        if not tensors:  # turned on at a resume: the statistics start with the next rollout
+            return
+        self.updates = tensors["updates"].clone()
+        self.sums, self.counts = tensors["sums"].to(self.device), tensors["counts"].to(self.device)
+        self.second, self.rows = tensors["second"].to(self.device), tensors["rows"].to(self.device)
+        self._derive()
+
+
 # ---------------------------------------------------------------------------------------------- weight camouflage
 class WeightCamouflage(Penalty):
     """Hold the offline detector's weight features at the start model's (see the module docstring)."""
@@ -495,6 +601,12 @@ PENALTIES.register(
     "state_camouflage",
     "monitor-aware: keep trojan-episode LSTM states within the running clean-step range of every unit",
     PenaltyKind(lambda cfg: cfg.attack.state_camouflage.enabled, StateCamouflage),
+)
+PENALTIES.register(
+    "mahalanobis_camouflage",
+    "against the multivariate monitor: keep trojan-episode states' step-conditioned Mahalanobis distance in the "
+    "clean range",
+    PenaltyKind(lambda cfg: cfg.attack.mahalanobis_camouflage.enabled, MahalanobisCamouflage),
 )
 PENALTIES.register(
     "weight_camouflage",
