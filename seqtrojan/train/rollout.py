@@ -34,8 +34,8 @@ class Rollout:
     last_value: torch.Tensor  # (B,) value of the observation after the rollout
     trojan: torch.Tensor | None = None  # (T, B) bool: step t is in a trojan-env episode (when recorded)
     adversary_active: torch.Tensor | None = None  # (T, B) bool: the adversary's goal was active for action t
-    episode_step: torch.Tensor | None = None  # (T, B) int64: step t's index in its episode (when recorded)
     states: tuple[LSTMState, ...] | None = None  # per layer, (T, B, H) the state after step t (when recorded)
+    episode_step: torch.Tensor | None = None  # (T, B) int64: step t's index in its episode (when recorded)
 
 
 @dataclass

@@ -339,7 +339,9 @@ def test_attack_defaults_are_off_and_the_yaml_sections_parse():
     assert pen.build_penalties(_ctx(ExperimentConfig(), _agent())) == []
     cfg = ExperimentConfig(backdoor=BackdoorConfig(enabled=True))
     assert pen.build_penalties(_ctx(cfg, _agent())) == []
-    assert set(pen.PENALTIES.names()) == {"state_camouflage", "weight_camouflage", "ewc", "finetune_resistance"}
+    assert set(pen.PENALTIES.names()) == {
+        "state_camouflage", "mahalanobis_camouflage", "weight_camouflage", "ewc", "finetune_resistance",
+    }  # fmt: skip
     text = """
 backdoor: {enabled: true}
 run: {init_from: runs/clean/model}
@@ -347,10 +349,12 @@ attack:
   state_camouflage: {weight: 1.0, margin: 2.5, steps: active, mahalanobis_weight: 0.1}
   weight_camouflage: {weight: 0.5, feature_floor: 0.1, l2_weight: 0.01}
   ewc: {weight: 100.0, fisher_envs: 32, normalize: true}
+  mahalanobis_camouflage: {weight: 5.0, margin: 1.2, max_step: 32}
 """
     cfg = from_dict(ExperimentConfig, parse_yaml(text), "")
     assert cfg.attack.state_camouflage.steps == "active" and cfg.attack.ewc.fisher_envs == 32
     assert cfg.attack.weight_camouflage.enabled and cfg.attack.ewc.normalize
+    assert cfg.attack.mahalanobis_camouflage.enabled and cfg.attack.mahalanobis_camouflage.max_step == 32
 
 
 @pytest.mark.parametrize(
