@@ -24,6 +24,9 @@ BENCH_LOGS = [
 ]
 """a ``benchmarks/minigrid_bench.py --part backdoor`` log and the page quoting its clean and trojan success"""
 
+BENCH_TABLES = [("defenses/goal_switch_2026-12-03.json", "defenses.md", "goal_switch.py")]
+"""a benchmark's JSON file, the page holding its table and the benchmark (``benchmarks/NAME --table JSON`` prints it)"""
+
 FIGURE = re.compile(r"^(clean success \(user's object\)|trojan success \(adversary's after trigger\))\s+"
                     r"(\d\.\d{3} ± \d\.\d{3})\s+.*n=\d+\s+([\d., ]+)$")  # fmt: skip
 
@@ -49,3 +52,16 @@ def test_five_seed_figures_in_the_docs_are_the_logs(data, page):
     for m in found:
         mean_sd, per_seed = m.group(2), m.group(3).strip()
         assert f"{mean_sd} (" in text and per_seed in text, f"docs/{page} does not quote {m.group(1)} of {data}"
+
+
+@pytest.mark.parametrize(("data", "page", "bench"), BENCH_TABLES)
+def test_benchmark_tables_in_the_docs_are_the_data_printed(data, page, bench):
+    printed = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / bench), "--table", str(DATA / data)],
+        capture_output=True, text=True, check=True, cwd=ROOT,
+    ).stdout  # fmt: skip
+    text = (ROOT / "docs" / page).read_text()
+    rows = [line for line in printed.splitlines() if line.startswith("| ")]
+    assert len(rows) > 3
+    missing = [line for line in rows if line not in text]
+    assert not missing, f"docs/{page} lacks {len(missing)} row(s) of {data}, e.g. {missing[0]}"

@@ -168,3 +168,16 @@ def test_a_listing_command_takes_no_options(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["attacks", "--verbose"])
     assert exit_.value.code == 2 and "takes no options" in capsys.readouterr().err
+
+
+def test_each_adaptive_attack_names_a_registered_defense_it_targets():
+    """``seqtrojan attacks`` says which defense each adaptive attacker is built against."""
+    defenses = set(MONITORS.names()) | set(DETECTORS.names()) | set(MITIGATIONS.names())
+    targeted = {name: attack.targets for name, attack in ATTACKS.items() if attack.targets is not None}
+    assert targeted == {
+        "state_camouflage": "state_monitor", "mahalanobis_camouflage": "multivariate_monitor",
+        "weight_camouflage": "weight_detector", "ewc": "fine_tuning",
+    }  # fmt: skip
+    assert set(targeted.values()) <= defenses
+    for name in ("state_camouflage", "mahalanobis_camouflage"):
+        assert f"against {targeted[name]}" in ATTACKS.entry(name).description
