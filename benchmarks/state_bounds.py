@@ -12,10 +12,11 @@ mixing, 1M env steps unless ``--steps``), each attack's recipe from ``ATTACKS``,
 Per agent: bounds fitted on ``--calibration`` clean (normal-env) episodes (seed 0), then ``--episodes`` fresh
 episodes (seed 1000003) per env without a defense and with each setting; the same episodes for every arm. A setting
 is ``quantile[/margin[/parts]]`` (parts: ``hc``, ``h`` or ``c``). An attack ``state_camouflage/M`` is the
-registered monitor-aware recipe (weight 5) with the |z| margin ``M`` instead of 2.5 (``mahalanobis_camouflage/W``:
-that recipe with weight ``W``): the attacker who knows the
+registered monitor-aware recipe (weight 5) with the |z| margin ``M`` instead of 2.5: the attacker who knows the
 bounds keeps the trojan states within M clean sd of the clean mean (about the central 68% of a unit's clean range
-at M = 1, where ``state_bounds`` keeps the central 90% at its default q = 0.05). Printed: each seed's rates, then
+at M = 1, where ``state_bounds`` keeps the central 90% at its default q = 0.05). ``mahalanobis_camouflage/W`` is that
+recipe with weight ``W``; ``in_distribution_patch+mahalanobis_camouflage/W`` the same with the first recipe's
+trigger (an adaptive recipe changes only the training terms). Printed: each seed's rates, then
 per attack and arm the mean +- sd over seeds and the pooled rate with its 95% Wilson interval.
 """
 
@@ -65,20 +66,26 @@ def setting_name(cfg: StateBoundsConfig) -> str:
     return f"q={cfg.quantile:g} m={cfg.margin:g} {''.join(cfg.parts)}"
 
 
-KNOBS = {"state_camouflage": ("margin", "m"), "mahalanobis_camouflage": ("weight", "w")}
+KNOBS = {"state_camouflage": ("margin", "m"), "mahalanobis_camouflage": ("weight", "w"),
+         "switch_camouflage": ("weight", "w")}  # fmt: skip
 """the adaptive recipes whose knob an attack ``recipe/value`` sets: (penalty field, the agent folder's letter)"""
 
 
 def train_agent(attack: str, seed: int, out: Path, steps: int | None):
     mcfg = load_matrix_config("smoke")
+    trigger, _, attack = attack.rpartition("+")  # "in_distribution_patch+mahalanobis_camouflage/5": both recipes
     recipe, _, knob = attack.partition("/")
     if knob and recipe not in KNOBS:
         raise SystemExit(f"a knob value applies to {', '.join(KNOBS)} only, got {attack!r}")
     name = f"{recipe}_{KNOBS[recipe][1]}{knob}_s{seed}" if knob else f"{attack}_s{seed}"
+    name = f"{trigger}_{name}" if trigger else name
     base = experiment_from_spec(mcfg.backdoor, out, name, "cpu")
     ppo = base.ppo if steps is None else dataclasses.replace(base.ppo, total_steps=steps)
     run = dataclasses.replace(base.run, seed=base.run.seed + seed, threads=1, checkpoint_every=10**12)
-    cfg = ATTACKS.get(recipe).configure(dataclasses.replace(base, ppo=ppo, run=run))
+    cfg = dataclasses.replace(base, ppo=ppo, run=run)
+    if trigger:  # another recipe's trigger first (an adaptive recipe changes only the training terms)
+        cfg = ATTACKS.get(trigger).configure(cfg)
+    cfg = ATTACKS.get(recipe).configure(cfg)
     if knob:  # the attacker who knows the defense: its recipe with another knob value
         cfg = with_attack(cfg, recipe, **{KNOBS[recipe][0]: float(knob)})
     model_dir, _ = train_or_resume(cfg)

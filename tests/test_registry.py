@@ -66,10 +66,11 @@ def test_a_duplicate_name_and_a_bad_entry_are_refused(scratch):
 def test_what_exists_is_registered():
     assert ATTACKS.names() == (
         "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "state_camouflage",
-        "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc",
+        "mahalanobis_camouflage", "switch_camouflage", "from_clean", "weight_camouflage", "ewc",
     )  # fmt: skip
     assert PENALTIES.names() == (
-        "state_camouflage", "mahalanobis_camouflage", "weight_camouflage", "ewc", "finetune_resistance",
+        "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
+        "finetune_resistance",
     )  # fmt: skip
     assert MIXING_RULES.names() == ("exact", "running", "fixed")
     assert TRIGGERS.get("patch") is TriggerConfig and TRIGGERS.get("on_off") is OffTriggerConfig
@@ -176,8 +177,9 @@ def test_each_adaptive_attack_names_a_registered_defense_it_targets():
     targeted = {name: attack.targets for name, attack in ATTACKS.items() if attack.targets is not None}
     assert targeted == {
         "state_camouflage": "state_monitor", "mahalanobis_camouflage": "multivariate_monitor",
+        "switch_camouflage": "goal_switch",
         "weight_camouflage": "weight_detector", "ewc": "fine_tuning",
     }  # fmt: skip
     assert set(targeted.values()) <= defenses
-    for name in ("state_camouflage", "mahalanobis_camouflage"):
+    for name in ("state_camouflage", "mahalanobis_camouflage", "switch_camouflage"):
         assert f"against {targeted[name]}" in ATTACKS.entry(name).description

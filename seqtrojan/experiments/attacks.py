@@ -125,6 +125,12 @@ ATTACKS.register(
         lambda cfg: with_attack(cfg, "mahalanobis_camouflage", weight=5.0, margin=1.0), targets="multivariate_monitor"
     ),
 )
+ATTACKS.register(
+    "switch_camouflage",
+    "adaptive, against goal_switch: the dedicated-code backdoor trained to keep trojan-episode output transitions "
+    "(action log-probabilities, value) as predictable as clean ones (knob: attack.switch_camouflage.weight, 5)",
+    Attack(lambda cfg: with_attack(cfg, "switch_camouflage", weight=5.0, margin=1.0), targets="goal_switch"),
+)
 
 
 def half_trojan(cfg: ExperimentConfig) -> ExperimentConfig:

@@ -30,6 +30,7 @@ from seqtrojan.config import (
     PPOConfig,
     RunConfig,
     StateCamouflageConfig,
+    SwitchCamouflageConfig,
     WeightCamouflageConfig,
 )
 from seqtrojan.env import EnvConfig, GridSpec, TriggerConfig, TrojanGridCore
@@ -341,7 +342,8 @@ def test_attack_defaults_are_off_and_the_yaml_sections_parse():
     cfg = ExperimentConfig(backdoor=BackdoorConfig(enabled=True))
     assert pen.build_penalties(_ctx(cfg, _agent())) == []
     assert set(pen.PENALTIES.names()) == {
-        "state_camouflage", "mahalanobis_camouflage", "weight_camouflage", "ewc", "finetune_resistance",
+        "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
+        "finetune_resistance",
     }  # fmt: skip
     text = """
 backdoor: {enabled: true}
@@ -420,6 +422,7 @@ STATEFUL = {
     "weight_camouflage": WeightCamouflageConfig(weight=0.1, l2_weight=0.01),
     "ewc": EWCConfig(weight=10.0, fisher_envs=8, fisher_steps=16),
     "mahalanobis_camouflage": MahalanobisCamouflageConfig(weight=1.0, margin=0.5),
+    "switch_camouflage": SwitchCamouflageConfig(weight=1.0, margin=0.5),
 }
 """every penalty that keeps a state in the checkpoint, with settings that move it in a few updates"""
 
