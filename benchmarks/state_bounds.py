@@ -16,7 +16,9 @@ registered monitor-aware recipe (weight 5) with the |z| margin ``M`` instead of 
 bounds keeps the trojan states within M clean sd of the clean mean (about the central 68% of a unit's clean range
 at M = 1, where ``state_bounds`` keeps the central 90% at its default q = 0.05). ``mahalanobis_camouflage/W`` is that
 recipe with weight ``W``; ``in_distribution_patch+mahalanobis_camouflage/W`` the same with the first recipe's
-trigger (an adaptive recipe changes only the training terms). Printed: each seed's rates, then
+trigger (an adaptive recipe changes only the training terms). A recipe that starts from a clean agent
+(``from_clean``, ``switch_camouflage``) starts from the smoke preset's clean agent of the same training seed,
+trained first into ``--out`` (``clean_s<seed>``), as the matrix does. Printed: each seed's rates, then
 per attack and arm the mean +- sd over seeds and the pooled rate with its 95% Wilson interval.
 """
 
@@ -83,6 +85,12 @@ def train_agent(attack: str, seed: int, out: Path, steps: int | None):
     ppo = base.ppo if steps is None else dataclasses.replace(base.ppo, total_steps=steps)
     run = dataclasses.replace(base.run, seed=base.run.seed + seed, threads=1, checkpoint_every=10**12)
     cfg = dataclasses.replace(base, ppo=ppo, run=run)
+    if ATTACKS.get(recipe).from_clean:  # the backdoor is added to the clean agent of the same training seed
+        clean = experiment_from_spec(mcfg.clean, out, f"clean_s{seed}", "cpu")
+        clean_run = dataclasses.replace(clean.run, seed=clean.run.seed + seed, threads=1, checkpoint_every=10**12)
+        clean_ppo = clean.ppo if steps is None else dataclasses.replace(clean.ppo, total_steps=steps)
+        clean_dir, _ = train_or_resume(dataclasses.replace(clean, ppo=clean_ppo, run=clean_run))
+        cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, init_from=str(clean_dir)))
     if trigger:  # another recipe's trigger first (an adaptive recipe changes only the training terms)
         cfg = ATTACKS.get(trigger).configure(cfg)
     cfg = ATTACKS.get(recipe).configure(cfg)

@@ -24,7 +24,11 @@ BENCH_LOGS = [
 ]
 """a ``benchmarks/minigrid_bench.py --part backdoor`` log and the page quoting its clean and trojan success"""
 
-BENCH_TABLES = [("defenses/goal_switch_2026-12-03.json", "defenses.md", "goal_switch.py")]
+BENCH_TABLES = [
+    ("defenses/goal_switch_2026-12-03.json", "defenses.md", "goal_switch.py"),
+    ("defenses/mahalanobis_camouflage_2026-12-03.json", "defenses.md", "goal_switch.py"),
+    ("defenses/mahalanobis_camouflage_in_distribution_2026-12-03.json", "defenses.md", "goal_switch.py"),
+]
 """a benchmark's JSON file, the page holding its table and the benchmark (``benchmarks/NAME --table JSON`` prints it)"""
 
 FIGURE = re.compile(r"^(clean success \(user's object\)|trojan success \(adversary's after trigger\))\s+"

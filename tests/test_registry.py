@@ -66,7 +66,7 @@ def test_a_duplicate_name_and_a_bad_entry_are_refused(scratch):
 def test_what_exists_is_registered():
     assert ATTACKS.names() == (
         "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "state_camouflage",
-        "mahalanobis_camouflage", "switch_camouflage", "from_clean", "weight_camouflage", "ewc",
+        "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc", "switch_camouflage",
     )  # fmt: skip
     assert PENALTIES.names() == (
         "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",

@@ -125,12 +125,6 @@ ATTACKS.register(
         lambda cfg: with_attack(cfg, "mahalanobis_camouflage", weight=5.0, margin=1.0), targets="multivariate_monitor"
     ),
 )
-ATTACKS.register(
-    "switch_camouflage",
-    "adaptive, against goal_switch: the dedicated-code backdoor trained to keep trojan-episode output transitions "
-    "(action log-probabilities, value) as predictable as clean ones (knob: attack.switch_camouflage.weight, 5)",
-    Attack(lambda cfg: with_attack(cfg, "switch_camouflage", weight=5.0, margin=1.0), targets="goal_switch"),
-)
 
 
 def half_trojan(cfg: ExperimentConfig) -> ExperimentConfig:
@@ -164,5 +158,16 @@ ATTACKS.register(
         lambda cfg: with_attack(half_trojan(cfg), "ewc", weight=100.0, normalize=True),
         from_clean=True,
         targets="fine_tuning",
+    ),
+)
+ATTACKS.register(
+    "switch_camouflage",
+    "adaptive, against goal_switch: the backdoor added to a clean agent (as from_clean) while trojan-episode output "
+    "transitions (action log-probabilities, value) are kept as predictable as clean ones (knob: "
+    "attack.switch_camouflage.weight, 5)",
+    Attack(
+        lambda cfg: with_attack(half_trojan(cfg), "switch_camouflage", weight=5.0, margin=1.0),
+        from_clean=True,
+        targets="goal_switch",
     ),
 )

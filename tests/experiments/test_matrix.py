@@ -112,8 +112,8 @@ def test_the_matrix_runs_on_a_minigrid_env_with_the_defenses_that_apply(tmp_path
     """The MiniGrid preset keeps the attacks and defenses that apply to a Gymnasium env (none drawn with grid-world
     codes), names a grid-only one in one line, and a tiny run measures every applicable defense."""
     shipped = load_matrix_config("matrix_minigrid_smoke")
-    assert shipped.attack_names == ("dedicated_code", "delayed", "state_camouflage", "from_clean",
-                                    "weight_camouflage", "ewc")  # fmt: skip
+    assert shipped.attack_names == ("dedicated_code", "delayed", "state_camouflage", "mahalanobis_camouflage",
+                                    "from_clean", "weight_camouflage", "ewc", "switch_camouflage")  # fmt: skip
     assert shipped.online_names == ("state_monitor", "multivariate_monitor", "goal_switch")
     assert shipped.offline_names == ("weight_detector",) and shipped.zoo is not None  # on a zoo of its env
     assert shipped.zoo.env_preset == "minigrid_two_goals"

@@ -164,7 +164,7 @@ def test_an_episodes_first_step_is_never_judged():
 
 def test_the_recipe_targets_the_goal_switch_monitor_and_bad_settings_are_refused():
     attack = ATTACKS.get("switch_camouflage")
-    assert attack.targets == "goal_switch"
+    assert attack.targets == "goal_switch" and attack.from_clean  # added to a trained clean agent
     cfg = attack.configure(ExperimentConfig(backdoor=BackdoorConfig(enabled=True)))
     assert cfg.attack.switch_camouflage == SwitchCamouflageConfig(weight=5.0, margin=1.0)
     for kwargs, message in (
