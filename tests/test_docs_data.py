@@ -28,6 +28,7 @@ BENCH_TABLES = [
     ("defenses/goal_switch_2026-12-03.json", "defenses.md", "goal_switch.py"),
     ("defenses/mahalanobis_camouflage_2026-12-03.json", "defenses.md", "goal_switch.py"),
     ("defenses/mahalanobis_camouflage_in_distribution_2026-12-03.json", "defenses.md", "goal_switch.py"),
+    ("defenses/switch_camouflage_2026-12-03.json", "defenses.md", "goal_switch.py"),
 ]
 """a benchmark's JSON file, the page holding its table and the benchmark (``benchmarks/NAME --table JSON`` prints it)"""
 
