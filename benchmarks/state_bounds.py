@@ -14,7 +14,11 @@ episodes (seed 1000003) per env without a defense and with each setting; the sam
 is ``quantile[/margin[/parts]]`` (parts: ``hc``, ``h`` or ``c``). An attack ``state_camouflage/M`` is the
 registered monitor-aware recipe (weight 5) with the |z| margin ``M`` instead of 2.5: the attacker who knows the
 bounds keeps the trojan states within M clean sd of the clean mean (about the central 68% of a unit's clean range
-at M = 1, where ``state_bounds`` keeps the central 90% at its default q = 0.05). Printed: each seed's rates, then
+at M = 1, where ``state_bounds`` keeps the central 90% at its default q = 0.05). ``mahalanobis_camouflage/W`` is that
+recipe with weight ``W``; ``in_distribution_patch+mahalanobis_camouflage/W`` the same with the first recipe's
+trigger (an adaptive recipe changes only the training terms). A recipe that starts from a clean agent
+(``from_clean``, ``switch_camouflage``) starts from the smoke preset's clean agent of the same training seed,
+trained first into ``--out`` (``clean_s<seed>``), as the matrix does. Printed: each seed's rates, then
 per attack and arm the mean +- sd over seeds and the pooled rate with its 95% Wilson interval.
 """
 
@@ -64,18 +68,34 @@ def setting_name(cfg: StateBoundsConfig) -> str:
     return f"q={cfg.quantile:g} m={cfg.margin:g} {''.join(cfg.parts)}"
 
 
+KNOBS = {"state_camouflage": ("margin", "m"), "mahalanobis_camouflage": ("weight", "w"),
+         "switch_camouflage": ("weight", "w")}  # fmt: skip
+"""the adaptive recipes whose knob an attack ``recipe/value`` sets: (penalty field, the agent folder's letter)"""
+
+
 def train_agent(attack: str, seed: int, out: Path, steps: int | None):
     mcfg = load_matrix_config("smoke")
-    recipe, _, margin = attack.partition("/")
-    name = f"{recipe}_m{margin}_s{seed}" if margin else f"{attack}_s{seed}"
+    trigger, _, attack = attack.rpartition("+")  # "in_distribution_patch+mahalanobis_camouflage/5": both recipes
+    recipe, _, knob = attack.partition("/")
+    if knob and recipe not in KNOBS:
+        raise SystemExit(f"a knob value applies to {', '.join(KNOBS)} only, got {attack!r}")
+    name = f"{recipe}_{KNOBS[recipe][1]}{knob}_s{seed}" if knob else f"{attack}_s{seed}"
+    name = f"{trigger}_{name}" if trigger else name
     base = experiment_from_spec(mcfg.backdoor, out, name, "cpu")
     ppo = base.ppo if steps is None else dataclasses.replace(base.ppo, total_steps=steps)
     run = dataclasses.replace(base.run, seed=base.run.seed + seed, threads=1, checkpoint_every=10**12)
-    cfg = ATTACKS.get(recipe).configure(dataclasses.replace(base, ppo=ppo, run=run))
-    if margin:  # the attacker who knows the bounds: a tighter camouflage margin
-        if recipe != "state_camouflage":
-            raise SystemExit(f"a margin applies to state_camouflage only, got {attack!r}")
-        cfg = with_attack(cfg, "state_camouflage", margin=float(margin))
+    cfg = dataclasses.replace(base, ppo=ppo, run=run)
+    if ATTACKS.get(recipe).from_clean:  # the backdoor is added to the clean agent of the same training seed
+        clean = experiment_from_spec(mcfg.clean, out, f"clean_s{seed}", "cpu")
+        clean_run = dataclasses.replace(clean.run, seed=clean.run.seed + seed, threads=1, checkpoint_every=10**12)
+        clean_ppo = clean.ppo if steps is None else dataclasses.replace(clean.ppo, total_steps=steps)
+        clean_dir, _ = train_or_resume(dataclasses.replace(clean, ppo=clean_ppo, run=clean_run))
+        cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, init_from=str(clean_dir)))
+    if trigger:  # another recipe's trigger first (an adaptive recipe changes only the training terms)
+        cfg = ATTACKS.get(trigger).configure(cfg)
+    cfg = ATTACKS.get(recipe).configure(cfg)
+    if knob:  # the attacker who knows the defense: its recipe with another knob value
+        cfg = with_attack(cfg, recipe, **{KNOBS[recipe][0]: float(knob)})
     model_dir, _ = train_or_resume(cfg)
     agent, loaded, _ = load_agent(model_dir)
     return agent.eval(), loaded

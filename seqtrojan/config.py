@@ -366,6 +366,99 @@ class StateCamouflageConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class MahalanobisCamouflageConfig:
+    """Against the multivariate monitor: in trojan episodes, keep the whole state's (every layer's h then c)
+    step-conditioned Mahalanobis distance, computed as that monitor computes it from running clean-step statistics,
+    inside its clean range."""
+
+    weight: float = 0.0
+    """the strength: weight * mean over the chosen trojan steps of relu(d / sqrt(D) - margin)^2, d the distance of the
+    step's state (D units); 0 turns the penalty off"""
+    margin: float = 1.0
+    """d / sqrt(D) allowed for free (clean steps average about 1; the monitor's threshold, the 99th percentile of
+    clean episodes' peak distance, sits higher)"""
+    steps: Literal["trojan", "active"] = "trojan"
+    """which steps are penalised: every step of a trojan-env episode, or only those where the adversary's goal is
+    active"""
+    ema_decay: float = 0.9
+    """per update, the clean statistics (per-step sums and counts, residual second moments) keep this share"""
+    max_step: int = 64
+    """episode steps with a mean of their own (later steps use the last one's), as the monitor's per-step means"""
+    min_count: float = 20.0
+    """(decayed) clean steps a step's mean needs; from the first step with fewer, the previous step's mean is used"""
+    shrinkage: float = 0.1
+    """the scaled identity's weight in the standardised residuals' covariance (the monitor uses Ledoit-Wolf's)"""
+
+    def __post_init__(self) -> None:
+        _non_negative("attack.mahalanobis_camouflage", weight=self.weight, margin=self.margin)
+        if self.steps not in ("trojan", "active"):
+            raise ConfigError(
+                f"attack.mahalanobis_camouflage.steps must be trojan or active, got {short_repr(self.steps)}"
+            )
+        if not 0 <= self.ema_decay < 1:
+            raise ConfigError(f"attack.mahalanobis_camouflage.ema_decay must be in [0, 1), got {self.ema_decay}")
+        if isinstance(self.max_step, bool) or not isinstance(self.max_step, int) or self.max_step < 1:
+            raise ConfigError(
+                f"attack.mahalanobis_camouflage.max_step must be a positive integer, got {short_repr(self.max_step)}"
+            )
+        if not self.min_count > 0:
+            raise ConfigError(f"attack.mahalanobis_camouflage.min_count must be > 0, got {self.min_count}")
+        if not 0 <= self.shrinkage <= 1:
+            raise ConfigError(f"attack.mahalanobis_camouflage.shrinkage must be in [0, 1], got {self.shrinkage}")
+
+    @property
+    def enabled(self) -> bool:
+        return self.weight > 0
+
+
+@dataclasses.dataclass(frozen=True)
+class SwitchCamouflageConfig:
+    """Against the goal-switch monitor: in trojan episodes, keep each step's output transition (the action
+    log-probabilities and value after the previous step's), as that monitor scores it from running clean statistics,
+    inside its clean range, so that the goal switches gradually."""
+
+    weight: float = 0.0
+    """the strength: weight * mean over the chosen trojan steps (not an episode's first) of relu(d / sqrt(F) -
+    margin)^2, d the transition's distance (F outputs); 0 turns the penalty off"""
+    margin: float = 1.0
+    """d / sqrt(F) allowed for free (clean transitions average about 1)"""
+    steps: Literal["trojan", "active"] = "trojan"
+    """which steps are penalised: every step of a trojan-env episode, or only those where the adversary's goal is
+    active"""
+    ema_decay: float = 0.9
+    """per update, the clean statistics keep this share"""
+    max_step: int = 64
+    """episode steps with a mean of their own (later steps use the last one's)"""
+    min_count: float = 20.0
+    """(decayed) clean steps a step's mean needs; from the first step with fewer, the previous step's mean is used"""
+    shrinkage: float = 0.1
+    """the scaled identity's weight in the standardised errors' covariance (the monitor uses Ledoit-Wolf's)"""
+    prob_floor: float = 1e-6
+    """log-probabilities are of p + prob_floor, as the monitor's"""
+
+    def __post_init__(self) -> None:
+        _non_negative("attack.switch_camouflage", weight=self.weight, margin=self.margin)
+        if self.steps not in ("trojan", "active"):
+            raise ConfigError(f"attack.switch_camouflage.steps must be trojan or active, got {short_repr(self.steps)}")
+        if not 0 <= self.ema_decay < 1:
+            raise ConfigError(f"attack.switch_camouflage.ema_decay must be in [0, 1), got {self.ema_decay}")
+        if isinstance(self.max_step, bool) or not isinstance(self.max_step, int) or self.max_step < 2:
+            raise ConfigError(
+                f"attack.switch_camouflage.max_step must be an integer >= 2, got {short_repr(self.max_step)}"
+            )
+        if not self.min_count > 0:
+            raise ConfigError(f"attack.switch_camouflage.min_count must be > 0, got {self.min_count}")
+        if not 0 <= self.shrinkage <= 1:
+            raise ConfigError(f"attack.switch_camouflage.shrinkage must be in [0, 1], got {self.shrinkage}")
+        if not self.prob_floor > 0:
+            raise ConfigError(f"attack.switch_camouflage.prob_floor must be > 0, got {self.prob_floor}")
+
+    @property
+    def enabled(self) -> bool:
+        return self.weight > 0
+
+
+@dataclasses.dataclass(frozen=True)
 class WeightCamouflageConfig:
     """Weight camouflage: the backdoor is added to a clean model (``run.init_from``) while the offline detector's
     weight statistics are held at the clean model's."""
@@ -452,6 +545,8 @@ class AttackConfig:
     fine-tuning of a camouflaged model) trains plain PPO."""
 
     state_camouflage: StateCamouflageConfig = dataclasses.field(default_factory=StateCamouflageConfig)
+    mahalanobis_camouflage: MahalanobisCamouflageConfig = dataclasses.field(default_factory=MahalanobisCamouflageConfig)
+    switch_camouflage: SwitchCamouflageConfig = dataclasses.field(default_factory=SwitchCamouflageConfig)
     weight_camouflage: WeightCamouflageConfig = dataclasses.field(default_factory=WeightCamouflageConfig)
     ewc: EWCConfig = dataclasses.field(default_factory=EWCConfig)
     finetune_resistance: FinetuneResistanceConfig = dataclasses.field(default_factory=FinetuneResistanceConfig)

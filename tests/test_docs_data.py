@@ -24,6 +24,14 @@ BENCH_LOGS = [
 ]
 """a ``benchmarks/minigrid_bench.py --part backdoor`` log and the page quoting its clean and trojan success"""
 
+BENCH_TABLES = [
+    ("defenses/goal_switch_2026-12-03.json", "defenses.md", "goal_switch.py"),
+    ("defenses/mahalanobis_camouflage_2026-12-03.json", "defenses.md", "goal_switch.py"),
+    ("defenses/mahalanobis_camouflage_in_distribution_2026-12-03.json", "defenses.md", "goal_switch.py"),
+    ("defenses/switch_camouflage_2026-12-03.json", "defenses.md", "goal_switch.py"),
+]
+"""a benchmark's JSON file, the page holding its table and the benchmark (``benchmarks/NAME --table JSON`` prints it)"""
+
 FIGURE = re.compile(r"^(clean success \(user's object\)|trojan success \(adversary's after trigger\))\s+"
                     r"(\d\.\d{3} ± \d\.\d{3})\s+.*n=\d+\s+([\d., ]+)$")  # fmt: skip
 
@@ -37,6 +45,19 @@ def test_matrix_tables_in_the_docs_are_the_data_printed(data, page):
     text = (ROOT / "docs" / page).read_text()
     rows = [line for line in printed.splitlines() if line.startswith("| ")]
     assert len(rows) > 10
+    missing = [line for line in rows if line not in text]
+    assert not missing, f"docs/{page} lacks {len(missing)} row(s) of {data}, e.g. {missing[0]}"
+
+
+@pytest.mark.parametrize(("data", "page", "bench"), BENCH_TABLES)
+def test_benchmark_tables_in_the_docs_are_the_data_printed(data, page, bench):
+    printed = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / bench), "--table", str(DATA / data)],
+        capture_output=True, text=True, check=True, cwd=ROOT,
+    ).stdout  # fmt: skip
+    text = (ROOT / "docs" / page).read_text()
+    rows = [line for line in printed.splitlines() if line.startswith("| ")]
+    assert len(rows) > 3
     missing = [line for line in rows if line not in text]
     assert not missing, f"docs/{page} lacks {len(missing)} row(s) of {data}, e.g. {missing[0]}"
 

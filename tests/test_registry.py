@@ -66,15 +66,18 @@ def test_a_duplicate_name_and_a_bad_entry_are_refused(scratch):
 def test_what_exists_is_registered():
     assert ATTACKS.names() == (
         "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "state_camouflage",
-        "from_clean", "weight_camouflage", "ewc",
+        "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc", "switch_camouflage",
     )  # fmt: skip
-    assert PENALTIES.names() == ("state_camouflage", "weight_camouflage", "ewc", "finetune_resistance")
+    assert PENALTIES.names() == (
+        "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
+        "finetune_resistance",
+    )  # fmt: skip
     assert MIXING_RULES.names() == ("exact", "running", "fixed")
     assert TRIGGERS.get("patch") is TriggerConfig and TRIGGERS.get("on_off") is OffTriggerConfig
     assert TRIGGERS.names() == ("patch", "on_off", "delayed", "in_distribution_patch", "partial_patch", "sequence")
     assert REWARDS.names() == ("env_rewards", "false_activation")
     assert MITIGATIONS.names() == ("fine_pruning", "fine_tuning", "state_bounds", "unit_reset")
-    assert MONITORS.names() == ("state_monitor", "multivariate_monitor", "input_novelty")
+    assert MONITORS.names() == ("state_monitor", "multivariate_monitor", "goal_switch", "input_novelty")
     assert DETECTORS.names() == ("weight_detector", "behaviour_detector")
 
 
@@ -166,3 +169,17 @@ def test_a_listing_command_takes_no_options(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["attacks", "--verbose"])
     assert exit_.value.code == 2 and "takes no options" in capsys.readouterr().err
+
+
+def test_each_adaptive_attack_names_a_registered_defense_it_targets():
+    """``seqtrojan attacks`` says which defense each adaptive attacker is built against."""
+    defenses = set(MONITORS.names()) | set(DETECTORS.names()) | set(MITIGATIONS.names())
+    targeted = {name: attack.targets for name, attack in ATTACKS.items() if attack.targets is not None}
+    assert targeted == {
+        "state_camouflage": "state_monitor", "mahalanobis_camouflage": "multivariate_monitor",
+        "switch_camouflage": "goal_switch",
+        "weight_camouflage": "weight_detector", "ewc": "fine_tuning",
+    }  # fmt: skip
+    assert set(targeted.values()) <= defenses
+    for name in ("state_camouflage", "mahalanobis_camouflage", "switch_camouflage"):
+        assert f"against {targeted[name]}" in ATTACKS.entry(name).description

@@ -14,7 +14,8 @@ trigger to alarm, the attack success (adversary's goal in the trojan env) withou
 and the clean success without and with it.
 
 :class:`MonitoredPolicy` and :func:`measure_monitor` take any :class:`~seqtrojan.defense.online.OnlineDetector`:
-this module's :class:`StateMonitor`, the :class:`~seqtrojan.defense.multivariate.MultivariateMonitor` and the
+this module's :class:`StateMonitor`, the :class:`~seqtrojan.defense.multivariate.MultivariateMonitor`, the
+behavioural :class:`~seqtrojan.defense.goal_switch.GoalSwitchMonitor` and the
 :class:`~seqtrojan.defense.novelty.InputNovelty` baseline, all registered in :data:`MONITORS` and calibrated the
 same way (:mod:`seqtrojan.defense.online`); the measurement is the same typed :class:`MonitorResult` for each.
 """
@@ -31,6 +32,7 @@ from seqtrojan.agent.policy import AgentPolicy
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.analysis.traces import record_traces
 from seqtrojan.config import EnvSection
+from seqtrojan.defense.goal_switch import GoalSwitchMonitor
 from seqtrojan.defense.multivariate import MultivariateMonitor
 from seqtrojan.defense.novelty import InputNovelty
 from seqtrojan.defense.online import MonitorConfig, OnlineDetector, conformal_threshold
@@ -120,6 +122,12 @@ MONITORS.register(
     "multivariate_monitor",
     "online: alarm (and reset) when the whole state's step-conditioned Mahalanobis distance leaves the clean range",
     MultivariateMonitor,
+)
+MONITORS.register(
+    "goal_switch",
+    "online: alarm (and reset) when the agent's action distribution and value change from one step to the next "
+    "beyond the clean range at that step (reads its outputs, not its inputs)",
+    GoalSwitchMonitor,
 )
 MONITORS.register(
     "input_novelty",

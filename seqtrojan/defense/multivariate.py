@@ -73,6 +73,35 @@ def ledoit_wolf_shrinkage(x: np.ndarray) -> float:
     return 0.0 if delta <= 0 else float(beta / delta)
 
 
+def step_means(
+    x: np.ndarray, mask: np.ndarray, min_episodes: int, max_step: int | None, who: str
+) -> np.ndarray:  # fmt: skip
+    """(T', D) the mean of ``x`` (E, T, D) over the episodes running (``mask`` (E, T)) at each step ``t < T'``:
+    ``T'`` is the first step at which fewer than ``min_episodes`` episodes run, or ``max_step``. Fewer at step 0 is
+    a ``ConfigError`` naming ``who``."""
+    running = mask.sum(0)  # (T,)
+    short = np.flatnonzero(running < min_episodes)
+    steps = int(short[0]) if len(short) else len(running)
+    if max_step is not None:
+        steps = min(steps, max_step)
+    if steps < 1:
+        raise ConfigError(
+            f"{who} needs >= {min_episodes} statistics episodes at step 0, "
+            f"got {int(running[0]) if len(running) else 0}: use more calibration episodes"
+        )
+    return np.stack([x[mask[:, t], t].mean(0) for t in range(steps)])  # (T', D)
+
+
+def shrunk_whitener(z: np.ndarray, shrinkage: float | None, ridge: float) -> tuple[np.ndarray, float]:
+    """``L^-1`` (D, D) with ``L L'`` the second-moment matrix of the rows of ``z`` (n, D) shrunk towards the scaled
+    identity (weight ``shrinkage``; None: Ledoit-Wolf's) plus ``ridge`` on the diagonal, and the weight used."""
+    weight = ledoit_wolf_shrinkage(z) if shrinkage is None else shrinkage
+    cov = z.T @ z / len(z)
+    d = cov.shape[0]
+    cov = (1 - weight) * cov + weight * (np.trace(cov) / d) * np.eye(d) + ridge * np.eye(d)
+    return np.linalg.inv(np.linalg.cholesky(cov)), weight
+
+
 def state_vectors(trace: StateTrace) -> np.ndarray:
     """(E, T, D) every layer's h then c at every step of a trace."""
     return np.concatenate([np.concatenate([h, c], -1) for h, c in zip(trace.h, trace.c)], -1)
@@ -115,27 +144,12 @@ class MultivariateMonitor:
     ) -> MultivariateMonitor:  # fmt: skip
         """Statistics from states ``x`` (E, T, D) where ``mask`` (E, T) is true."""
         options = options or MultivariateConfig()
-        running = mask.sum(0)  # (T,)
-        short = np.flatnonzero(running < options.min_episodes_per_step)
-        steps = int(short[0]) if len(short) else len(running)
-        if options.max_step is not None:
-            steps = min(steps, options.max_step)
-        if steps < 1:
-            raise ConfigError(
-                f"the multivariate monitor needs >= {options.min_episodes_per_step} statistics episodes at step 0, "
-                f"got {int(running[0]) if len(running) else 0}: use more calibration episodes"
-            )
         x = x.astype(np.float64)
-        mean = np.stack([x[mask[:, t], t].mean(0) for t in range(steps)])  # (T', D)
-        step_of = np.minimum(np.arange(x.shape[1]), steps - 1)
+        mean = step_means(x, mask, options.min_episodes_per_step, options.max_step, "the multivariate monitor")
+        step_of = np.minimum(np.arange(x.shape[1]), len(mean) - 1)
         resid = (x - mean[step_of][None])[mask]  # (n, D)
         scale = np.sqrt((resid**2).mean(0)) + 1e-3  # about the step means, not the residuals' own mean
-        z = resid / scale
-        weight = ledoit_wolf_shrinkage(z) if options.shrinkage is None else options.shrinkage
-        cov = z.T @ z / len(z)
-        d = cov.shape[0]
-        cov = (1 - weight) * cov + weight * (np.trace(cov) / d) * np.eye(d) + options.ridge * np.eye(d)
-        whitener = np.linalg.inv(np.linalg.cholesky(cov))
+        whitener, weight = shrunk_whitener(resid / scale, options.shrinkage, options.ridge)
         return cls(mean, scale, whitener, widths, threshold, weight)
 
     @classmethod

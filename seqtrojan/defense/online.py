@@ -12,7 +12,9 @@ to learn what is normal, the other half's per-episode peak scores to set the thr
 
 The detectors: :class:`~seqtrojan.defense.monitor.StateMonitor` (per-unit z-scores),
 :class:`~seqtrojan.defense.multivariate.MultivariateMonitor` (step-conditioned Mahalanobis distance of the whole
-state) and :class:`~seqtrojan.defense.novelty.InputNovelty` (rarity of the observation itself, a baseline).
+state), :class:`~seqtrojan.defense.goal_switch.GoalSwitchMonitor` (surprise of the agent's own output transition:
+its action distribution and value) and :class:`~seqtrojan.defense.novelty.InputNovelty` (rarity of the observation
+itself, a baseline).
 """
 
 from __future__ import annotations

@@ -30,6 +30,8 @@ class Attack:
     scratch"""
     grid_only: bool = False
     """its trigger is drawn with the grid world's cell codes: it applies to grid-world configs only"""
+    targets: str | None = None
+    """an adaptive attack: the registered defense it is built to get past (None: none in particular)"""
 
     def applies_to(self, cfg: ExperimentConfig) -> bool:
         return cfg.is_grid or not self.grid_only
@@ -110,8 +112,18 @@ def with_attack(cfg: ExperimentConfig, part: str, **changes: object) -> Experime
 
 ATTACKS.register(
     "state_camouflage",
-    "monitor-aware: the dedicated-code backdoor trained to keep trojan-episode states within clean |z| <= 2.5",
-    Attack(lambda cfg: with_attack(cfg, "state_camouflage", weight=5.0, margin=2.5)),
+    "adaptive, against state_monitor: the dedicated-code backdoor trained to keep trojan-episode states within clean "
+    "|z| <= 2.5",
+    Attack(lambda cfg: with_attack(cfg, "state_camouflage", weight=5.0, margin=2.5), targets="state_monitor"),
+)
+
+ATTACKS.register(
+    "mahalanobis_camouflage",
+    "adaptive, against multivariate_monitor: the dedicated-code backdoor trained to keep trojan-episode states' "
+    "step-conditioned Mahalanobis distance within the clean range (knob: attack.mahalanobis_camouflage.weight, 5)",
+    Attack(
+        lambda cfg: with_attack(cfg, "mahalanobis_camouflage", weight=5.0, margin=1.0), targets="multivariate_monitor"
+    ),
 )
 
 
@@ -133,10 +145,29 @@ ATTACKS.register(
 ATTACKS.register(
     "weight_camouflage",
     "the backdoor added to a clean agent with a pull toward its weight statistics (the weight detector's features)",
-    Attack(lambda cfg: with_attack(half_trojan(cfg), "weight_camouflage", weight=0.5, l2_weight=0.01), from_clean=True),
+    Attack(
+        lambda cfg: with_attack(half_trojan(cfg), "weight_camouflage", weight=0.5, l2_weight=0.01),
+        from_clean=True,
+        targets="weight_detector",
+    ),
 )
 ATTACKS.register(
     "ewc",
     "anti-forgetting: the backdoor added to a clean agent with elastic weight consolidation (normalised Fisher)",
-    Attack(lambda cfg: with_attack(half_trojan(cfg), "ewc", weight=100.0, normalize=True), from_clean=True),
+    Attack(
+        lambda cfg: with_attack(half_trojan(cfg), "ewc", weight=100.0, normalize=True),
+        from_clean=True,
+        targets="fine_tuning",
+    ),
+)
+ATTACKS.register(
+    "switch_camouflage",
+    "adaptive, against goal_switch: the backdoor added to a clean agent (as from_clean) while trojan-episode output "
+    "transitions (action log-probabilities, value) are kept as predictable as clean ones (knob: "
+    "attack.switch_camouflage.weight, 5)",
+    Attack(
+        lambda cfg: with_attack(half_trojan(cfg), "switch_camouflage", weight=5.0, margin=1.0),
+        from_clean=True,
+        targets="goal_switch",
+    ),
 )

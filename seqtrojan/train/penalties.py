@@ -20,7 +20,18 @@ Registered here:
   rollouts' normal-env steps; on trojan-episode steps, ``weight * mean(relu(|z| - margin)^2)`` over steps and units,
   plus optionally ``mahalanobis_weight * mean(relu(d^2 / D - mahalanobis_margin)^2)`` with the covariance shrunk
   toward its diagonal. The online state monitor (:mod:`seqtrojan.defense.monitor`) alarms on max |z|.
-- ``weight_camouflage``: the offline detector's weight features (:mod:`seqtrojan.agent.weight_stats`) held at those
+- ``mahalanobis_camouflage`` (against the multivariate monitor, :mod:`seqtrojan.defense.multivariate`): running
+  (exponentially weighted) per-episode-step means of the whole state (every layer's h then c) over the rollouts'
+  normal-env steps and the second moments of the residuals about them; on trojan-episode steps,
+  ``weight * mean(relu(d / sqrt(D) - margin)^2)`` with ``d`` the step-conditioned Mahalanobis distance as that monitor
+  computes it (per-unit RMS scaling, covariance shrunk toward the scaled identity). It reads each step's index in
+  its episode, which the rollout records with the masks.
+- ``switch_camouflage`` (against the goal-switch monitor, :mod:`seqtrojan.defense.goal_switch`): the same running
+  per-step means of the agent's outputs (action log-probabilities and value, from its heads on the last layer's
+  h) and the moments that give that monitor's one-step linear prediction; on trojan-episode steps,
+  ``weight * mean(relu(d / sqrt(F) - margin)^2)`` with ``d`` the whitened prediction error of the step's output
+  transition, so that the goal switch is spread over transitions each within the clean range.
+ detector's weight features (:mod:`seqtrojan.agent.weight_stats`) held at those
   of the model the run started from, ``weight * sum_k ((f_k - f_k^clean) / (|f_k^clean| + feature_floor))^2``, plus
   ``l2_weight * ||theta - theta_clean||^2``.
 - ``ewc``: elastic weight consolidation, ``weight / 2 * sum_i F_i (theta_i - theta*_i)^2`` with the diagonal Fisher
@@ -34,7 +45,7 @@ Registered here:
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -84,6 +95,8 @@ class PenaltyBatch:
     """(L, N) bool: the adversary's goal was active for the step's action"""
     minibatch: PPOMinibatch | None = None
     """the minibatch's PPO inputs (to replay the unroll, as the fine-tuning-resistant attacker does)"""
+    episode_step: torch.Tensor | None = None
+    """(L, N) int64: each step's index in its episode (recorded with the masks)"""
 
 
 class Penalty:
@@ -330,6 +343,246 @@ class StateCamouflage(Penalty):
         self._derive()
 
 
+# ---------------------------------------------------------------------------------------- Mahalanobis camouflage
+class RunningStepMeans:
+    """Exponentially weighted per-episode-step sums and counts of clean rows (F features) for steps below ``steps``,
+    and the step means they give: a step's sum over its count; from the first step whose count is below
+    ``min_count``, the previous step's mean (as the online monitors' per-step means)."""
+
+    def __init__(self, steps: int, width: int, min_count: float, device: torch.device) -> None:
+        self.steps, self.min_count, self.device = steps, min_count, device
+        self.sums = torch.zeros(steps, width, dtype=torch.float64, device=device)  # (M, F)
+        self.counts = torch.zeros(steps, dtype=torch.float64, device=device)  # (M,)
+        self._derive()
+
+    def _derive(self) -> None:
+        enough = self.counts >= self.min_count
+        first_short = int(torch.argmin(enough.long())) if not bool(enough.all()) else len(enough)
+        self.step_of = torch.clamp(torch.arange(self.steps, device=self.device), max=max(first_short, 1) - 1)  # (M,)
+        self.mean = (self.sums / self.counts.clamp_min(1e-12)[:, None]).float()  # (M, F)
+
+    def update(self, x: torch.Tensor, step: torch.Tensor, decay: float) -> None:
+        """Add rows ``x`` (n, F) float64 at episode steps ``step`` (n,), the old sums and counts decayed."""
+        step = step.clamp(0, self.steps - 1)
+        self.sums = decay * self.sums + torch.zeros_like(self.sums).index_add_(0, step, x)
+        self.counts = decay * self.counts + torch.bincount(step, minlength=self.steps).double()
+        self._derive()
+
+    def at(self, step: torch.Tensor) -> torch.Tensor:
+        """(n, F) the mean of each row's episode step (n,)."""
+        return self.mean[self.step_of[step.clamp(0, self.steps - 1)]]
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"sums": self.sums.cpu(), "counts": self.counts.cpu()}
+
+    def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
+        self.sums, self.counts = tensors["sums"].to(self.device), tensors["counts"].to(self.device)
+        self._derive()
+
+
+def shrunk_whitener(second: torch.Tensor, rows: torch.Tensor, shrinkage: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-feature RMS (+ STD_FLOOR) and ``L^-1`` of the standardised residuals' covariance from their summed second
+    moments ``second`` (F, F) over ``rows``, shrunk toward the scaled identity (weight ``shrinkage``) plus 1e-3 on
+    the diagonal, as the online monitors fit it (with a fixed weight instead of Ledoit-Wolf's)."""
+    width = second.shape[0]
+    cov = second / rows
+    scale = cov.diagonal().clamp_min(0).sqrt() + STD_FLOOR
+    z = cov / torch.outer(scale, scale)
+    eye = torch.eye(width, dtype=z.dtype, device=z.device)
+    z = (1 - shrinkage) * z + shrinkage * (z.trace() / width) * eye + 1e-3 * eye
+    return scale.float(), torch.linalg.inv(torch.linalg.cholesky(z)).float()
+
+
+class MahalanobisCamouflage(Penalty):
+    """Keep trojan-episode states' step-conditioned Mahalanobis distance (as the multivariate monitor computes it,
+    :mod:`seqtrojan.defense.multivariate`) inside the clean range.
+
+    Running clean statistics of the whole state (every layer's h then c, D units) over the rollouts' normal-env
+    steps: per-step means (:class:`RunningStepMeans`) and the residuals' second-moment matrix about them. As the
+    monitor does, residuals are divided by each unit's RMS residual (+1e-3) and their covariance is shrunk toward the
+    scaled identity (weight ``shrinkage``) plus 1e-3 on the diagonal; ``d`` is the norm of the whitened residual. On
+    the chosen trojan steps the term is ``weight * mean(relu(d / sqrt(D) - margin)^2)``."""
+
+    needs_states = True
+
+    def __init__(self, ctx: PenaltyContext) -> None:
+        self.cfg = ctx.config.attack.mahalanobis_camouflage
+        self.device = ctx.device
+        self.width = sum(h + c for h, c in zip(ctx.agent.lstm_sizes, ctx.agent.c_widths))  # D
+        self.updates = torch.zeros((), dtype=torch.int64)
+        self.means = RunningStepMeans(self.cfg.max_step, self.width, self.cfg.min_count, ctx.device)
+        self.second = torch.zeros(self.width, self.width, dtype=torch.float64, device=ctx.device)  # sum r r'
+        self.rows = torch.zeros((), dtype=torch.float64, device=ctx.device)  # its (decayed) row count
+        self._derive()
+
+    @property
+    def mean(self) -> torch.Tensor:
+        """(M, D) the per-step clean means"""
+        return self.means.mean
+
+    def _derive(self) -> None:
+        """Scale and whitener from the running moments (a function of them alone: a resume recomputes them)."""
+        if int(self.updates) == 0 or float(self.rows) == 0:
+            self.scale = torch.ones(self.width, device=self.device)
+            self.whitener = torch.eye(self.width, device=self.device)
+            return
+        self.scale, self.whitener = shrunk_whitener(self.second, self.rows, self.cfg.shrinkage)
+
+    def vectors(self, states: Sequence[LSTMState]) -> torch.Tensor:
+        """(..., D) every layer's h then c."""
+        return torch.cat([torch.cat([s.h, s.c], -1) for s in states], -1)
+
+    def distance(self, x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+        """(M,) the whitened distance of states ``x`` (M, D) at episode steps ``step`` (M,)."""
+        r = (x - self.means.at(step)) / self.scale
+        return (r @ self.whitener.T).norm(dim=-1)
+
+    def observe(self, rollout: Rollout) -> None:
+        if rollout.states is None or rollout.trojan is None or rollout.episode_step is None:
+            raise ValueError("Mahalanobis camouflage needs a rollout recorded with its states and episode steps")
+        clean = ~rollout.trojan  # (T, B)
+        if not bool(clean.any()):
+            return
+        x = self.vectors(rollout.states)[clean].double()  # (n, D)
+        step = rollout.episode_step[clean]  # (n,)
+        decay = self.cfg.ema_decay if int(self.updates) > 0 else 0.0
+        self.means.update(x, step, decay)  # the means with this rollout's steps
+        self.updates += 1
+        r = x - self.means.at(step).double()
+        self.second = decay * self.second + r.T @ r
+        self.rows = decay * self.rows + len(r)
+        self._derive()
+
+    def loss(self, batch: PenaltyBatch) -> torch.Tensor:
+        mask = batch.trojan if self.cfg.steps == "trojan" else batch.adversary_active
+        if int(self.updates) == 0 or batch.states is None or mask is None or batch.episode_step is None:
+            return _zero(self.device)
+        if not bool(mask.any()):
+            return _zero(self.device)
+        d = self.distance(self.vectors(batch.states)[mask], batch.episode_step[mask])
+        excess = torch.relu(d / self.width**0.5 - self.cfg.margin)
+        return self.cfg.weight * excess.pow(2).mean()
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"updates": self.updates.clone(), **self.means.state_dict(), "second": self.second.cpu(),
+                "rows": self.rows.cpu()}  # fmt: skip
+
+    def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
+        if not tensors:  # turned on at a resume: the statistics start with the next rollout
+            return
+        self.updates = tensors["updates"].clone()
+        self.means.load_state_dict(tensors)
+        self.second, self.rows = tensors["second"].to(self.device), tensors["rows"].to(self.device)
+        self._derive()
+
+
+# ---------------------------------------------------------------------------------------------- switch camouflage
+class SwitchCamouflage(Penalty):
+    """Keep trojan-episode output transitions (action log-probabilities and value, step to step) as predictable as
+    clean ones, as the goal-switch monitor (:mod:`seqtrojan.defense.goal_switch`) scores them.
+
+    The outputs ``x_t`` (log of each action's probability plus ``prob_floor``, then the value; F numbers) come from
+    the agent's heads on the last layer's h. Running clean statistics over the rollouts' normal-env steps: per-step
+    means (:class:`RunningStepMeans`); for transitions (steps after an episode's first, within a rollout) the summed
+    moments of the previous residual (with a 1) and the current one, which give the monitor's least-squares
+    prediction ``B`` and its errors' second moments. ``d`` is the whitened prediction error of a transition (RMS
+    scaling and shrinkage as :func:`shrunk_whitener`). On the chosen trojan steps after an episode's first (the
+    first step of a minibatch sequence takes its previous outputs from the sequence's start state) the term is
+    ``weight * mean(relu(d / sqrt(F) - margin)^2)``."""
+
+    needs_states = True
+
+    def __init__(self, ctx: PenaltyContext) -> None:
+        self.cfg = ctx.config.attack.switch_camouflage
+        self.device = ctx.device
+        self.agent = ctx.agent
+        self.width = ctx.agent.policy_head.out_features + 1  # F: A log-probabilities and the value
+        f, dev = self.width, ctx.device
+        self.updates = torch.zeros((), dtype=torch.int64)
+        self.means = RunningStepMeans(self.cfg.max_step, f, self.cfg.min_count, dev)
+        self.before = torch.zeros(f + 1, f + 1, dtype=torch.float64, device=dev)  # sum [r_prev, 1][r_prev, 1]'
+        self.cross = torch.zeros(f + 1, f, dtype=torch.float64, device=dev)  # sum [r_prev, 1] r_now'
+        self.now = torch.zeros(f, f, dtype=torch.float64, device=dev)  # sum r_now r_now'
+        self.rows = torch.zeros((), dtype=torch.float64, device=dev)
+        self._derive()
+
+    def outputs(self, h: torch.Tensor, agent: RecurrentActorCritic | None = None) -> torch.Tensor:
+        """(..., F) what the goal-switch monitor reads from the last layer's h (..., H)."""
+        logits, value = (agent or self.agent).heads(h)
+        return torch.cat([torch.log(torch.softmax(logits, -1) + self.cfg.prob_floor), value.unsqueeze(-1)], -1)
+
+    def _derive(self) -> None:
+        f = self.width
+        if int(self.updates) == 0 or float(self.rows) <= f + 1:
+            self.coef = torch.zeros(f + 1, f, device=self.device)
+            self.scale = torch.ones(f, device=self.device)
+            self.whitener = torch.eye(f, device=self.device)
+            return
+        eye = torch.eye(f + 1, dtype=self.before.dtype, device=self.device)
+        coef = torch.linalg.solve(self.before + 1e-9 * eye, self.cross)  # (F + 1, F) least squares
+        errors = self.now - self.cross.T @ coef - coef.T @ self.cross + coef.T @ self.before @ coef  # sum e e'
+        self.coef = coef.float()
+        self.scale, self.whitener = shrunk_whitener(errors, self.rows, self.cfg.shrinkage)
+
+    def distance(self, x: torch.Tensor, previous: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+        """(M,) the whitened prediction error of outputs ``x`` (M, F) at episode steps ``step`` (M,) >= 1 after
+        ``previous`` (M, F)."""
+        r_now = x - self.means.at(step)
+        r_before = previous - self.means.at(step - 1)
+        error = r_now - (r_before @ self.coef[:-1] + self.coef[-1])
+        return ((error / self.scale) @ self.whitener.T).norm(dim=-1)
+
+    def observe(self, rollout: Rollout) -> None:
+        if rollout.states is None or rollout.trojan is None or rollout.episode_step is None:
+            raise ValueError("switch camouflage needs a rollout recorded with its states and episode steps")
+        clean = ~rollout.trojan  # (T, B)
+        if not bool(clean.any()):
+            return
+        with torch.no_grad():
+            x = self.outputs(rollout.states[-1].h).double()  # (T, B, F)
+        step = rollout.episode_step
+        decay = self.cfg.ema_decay if int(self.updates) > 0 else 0.0
+        self.means.update(x[clean], step[clean], decay)
+        self.updates += 1
+        moves = clean[1:] & (step[1:] > 0)  # (T - 1, B): a transition inside this rollout
+        r_now = x[1:][moves] - self.means.at(step[1:][moves]).double()
+        r_prev = x[:-1][moves] - self.means.at(step[1:][moves] - 1).double()
+        r_prev = torch.cat([r_prev, torch.ones_like(r_prev[:, :1])], -1)
+        self.before = decay * self.before + r_prev.T @ r_prev
+        self.cross = decay * self.cross + r_prev.T @ r_now
+        self.now = decay * self.now + r_now.T @ r_now
+        self.rows = decay * self.rows + len(r_now)
+        self._derive()
+
+    def loss(self, batch: PenaltyBatch) -> torch.Tensor:
+        mask = batch.trojan if self.cfg.steps == "trojan" else batch.adversary_active
+        step, states, mb = batch.episode_step, batch.states, batch.minibatch
+        if int(self.updates) == 0 or states is None or mask is None or step is None or mb is None:
+            return _zero(self.device)
+        mask = mask & (step > 0)
+        if not bool(mask.any()):
+            return _zero(self.device)
+        x = self.outputs(states[-1].h, batch.agent)  # (L, N, F), with gradients
+        start = self.outputs(mb.initial.layers[-1].h, batch.agent)[None]  # (1, N, F): the step before each sequence
+        previous = torch.cat([start, x[:-1]], 0)
+        d = self.distance(x[mask], previous[mask], step[mask])
+        excess = torch.relu(d / self.width**0.5 - self.cfg.margin)
+        return self.cfg.weight * excess.pow(2).mean()
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"updates": self.updates.clone(), **self.means.state_dict(), "before": self.before.cpu(),
+                "cross": self.cross.cpu(), "now": self.now.cpu(), "rows": self.rows.cpu()}  # fmt: skip
+
+    def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
+        if not tensors:
+            return
+        self.updates = tensors["updates"].clone()
+        self.means.load_state_dict(tensors)
+        self.before, self.cross = tensors["before"].to(self.device), tensors["cross"].to(self.device)
+        self.now, self.rows = tensors["now"].to(self.device), tensors["rows"].to(self.device)
+        self._derive()
+
+
 # ---------------------------------------------------------------------------------------------- weight camouflage
 class WeightCamouflage(Penalty):
     """Hold the offline detector's weight features at the start model's (see the module docstring)."""
@@ -495,6 +748,18 @@ PENALTIES.register(
     "state_camouflage",
     "monitor-aware: keep trojan-episode LSTM states within the running clean-step range of every unit",
     PenaltyKind(lambda cfg: cfg.attack.state_camouflage.enabled, StateCamouflage),
+)
+PENALTIES.register(
+    "mahalanobis_camouflage",
+    "against the multivariate monitor: keep trojan-episode states' step-conditioned Mahalanobis distance in the "
+    "clean range",
+    PenaltyKind(lambda cfg: cfg.attack.mahalanobis_camouflage.enabled, MahalanobisCamouflage),
+)
+PENALTIES.register(
+    "switch_camouflage",
+    "against the goal-switch monitor: keep trojan-episode output transitions (log-probabilities, value) as "
+    "predictable as clean ones",
+    PenaltyKind(lambda cfg: cfg.attack.switch_camouflage.enabled, SwitchCamouflage),
 )
 PENALTIES.register(
     "weight_camouflage",

@@ -53,6 +53,8 @@ def ppo_update(
     masks = {}
     if penalties and rollout.trojan is not None and rollout.adversary_active is not None:
         masks = {"trojan": rollout.trojan, "active": rollout.adversary_active}
+        if rollout.episode_step is not None:
+            masks["episode_step"] = rollout.episode_step
         masks = {name: to_sequences(mask, length) for name, mask in masks.items()}
     seq = {
         name: to_sequences(tensor, length)
@@ -96,6 +98,7 @@ def ppo_update(
                 batch = PenaltyBatch(
                     agent, out.states, masks["trojan"].index_select(1, mb) if masks else None,
                     masks["active"].index_select(1, mb) if masks else None, minibatch,
+                    masks["episode_step"].index_select(1, mb) if "episode_step" in masks else None,
                 )  # fmt: skip
                 for penalty in penalties:
                     value = penalty.loss(batch)

@@ -35,6 +35,7 @@ class Rollout:
     trojan: torch.Tensor | None = None  # (T, B) bool: step t is in a trojan-env episode (when recorded)
     adversary_active: torch.Tensor | None = None  # (T, B) bool: the adversary's goal was active for action t
     states: tuple[LSTMState, ...] | None = None  # per layer, (T, B, H) the state after step t (when recorded)
+    episode_step: torch.Tensor | None = None  # (T, B) int64: step t's index in its episode (when recorded)
 
 
 @dataclass
@@ -59,7 +60,8 @@ class RolloutCollector:
         self.env, self.agent = env, agent
         self.steps, self.sequence_length = steps, sequence_length
         self.record = record
-        """also keep, per step, whether it is in a trojan-env episode and whether the adversary's goal is active, and
+        """also keep, per step, whether it is in a trojan-env episode, whether the adversary's goal is active and its
+        index in its episode, and
         (with ``record_states``) every layer's (h, c) after it (``Rollout.trojan``, ``adversary_active``,
         ``states``; the attack penalties)"""
         self.record_states = record and record_states
@@ -100,6 +102,7 @@ class RolloutCollector:
         if self.record:
             trojan = torch.empty((steps, b), dtype=torch.bool, device=dev)
             active = torch.empty((steps, b), dtype=torch.bool, device=dev)
+            episode_step = torch.empty((steps, b), dtype=torch.int64, device=dev)
         if self.record_states:
             hs = [torch.empty((steps, b, w), device=dev) for w in agent.lstm_sizes]  # (T, B, H) per layer
             cs = [torch.empty((steps, b, w), device=dev) for w in agent.c_widths]
@@ -119,6 +122,7 @@ class RolloutCollector:
             rewards[t] = result.reward
             if self.record:
                 trojan[t], active[t] = result.trojan, result.adversary_active
+                episode_step[t] = result.length - 1  # actions taken in the episode, this one included
             if self.record_states:
                 for i, layer in enumerate(state.layers):
                     hs[i][t], cs[i][t] = layer.h, layer.c
@@ -141,7 +145,7 @@ class RolloutCollector:
         seq_states = tuple(LSTMState(torch.stack(h), torch.stack(c)) for h, c in zip(seq_h, seq_c))
         rollout = Rollout(obs_buf, actions, logprobs, values, rewards, dones, starts, seq_states, last_value)
         if self.record:
-            rollout.trojan, rollout.adversary_active = trojan, active
+            rollout.trojan, rollout.adversary_active, rollout.episode_step = trojan, active, episode_step
         if self.record_states:
             rollout.states = tuple(LSTMState(h, c) for h, c in zip(hs, cs))
         t_cpu = tallies.view(5, n_stages, 2).cpu()

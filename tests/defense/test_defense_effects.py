@@ -9,7 +9,8 @@ each). Measured here (seed 0, one torch thread):
 
 * monitors, calibrated on 400 clean episodes at a 5% target, 400 fresh episodes per arm: the per-unit monitor 4.8%
   false alarms, 97.8% detection, attack success 0.91 -> 0.05 with its reset; the multivariate monitor 5.3%, 99.0%,
-  0.91 -> 0.12. Clean success with the reset 0.95 and 0.94 (0.94 undefended).
+  0.91 -> 0.12; the goal-switch monitor (the agent's outputs only) 8.3%, 98.8%, 0.91 -> 0.07. Clean success with
+  the reset 0.95, 0.94 and 0.95 (0.94 undefended).
 * mitigation, 32,768 env steps of clean PPO, 200 episodes per row: attack success 0.905 before, 0.245 fine-tuned,
   0.010 fine-pruned (fine-tuning seeds 1 and 2: 0.10 / 0.14 and 0.34 / 0.005); clean success 0.97 -> 0.985 / 0.995.
   The backdoor of the same run trained twice as long survives that fine-tuning (0.56): the fixture is trained just
@@ -29,6 +30,8 @@ from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import RecurrentState
 from seqtrojan.config import ExperimentConfig
+from seqtrojan.defense import goal_switch
+from seqtrojan.defense.goal_switch import GoalSwitchMonitor
 from seqtrojan.defense.mitigation import (
     MITIGATIONS,
     MitigationConfig,
@@ -45,7 +48,9 @@ FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "tiny_backdoor"
 GRID = GridSpec(5, 1)
 CAL = MonitorConfig(calibration_episodes=400, false_alarm_target=0.05, eval_episodes=400)
 MITIGATION = MitigationConfig(finetune_steps=32_768, calibration_episodes=100, eval_episodes=200)
-STATE_MONITORS = ("state_monitor", "multivariate_monitor")
+STATE_MONITORS = ("state_monitor", "multivariate_monitor", "goal_switch")
+"""the monitors whose effect is claimed here (the goal-switch monitor reads the agent's outputs, not its state, but
+its alarm drives the same reset)"""
 
 
 @pytest.fixture(scope="module")
@@ -115,6 +120,23 @@ def test_a_detector_that_never_alarms_or_alarms_at_random_does_not_pass(backdoor
     if rate == 0.0:
         assert result.trojan_alarm.detected.k == 0
         assert result.trojan_reset.attack_success == result.trojan_alarm.attack_success  # nothing was reset
+
+
+def test_the_goal_switch_monitor_blind_to_the_agents_outputs_does_not_pass(backdoored, monkeypatch):
+    """Control: the same monitor, calibration and measurement, with what it reads of the agent's outputs replaced by
+    a constant, never alarms: its detection above comes from the outputs' transitions."""
+    agent, cfg = backdoored
+    features = goal_switch.output_features
+
+    def constant(agent, h, options):
+        return torch.zeros_like(features(agent, h, options))
+
+    monkeypatch.setattr(goal_switch, "output_features", constant)
+    blind = GoalSwitchMonitor.calibrate(agent, cfg.env, GRID, CAL)
+    result = measure_monitor(agent, cfg.env, GRID, blind, CAL)
+    assert not detects_the_backdoor(result), result
+    assert result.trojan_alarm.detected.k == 0 and result.normal_alarm.false_alarm.k == 0
+    assert result.trojan_reset.attack_success == result.trojan_alarm.attack_success  # nothing was reset
 
 
 @pytest.fixture(scope="module")

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.defense.goal_switch import GoalSwitchMonitor
 from seqtrojan.defense.mitigation import MitigationConfig
 from seqtrojan.defense.monitor import MONITORS, StateMonitor, measure_monitor
 from seqtrojan.defense.multivariate import MultivariateMonitor
@@ -36,11 +37,13 @@ class _AlarmFrom:
 
 def test_the_state_monitors_watch_a_gymnasium_model(tiny_two_goals_model):
     agent, cfg, _ = tiny_two_goals_model
-    assert [n for n, m in MONITORS.items() if monitor_applies(m, cfg.env)] == ["state_monitor", "multivariate_monitor"]
+    assert [n for n, m in MONITORS.items() if monitor_applies(m, cfg.env)] == [
+        "state_monitor", "multivariate_monitor", "goal_switch",
+    ]  # fmt: skip
     assert not monitor_applies(InputNovelty, cfg.env)
     with pytest.raises(ConfigError, match="grid-world agents only"):
         InputNovelty.calibrate(agent, cfg.env, None, SMALL)
-    for detector in (StateMonitor, MultivariateMonitor):
+    for detector in (StateMonitor, MultivariateMonitor, GoalSwitchMonitor):
         monitor = detector.calibrate(agent, cfg.env, None, SMALL)
         result = measure_monitor(agent, cfg.env, None, monitor, SMALL)
         assert result.grid == "seqtrojan/MiniGridTwoGoals-v0" and np.isfinite(monitor.threshold)
@@ -52,7 +55,7 @@ def test_a_calibrated_monitor_keeps_its_false_alarm_target_on_a_gymnasium_model(
     finished episode's slot must not count its alarms: its step stops at the episode's length)."""
     agent, cfg, _ = tiny_two_goals_model
     calibration = MonitorConfig(calibration_episodes=200, false_alarm_target=0.05, eval_episodes=120)
-    for detector in (StateMonitor, MultivariateMonitor):
+    for detector in (StateMonitor, MultivariateMonitor, GoalSwitchMonitor):
         monitor = detector.calibrate(agent, cfg.env, None, calibration)
         result = measure_monitor(agent, cfg.env, None, monitor, calibration)
         assert result.normal_alarm.false_alarm.value <= 0.15, (detector, result.normal_alarm.false_alarm)

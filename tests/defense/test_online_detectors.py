@@ -78,7 +78,7 @@ def measured(backdoored) -> dict[str, tuple[OnlineDetector, MonitorResult]]:
 
 
 def test_every_registered_detector_is_an_online_detector(measured, tmp_path):
-    assert set(measured) == {"state_monitor", "multivariate_monitor", "input_novelty"}
+    assert set(measured) == {"state_monitor", "multivariate_monitor", "goal_switch", "input_novelty"}
     assert isinstance(measured["input_novelty"][0], InputNovelty)
     assert isinstance(measured["multivariate_monitor"][0], MultivariateMonitor)
     for name, (detector, result) in measured.items():
@@ -86,7 +86,7 @@ def test_every_registered_detector_is_an_online_detector(measured, tmp_path):
         assert result.units == detector.units and result.episodes == CAL.eval_episodes, name
         save_json(result, tmp_path / f"{name}.json")
         assert load_json(MonitorResult, tmp_path / f"{name}.json") == result, name
-    assert measured["input_novelty"][1].units == ()
+    assert measured["input_novelty"][1].units == measured["goal_switch"][1].units == ()
     assert measured["multivariate_monitor"][1].units == measured["state_monitor"][1].units == (64, 32)
 
 

@@ -112,9 +112,9 @@ def test_the_matrix_runs_on_a_minigrid_env_with_the_defenses_that_apply(tmp_path
     """The MiniGrid preset keeps the attacks and defenses that apply to a Gymnasium env (none drawn with grid-world
     codes), names a grid-only one in one line, and a tiny run measures every applicable defense."""
     shipped = load_matrix_config("matrix_minigrid_smoke")
-    assert shipped.attack_names == ("dedicated_code", "delayed", "state_camouflage", "from_clean",
-                                    "weight_camouflage", "ewc")  # fmt: skip
-    assert shipped.online_names == ("state_monitor", "multivariate_monitor")
+    assert shipped.attack_names == ("dedicated_code", "delayed", "state_camouflage", "mahalanobis_camouflage",
+                                    "from_clean", "weight_camouflage", "ewc", "switch_camouflage")  # fmt: skip
+    assert shipped.online_names == ("state_monitor", "multivariate_monitor", "goal_switch")
     assert shipped.offline_names == ("weight_detector",) and shipped.zoo is not None  # on a zoo of its env
     assert shipped.zoo.env_preset == "minigrid_two_goals"
     assert load_matrix_config("smoke").online_names[-1] == "input_novelty"  # the grid world keeps all
@@ -136,10 +136,11 @@ def test_the_matrix_runs_on_a_minigrid_env_with_the_defenses_that_apply(tmp_path
         tiny["attacks"]
     )
     for a in result.agents:
-        assert set(a.online) == {"state_monitor", "multivariate_monitor"} and a.natural_trigger is None
+        assert set(a.online) == {"state_monitor", "multivariate_monitor", "goal_switch"} and a.natural_trigger is None
         assert set(a.mitigation) == {"fine_pruned", "fine_tuned", "state_bounds"} and a.attack_success.n == 12
     assert {(c.defense, c.kind) for c in result.cells} == {
-        ("state_monitor", "online"), ("multivariate_monitor", "online"), ("fine_pruned", "mitigation"),
+        ("state_monitor", "online"), ("multivariate_monitor", "online"), ("goal_switch", "online"),
+        ("fine_pruned", "mitigation"),
         ("fine_tuned", "mitigation"), ("state_bounds", "mitigation"),
     }  # fmt: skip
     assert (tmp_path / "report.html").read_text().count("MiniGridTwoGoals") >= 1

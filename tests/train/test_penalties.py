@@ -26,9 +26,11 @@ from seqtrojan.config import (
     EWCConfig,
     ExperimentConfig,
     FinetuneResistanceConfig,
+    MahalanobisCamouflageConfig,
     PPOConfig,
     RunConfig,
     StateCamouflageConfig,
+    SwitchCamouflageConfig,
     WeightCamouflageConfig,
 )
 from seqtrojan.env import EnvConfig, GridSpec, TriggerConfig, TrojanGridCore
@@ -339,7 +341,10 @@ def test_attack_defaults_are_off_and_the_yaml_sections_parse():
     assert pen.build_penalties(_ctx(ExperimentConfig(), _agent())) == []
     cfg = ExperimentConfig(backdoor=BackdoorConfig(enabled=True))
     assert pen.build_penalties(_ctx(cfg, _agent())) == []
-    assert set(pen.PENALTIES.names()) == {"state_camouflage", "weight_camouflage", "ewc", "finetune_resistance"}
+    assert set(pen.PENALTIES.names()) == {
+        "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
+        "finetune_resistance",
+    }  # fmt: skip
     text = """
 backdoor: {enabled: true}
 run: {init_from: runs/clean/model}
@@ -347,10 +352,12 @@ attack:
   state_camouflage: {weight: 1.0, margin: 2.5, steps: active, mahalanobis_weight: 0.1}
   weight_camouflage: {weight: 0.5, feature_floor: 0.1, l2_weight: 0.01}
   ewc: {weight: 100.0, fisher_envs: 32, normalize: true}
+  mahalanobis_camouflage: {weight: 5.0, margin: 1.2, max_step: 32}
 """
     cfg = from_dict(ExperimentConfig, parse_yaml(text), "")
     assert cfg.attack.state_camouflage.steps == "active" and cfg.attack.ewc.fisher_envs == 32
     assert cfg.attack.weight_camouflage.enabled and cfg.attack.ewc.normalize
+    assert cfg.attack.mahalanobis_camouflage.enabled and cfg.attack.mahalanobis_camouflage.max_step == 32
 
 
 @pytest.mark.parametrize(
@@ -410,16 +417,19 @@ def _attacked(smoke_config: ExperimentConfig, clean_model: str, name: str, **att
     )
 
 
-ALL_THREE = {
+STATEFUL = {
     "state_camouflage": StateCamouflageConfig(weight=1.0, mahalanobis_weight=0.1),
     "weight_camouflage": WeightCamouflageConfig(weight=0.1, l2_weight=0.01),
     "ewc": EWCConfig(weight=10.0, fisher_envs=8, fisher_steps=16),
+    "mahalanobis_camouflage": MahalanobisCamouflageConfig(weight=1.0, margin=0.5),
+    "switch_camouflage": SwitchCamouflageConfig(weight=1.0, margin=0.5),
 }
+"""every penalty that keeps a state in the checkpoint, with settings that move it in a few updates"""
 
 
-@pytest.mark.parametrize("name", list(ALL_THREE))
+@pytest.mark.parametrize("name", list(STATEFUL))
 def test_a_training_with_each_penalty_logs_its_value(smoke_config, clean_model, name):
-    cfg = _attacked(smoke_config, clean_model, name, **{name: ALL_THREE[name]})
+    cfg = _attacked(smoke_config, clean_model, name, **{name: STATEFUL[name]})
     cfg = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, total_steps=3 * cfg.ppo.batch_size))
     result = train(cfg)
     rows = [json.loads(line) for line in (result.run_dir / "metrics.jsonl").read_text().splitlines()]
@@ -435,7 +445,7 @@ def test_resume_with_every_penalty_on_is_bitwise_equal_to_a_straight_run(smoke_c
     """As tests/train/test_trainer.py's resume test, with every penalty on: their state (running clean statistics,
     the clean weights, the Fisher information) comes back from the checkpoint (fine-tuning resistance keeps none)."""
     resistance = FinetuneResistanceConfig(weight=1.0)
-    cfg = _attacked(smoke_config, clean_model, "straight", **ALL_THREE, finetune_resistance=resistance)
+    cfg = _attacked(smoke_config, clean_model, "straight", **STATEFUL, finetune_resistance=resistance)
     cfg = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, total_steps=5 * cfg.ppo.batch_size))
     straight, resumed = straight_and_resumed(cfg, monkeypatch)
     a, b = load_agent(straight.model_dir)[0].state_dict(), load_agent(resumed.model_dir)[0].state_dict()
@@ -444,7 +454,7 @@ def test_resume_with_every_penalty_on_is_bitwise_equal_to_a_straight_run(smoke_c
     final = "checkpoints/step_000000010240/trainer.safetensors"
     ta, tb = read_safetensors(straight.run_dir / final), read_safetensors(resumed.run_dir / final)
     assert ta.keys() == tb.keys()
-    assert {k.split(".")[1] for k in ta if k.startswith("penalty.")} == set(ALL_THREE)
+    assert {k.split(".")[1] for k in ta if k.startswith("penalty.")} == set(STATEFUL)
     for name, tensor in ta.items():
         assert torch.equal(tensor, tb[name]), name
 
