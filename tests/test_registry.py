@@ -8,6 +8,7 @@ import torch
 
 from seqtrojan import registry as registry_module
 from seqtrojan.agent.checkpoint import build_agent
+from seqtrojan.benchmark.detectors import DETECTORS as BENCHMARK_DETECTORS
 from seqtrojan.cli import main
 from seqtrojan.config import AgentConfig, BackdoorConfig, ExperimentConfig
 from seqtrojan.defense.mitigation import MITIGATIONS, MitigationConfig, MitigationContext, run_mitigation
@@ -152,7 +153,7 @@ def test_a_mitigation_that_returns_a_taken_row_name_is_refused(tmp_path, monkeyp
     ("command", "registered"),
     [
         ("attacks", (ATTACKS, TRIGGERS, MIXING_RULES, REWARDS, PENALTIES)),
-        ("defenses", (MONITORS, DETECTORS, MITIGATIONS)),
+        ("defenses", (MONITORS, DETECTORS, BENCHMARK_DETECTORS, MITIGATIONS)),
     ],
 )
 def test_the_listing_commands_print_every_registered_name(capsys, command, registered):
