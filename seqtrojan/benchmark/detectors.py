@@ -54,7 +54,7 @@ class Detector(Protocol):
         ...
 
 
-DETECTORS: Registry[Detector] = Registry("defense", "benchmark detector")
+DETECTORS: Registry[Detector] = Registry("defense", "benchmark_detector")
 """Detectors scored by the benchmark's leaderboard (``seqtrojan zoo detect --out``)."""
 
 
