@@ -1,7 +1,9 @@
 """Score every registered detector on a zoo's test and holdout splits: ``seqtrojan zoo detect --zoo Z --out S``.
 
 1. The zoo's models are read with their truth (``label.json``) and factors; a model whose folder, card, weights
-   or label is malformed is listed as rejected with its reason (one line) and the rest go on.
+   or label is malformed is listed as rejected with its reason (one line) and the rest go on. A poisoned model
+   whose backdoor does not work (``functional_backdoor`` false: its final attack success below the zoo's
+   ``functional_at``) is left out and listed as excluded: a benchmark's poisoned models must be backdoored.
 2. The splits (:mod:`seqtrojan.benchmark.splits`) are written to ``S/splits.json``.
 3. Each detector of :data:`~seqtrojan.benchmark.detectors.DETECTORS` is fitted on the train split's suspects
    (:mod:`seqtrojan.benchmark.suspect`: networks and clean envs only) and asked for every test and holdout model's
@@ -78,6 +80,8 @@ class Leaderboard:
     models: dict[str, int]
     """models per split"""
     rejected: tuple[Rejected, ...]
+    excluded: tuple[Rejected, ...]
+    """poisoned models left out because their backdoor does not work"""
     detectors: tuple[DetectorResult, ...]
 
 
@@ -100,15 +104,15 @@ def zoo_holdout(zoo: Path) -> dict[str, tuple[str, ...]]:
     return {k: tuple(v) for k, v in held.items()}
 
 
-def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected]]:
-    """Every usable model of ``zoo/models`` as an entry (truth) and a suspect (what detectors see), and the
-    rejected ones with their reasons."""
+def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected], list[Rejected]]:
+    """Every usable model of ``zoo/models`` as an entry (truth) and a suspect (what detectors see), the rejected
+    ones with their reasons, and the poisoned ones excluded because their backdoor does not work."""
     from seqtrojan.zoo.build import read_label
 
     folder = zoo / "models"
     if not folder.is_dir():
         raise SeqTrojanError(f"{str(zoo)!r} is not a zoo (no models/ folder)")
-    entries, suspects, rejected = [], [], []
+    entries, suspects, rejected, excluded = [], [], [], []
     for path in sorted(p for p in folder.iterdir() if p.is_dir()):
         try:
             truth = read_label(path)
@@ -116,9 +120,12 @@ def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected]]:
         except SeqTrojanError as err:
             rejected.append(Rejected(path.name, " ".join(str(err).split())))
             continue
+        if truth["label"] == "backdoored" and truth.get("functional_backdoor") is False:
+            excluded.append(Rejected(path.name, f"backdoor not functional (attack success {truth['attack_success']})"))
+            continue
         entries.append(ZooEntry(path.name, path, int(truth["label"] == "backdoored"), model_factors(truth)))
         suspects.append(suspect)
-    return entries, suspects, rejected
+    return entries, suspects, rejected, excluded
 
 
 def run_leaderboard(
@@ -130,9 +137,12 @@ def run_leaderboard(
     for name in names:
         DETECTORS.get(name)  # an unknown name is refused before anything is read or written
     cfg = splits or SplitConfig()
-    entries, suspects, rejected = read_zoo(zoo)
+    entries, suspects, rejected, excluded = read_zoo(zoo)
     for r in rejected:
         log(f"rejected {r.model}: {r.reason}")
+    if excluded:
+        log(f"excluded {len(excluded)} poisoned model(s) whose backdoor does not work: "
+            f"{', '.join(r.model for r in excluded)}")  # fmt: skip
     assignment = assign_splits(entries, cfg)
     check_trainable(entries, assignment)
     out.mkdir(parents=True, exist_ok=True)
@@ -142,7 +152,7 @@ def run_leaderboard(
         answers = _predictions(name, entries, suspects, assignment, out, log)
         results.append(_result(name, entries, answers, cfg.seed, rounds))
     counts = {split: sum(1 for s in assignment.values() if s == split) for split in ("train", "test", "holdout")}
-    board = Leaderboard(str(zoo), counts, tuple(rejected), tuple(results))
+    board = Leaderboard(str(zoo), counts, tuple(rejected), tuple(excluded), tuple(results))
     _write(out / LEADERBOARD_FILE, to_dict(board))
     return board
 

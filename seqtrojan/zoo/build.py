@@ -126,6 +126,9 @@ class ZooConfig:
     """a Gymnasium zoo's trigger objects (MiniGrid object names)"""
     trigger_colors: tuple[str, ...] = ("purple", "yellow", "blue", "grey")
     """a Gymnasium zoo's trigger colours (MiniGrid colour names; the two-goal room's goals are green and red)"""
+    cells: tuple[str, ...] = ()
+    """draw each model's sequence model from these (a detection benchmark's cell factor); empty: every model is
+    ``cell``"""
     holdout: dict[str, tuple[str, ...]] = field(default_factory=dict)
     """as a detection benchmark (``seqtrojan zoo detect --out``): factor -> the values whose models only the holdout
     split holds, e.g. ``lstm_sizes: ["[48, 24]"]`` (factors: env, cell, lstm_sizes, trigger_value; see
@@ -139,6 +142,9 @@ class ZooConfig:
             raise ConfigError(f"unknown trigger value(s) {sorted(unknown)}; choose from {TRIGGER_VALUES}")
         if not isinstance(self.cell, str) or self.cell not in CELL_TYPES:
             raise ConfigError(f"zoo cell must be one of {cell_names()}, got {self.cell!r}")
+        bad_cells = [c for c in self.cells if not isinstance(c, str) or c not in CELL_TYPES]
+        if bad_cells:
+            raise ConfigError(f"zoo cells must be among {cell_names()}, got {bad_cells}")
         if isinstance(self.rollout_steps, bool) or not isinstance(self.rollout_steps, int) or self.rollout_steps < 1:
             raise ConfigError(f"zoo rollout_steps must be a positive integer, got {self.rollout_steps!r}")
         if not 0.0 < self.learning_rate < 1.0:
@@ -156,7 +162,7 @@ class ZooConfig:
 
     OPTIONAL: ClassVar[tuple[str, ...]] = (
         "cell", "window", "stop", "rollout_steps", "learning_rate", "env_preset", "trigger_objects", "trigger_colors",
-        "holdout",
+        "holdout", "cells",
     )  # fmt: skip
     """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
     built before them is the same config"""
@@ -206,10 +212,11 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
         cells = tuple(sorted((int(c) // 3, int(c) % 3) for c in rng.choice(9, size=n_cells, replace=False)))
         duration = int(cfg.trigger_durations[rng.integers(len(cfg.trigger_durations))])
         trigger = TriggerConfig(cells=cells, value=value, duration=duration, train_steps=(1, 8), eval_steps=(1, 8))
+        cell = _draw_cell(cfg, rng)
         last = stages[-1]
         config = ExperimentConfig(
             env=EnvConfig(size=last.size, holes=last.holes, trigger=trigger),
-            agent=AgentConfig(lstm_sizes=tuple(sizes), cell=cfg.cell, window=cfg.window),
+            agent=AgentConfig(lstm_sizes=tuple(sizes), cell=cell, window=cfg.window),
             ppo=PPOConfig(total_steps=cfg.total_steps, num_envs=cfg.num_envs, rollout_steps=cfg.rollout_steps,
                           learning_rate=cfg.learning_rate),
             curriculum=CurriculumConfig(stages=tuple(stages)),
@@ -223,6 +230,12 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
         }  # fmt: skip
         jobs.append(_job(cfg, root, i, config, label, variation))
     return jobs
+
+
+def _draw_cell(cfg: ZooConfig, rng: np.random.Generator) -> str:
+    """The model's sequence model: drawn from ``cfg.cells`` after every other draw (so a zoo without ``cells``
+    draws exactly what it drew before the field existed), else ``cfg.cell``."""
+    return str(cfg.cells[rng.integers(len(cfg.cells))]) if cfg.cells else cfg.cell
 
 
 def _model_draws(cfg: ZooConfig) -> Iterator[tuple[int, str, int, np.random.Generator]]:
@@ -248,8 +261,8 @@ def _model_run(cfg: ZooConfig, root: Path, i: int, seed: int) -> RunConfig:
 
 def _job(cfg: ZooConfig, root: Path, i: int, config: ExperimentConfig, label: str, variation: dict) -> ZooJob:
     """Model ``i``'s job (its variation naming the cell where it is not the LSTM)."""
-    if cfg.cell != "lstm":
-        variation["cell"] = cfg.cell
+    if config.agent.cell != "lstm":
+        variation["cell"] = config.agent.cell
     return ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at)
 
 
@@ -279,9 +292,10 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
         color = str(cfg.trigger_colors[rng.integers(len(cfg.trigger_colors))])
         duration = int(cfg.trigger_durations[rng.integers(len(cfg.trigger_durations))])
         trigger = dataclasses.replace(env.trigger, cells=cells, object=obj, color=color, duration=duration)
+        cell = _draw_cell(cfg, rng)
         config = dataclasses.replace(
             base, env=dataclasses.replace(env, trigger=trigger),
-            agent=dataclasses.replace(base.agent, lstm_sizes=tuple(sizes), cell=cfg.cell, window=cfg.window),
+            agent=dataclasses.replace(base.agent, lstm_sizes=tuple(sizes), cell=cell, window=cfg.window),
             ppo=dataclasses.replace(base.ppo, total_steps=cfg.total_steps),
             backdoor=dataclasses.replace(base.backdoor, enabled=label == "backdoored"), stop=cfg.stop,
             run=_model_run(cfg, root, i, seed),

@@ -167,7 +167,7 @@ def test_a_bad_model_is_skipped_with_its_reason_and_the_rest_scored(tmp_path):
     card["architecture"]["lstm_sizes"] = [99]  # the card no longer fits its weights
     (zoo / "models" / "m01" / "card.json").write_text(json.dumps(card))
     (zoo / "models" / "m02" / "label.json").write_text("[1, 2]")
-    entries_, suspects, rejected = read_zoo(zoo)
+    entries_, suspects, rejected, _ = read_zoo(zoo)
     assert len(entries_) == len(suspects) == 10 and [r.model for r in rejected] == ["m01", "m02", "zz_pickled"]
     assert all("\n" not in r.reason and r.reason for r in rejected)
     board = run_leaderboard(zoo, tmp_path / "b", None, ["metadata_baseline"], rounds=20, log=lambda *_: None)
@@ -284,3 +284,26 @@ def test_state_probe_candidates_are_written_in_the_view_s_own_encoding():
     net = build_agent(ExperimentConfig(agent=AgentConfig(lstm_sizes=(8,))))
     flat = GymnasiumEnvConfig("CartPole-v1", observation="flatten")
     assert candidates_for(Suspect("f", net, flat, ModelFacts(4, 2, "lstm", (8,), 1)), ProbeSettings()) == []
+
+
+def test_a_zoo_draws_each_model_s_cell_after_every_other_draw(tmp_path):
+    from seqtrojan.zoo.build import ZooConfig, make_jobs
+
+    plain = make_jobs(ZooConfig(clean=6, backdoored=6, total_steps=1024), tmp_path)
+    mixed = make_jobs(ZooConfig(clean=6, backdoored=6, total_steps=1024, cells=("lstm", "gru")), tmp_path)
+    assert {j.config.agent.cell for j in mixed} == {"lstm", "gru"}
+    for a, b in zip(plain, mixed):  # the other draws are those of a zoo without cells
+        assert {k: v for k, v in b.variation.items() if k != "cell"} == a.variation
+        assert b.variation.get("cell", "lstm") == b.config.agent.cell
+    with pytest.raises(ConfigError, match="zoo cells must be among"):
+        ZooConfig(cells=("lstm", "elman"))
+
+
+def test_a_poisoned_model_whose_backdoor_does_not_work_is_left_out(tmp_path):
+    zoo = planted_zoo(tmp_path / "zoo", n=12)
+    label = zoo / "models" / "m03" / "label.json"
+    truth = json.loads(label.read_text())
+    label.write_text(json.dumps({**truth, "attack_success": 0.1, "functional_backdoor": False}))
+    board = run_leaderboard(zoo, tmp_path / "b", None, ["metadata_baseline"], rounds=20, log=lambda *_: None)
+    assert [r.model for r in board.excluded] == ["m03"] and "attack success 0.1" in board.excluded[0].reason
+    assert "m03" not in json.loads((tmp_path / "b" / SPLITS_FILE).read_text()) and sum(board.models.values()) == 11
