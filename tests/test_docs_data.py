@@ -108,3 +108,18 @@ def test_the_state_probe_ranges_in_the_docs_are_the_data():
             digits = 3 if feature == "divergence_max" else 2
             shown = f"{min(values):.{digits}f}-{max(values):.{digits}f}"
             assert shown in text, f"docs/benchmark.md lacks the {label} models' {feature} range {shown}"
+
+
+LEADERBOARD_TABLES = [("benchmark/leaderboard_smoke_300k.json", "benchmark.md")]
+"""a leaderboard and the page holding its table as ``scripts/leaderboard_markdown.py`` prints it"""
+
+
+@pytest.mark.parametrize(("data", "page"), LEADERBOARD_TABLES)
+def test_leaderboard_tables_printed_by_the_script_are_in_the_docs(data, page):
+    printed = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "leaderboard_markdown.py"), str(DATA / data)],
+        capture_output=True, text=True, check=True, cwd=ROOT,
+    ).stdout  # fmt: skip
+    text = (ROOT / "docs" / page).read_text()
+    missing = [line for line in printed.splitlines() if line not in text]
+    assert len(printed.splitlines()) > 4 and not missing, f"docs/{page} lacks {missing[:1]} of {data}"
