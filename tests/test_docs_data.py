@@ -110,7 +110,10 @@ def test_the_state_probe_ranges_in_the_docs_are_the_data():
             assert shown in text, f"docs/benchmark.md lacks the {label} models' {feature} range {shown}"
 
 
-LEADERBOARD_TABLES = [("benchmark/leaderboard_smoke_300k.json", "benchmark.md")]
+LEADERBOARD_TABLES = [
+    ("benchmark/leaderboard_smoke.json", "benchmark.md"),
+    ("benchmark/leaderboard_smoke_300k.json", "benchmark.md"),
+]
 """a leaderboard and the page holding its table as ``scripts/leaderboard_markdown.py`` prints it"""
 
 
