@@ -573,6 +573,8 @@ def _zoo(argv: list[str]) -> None:
         trigger_value=wall; factors: env, cell, lstm_sizes, trigger_value"""
         detectors: tuple[str, ...] = ()
         """the benchmark detectors to score (--out; default: every registered one)"""
+        budget_s: float | None = None
+        """seconds a detector may take per model (--out); a slower answer counts as one half. None: no limit"""
 
     if not argv or argv[0] not in ("build", "detect"):
         print("usage: seqtrojan zoo {build,detect} [options]   (seqtrojan zoo build --help)", file=sys.stderr)
@@ -585,7 +587,7 @@ def _zoo(argv: list[str]) -> None:
         return
     args = _cli(ZooDetect, argv[1:], "seqtrojan zoo detect")
     if args.out is not None:
-        _zoo_leaderboard(args.zoo, args.out, args.seed, args.test_share, args.holdout, args.detectors)
+        _zoo_leaderboard(args.zoo, args.out, args.seed, args.test_share, args.holdout, args.detectors, args.budget_s)
         return
     result = detect_zoo(args.zoo, args.folds, args.seed)
     save_json(result, args.zoo / DETECTION_FILE)
@@ -605,8 +607,9 @@ def _zoo(argv: list[str]) -> None:
 
 
 def _zoo_leaderboard(
-    zoo: Path, out: Path, seed: int, test_share: float, holdout: tuple[str, ...], detectors: tuple[str, ...]
-) -> None:
+    zoo: Path, out: Path, seed: int, test_share: float, holdout: tuple[str, ...], detectors: tuple[str, ...],
+    budget_s: float | None,
+) -> None:  # fmt: skip
     from seqtrojan.benchmark.leaderboard import LEADERBOARD_FILE, run_leaderboard, zoo_holdout
     from seqtrojan.benchmark.splits import SplitConfig
 
@@ -619,7 +622,7 @@ def _zoo_leaderboard(
             raise ConfigError(f"--holdout takes FACTOR=VALUE pairs, got {pair!r}")
         held.setdefault(factor.strip(), []).append(value.strip())
     splits = SplitConfig(test_share, {k: tuple(v) for k, v in held.items()}, seed=seed)
-    board = run_leaderboard(zoo, out, splits, detectors or None)
+    board = run_leaderboard(zoo, out, splits, detectors or None, budget_s=budget_s)
     print(f"benchmark leaderboard on {zoo}: train {board.models['train']}, test {board.models['test']}, holdout "
           f"{board.models['holdout']} models; ROC-AUC with Newcombe's interval, cross-entropy and Brier with 95% "
           "bootstrap intervals over models (the bootstrap's AUC interval is in leaderboard.json)")  # fmt: skip
@@ -641,6 +644,9 @@ def _zoo_leaderboard(
                 f"{short(sc.roc_auc_newcombe):<20}  {short(sc.cross_entropy):<20}  {short(sc.brier):<20}  "
                 f"{1000 * (sc.runtime_s.value or 0.0):.1f}"
             )
+    for d in board.detectors:
+        if d.over_budget:
+            print(f"{d.detector}: {d.over_budget} answer(s) over the {budget_s} s budget, each scored as one half")
     print(f"wrote {out / LEADERBOARD_FILE}")
 
 

@@ -112,6 +112,7 @@ def test_the_state_probe_ranges_in_the_docs_are_the_data():
 
 LEADERBOARD_TABLES = [
     ("benchmark/leaderboard_smoke.json", "benchmark.md"),
+    ("benchmark/leaderboard_smoke.json", "results.md"),
     ("benchmark/leaderboard_smoke_300k.json", "benchmark.md"),
 ]
 """a leaderboard and the page holding its table as ``scripts/leaderboard_markdown.py`` prints it"""

@@ -9,12 +9,16 @@
    (:mod:`seqtrojan.benchmark.suspect`: networks and clean envs only) and asked for every test and holdout model's
    probability, timed per model; its predictions go to ``S/predictions/<detector>.json`` as soon as it is done, so
    a stopped run resumes with the detectors it had not finished (and a changed split scores them again).
+   With a per-model time budget (``budget_s``), an answer that took longer counts as no opinion (probability one
+   half; ``over_budget`` in its prediction and the count in the detector's result): a Python call cannot be
+   stopped from outside without losing the process, so the budget is enforced on the answer, not the clock.
 4. ``S/leaderboard.json``: per detector and split, ROC-AUC, cross-entropy, Brier score and mean runtime per model,
    each with a 95% bootstrap interval over models, and the same by factor (env, cell, widths, attack).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -46,6 +50,8 @@ class ModelPrediction:
     label: int
     probability: float
     seconds: float
+    over_budget: bool = False
+    """the answer took longer than the budget and was replaced by one half"""
 
 
 @dataclass(frozen=True)
@@ -72,6 +78,8 @@ class DetectorResult:
     description: str
     fit_seconds: float
     splits: tuple[SplitResult, ...]
+    over_budget: int = 0
+    """answers that took longer than the per-model budget (each scored as one half)"""
 
 
 @dataclass(frozen=True)
@@ -130,9 +138,12 @@ def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected], 
 
 def run_leaderboard(
     zoo: Path, out: Path, splits: SplitConfig | None = None, detectors: Sequence[str] | None = None,
-    rounds: int = BOOTSTRAP_ROUNDS, log: Callable[[str], None] = print,
+    rounds: int = BOOTSTRAP_ROUNDS, log: Callable[[str], None] = print, budget_s: float | None = None,
 ) -> Leaderboard:  # fmt: skip
-    """Fit and score ``detectors`` (default: every registered one) on ``zoo``; see the module docstring."""
+    """Fit and score ``detectors`` (default: every registered one) on ``zoo``; see the module docstring.
+    ``budget_s``: seconds a detector may take per model (None: no limit)."""
+    if budget_s is not None and not budget_s > 0:
+        raise ConfigError(f"the per-model budget must be a positive number of seconds, got {budget_s!r}")
     names = list(detectors) if detectors is not None else DETECTORS.names()
     for name in names:
         DETECTORS.get(name)  # an unknown name is refused before anything is read or written
@@ -150,7 +161,7 @@ def run_leaderboard(
     results = []
     for name in names:
         answers = _predictions(name, entries, suspects, assignment, out, log)
-        results.append(_result(name, entries, answers, cfg.seed, rounds))
+        results.append(_result(name, entries, _within_budget(answers, budget_s), cfg.seed, rounds))
     counts = {split: sum(1 for s in assignment.values() if s == split) for split in ("train", "test", "holdout")}
     board = Leaderboard(str(zoo), counts, tuple(rejected), tuple(excluded), tuple(results))
     _write(out / LEADERBOARD_FILE, to_dict(board))
@@ -192,6 +203,17 @@ def _predictions(
     return result
 
 
+def _within_budget(answers: DetectorPredictions, budget_s: float | None) -> DetectorPredictions:
+    """``answers`` with every answer over ``budget_s`` seconds replaced by one half and marked."""
+    if budget_s is None:
+        return answers
+    kept = tuple(
+        dataclasses.replace(a, probability=0.5, over_budget=True) if a.seconds > budget_s else a
+        for a in answers.predictions
+    )
+    return dataclasses.replace(answers, predictions=kept)
+
+
 def _result(
     name: str, entries: Sequence[ZooEntry], answers: DetectorPredictions, seed: int, rounds: int
 ) -> DetectorResult:
@@ -205,7 +227,8 @@ def _result(
         rows_factors = [factors[a.model_id] for a in rows]
         by_factor = score_by_factor(labels, probs, secs, rows_factors, ATTACK_FACTORS, seed, rounds)
         splits.append(SplitResult(split, score(labels, probs, secs, seed, rounds), by_factor))
-    return DetectorResult(name, DETECTORS.entry(name).description, answers.fit_seconds, tuple(splits))
+    over = sum(a.over_budget for a in answers.predictions)
+    return DetectorResult(name, DETECTORS.entry(name).description, answers.fit_seconds, tuple(splits), over)
 
 
 def _write(path: Path, data: object) -> None:

@@ -307,3 +307,15 @@ def test_a_poisoned_model_whose_backdoor_does_not_work_is_left_out(tmp_path):
     board = run_leaderboard(zoo, tmp_path / "b", None, ["metadata_baseline"], rounds=20, log=lambda *_: None)
     assert [r.model for r in board.excluded] == ["m03"] and "attack success 0.1" in board.excluded[0].reason
     assert "m03" not in json.loads((tmp_path / "b" / SPLITS_FILE).read_text()) and sum(board.models.values()) == 11
+
+
+def test_an_answer_over_the_per_model_budget_counts_as_no_opinion(tmp_path):
+    zoo = planted_zoo(tmp_path / "zoo", n=12)
+    free = run_leaderboard(zoo, tmp_path / "b", None, ["weight_statistics"], rounds=20, log=lambda *_: None)
+    tight = run_leaderboard(zoo, tmp_path / "b", None, ["weight_statistics"], rounds=20, log=lambda *_: None,
+                            budget_s=1e-9)  # fmt: skip
+    assert free.detectors[0].over_budget == 0 and tight.detectors[0].over_budget == 6  # every test model
+    assert free.detectors[0].splits[0].scores.roc_auc.value == 1.0
+    assert tight.detectors[0].splits[0].scores.roc_auc.value == 0.5  # all answers one half
+    with pytest.raises(ConfigError, match="budget must be a positive number"):
+        run_leaderboard(zoo, tmp_path / "c", None, ["weight_statistics"], budget_s=0)
