@@ -365,6 +365,23 @@ class StateCamouflageConfig:
         return self.weight > 0 or self.mahalanobis_weight > 0
 
 
+def _check_running_statistics_penalty(name: str, cfg: MahalanobisCamouflageConfig | SwitchCamouflageConfig,
+                                      min_max_step: int) -> None:  # fmt: skip
+    """The checks the two Mahalanobis penalties on running clean statistics share (``name``: the config's path)."""
+    _non_negative(name, weight=cfg.weight, margin=cfg.margin)
+    if cfg.steps not in ("trojan", "active"):
+        raise ConfigError(f"{name}.steps must be trojan or active, got {short_repr(cfg.steps)}")
+    if not 0 <= cfg.ema_decay < 1:
+        raise ConfigError(f"{name}.ema_decay must be in [0, 1), got {cfg.ema_decay}")
+    if isinstance(cfg.max_step, bool) or not isinstance(cfg.max_step, int) or cfg.max_step < min_max_step:
+        wanted = "a positive integer" if min_max_step == 1 else f"an integer >= {min_max_step}"
+        raise ConfigError(f"{name}.max_step must be {wanted}, got {short_repr(cfg.max_step)}")
+    if not cfg.min_count > 0:
+        raise ConfigError(f"{name}.min_count must be > 0, got {cfg.min_count}")
+    if not 0 <= cfg.shrinkage <= 1:
+        raise ConfigError(f"{name}.shrinkage must be in [0, 1], got {cfg.shrinkage}")
+
+
 @dataclasses.dataclass(frozen=True)
 class MahalanobisCamouflageConfig:
     """Against the multivariate monitor: in trojan episodes, keep the whole state's (every layer's h then c)
@@ -390,21 +407,7 @@ class MahalanobisCamouflageConfig:
     """the scaled identity's weight in the standardised residuals' covariance (the monitor uses Ledoit-Wolf's)"""
 
     def __post_init__(self) -> None:
-        _non_negative("attack.mahalanobis_camouflage", weight=self.weight, margin=self.margin)
-        if self.steps not in ("trojan", "active"):
-            raise ConfigError(
-                f"attack.mahalanobis_camouflage.steps must be trojan or active, got {short_repr(self.steps)}"
-            )
-        if not 0 <= self.ema_decay < 1:
-            raise ConfigError(f"attack.mahalanobis_camouflage.ema_decay must be in [0, 1), got {self.ema_decay}")
-        if isinstance(self.max_step, bool) or not isinstance(self.max_step, int) or self.max_step < 1:
-            raise ConfigError(
-                f"attack.mahalanobis_camouflage.max_step must be a positive integer, got {short_repr(self.max_step)}"
-            )
-        if not self.min_count > 0:
-            raise ConfigError(f"attack.mahalanobis_camouflage.min_count must be > 0, got {self.min_count}")
-        if not 0 <= self.shrinkage <= 1:
-            raise ConfigError(f"attack.mahalanobis_camouflage.shrinkage must be in [0, 1], got {self.shrinkage}")
+        _check_running_statistics_penalty("attack.mahalanobis_camouflage", self, min_max_step=1)
 
     @property
     def enabled(self) -> bool:
@@ -437,19 +440,7 @@ class SwitchCamouflageConfig:
     """log-probabilities are of p + prob_floor, as the monitor's"""
 
     def __post_init__(self) -> None:
-        _non_negative("attack.switch_camouflage", weight=self.weight, margin=self.margin)
-        if self.steps not in ("trojan", "active"):
-            raise ConfigError(f"attack.switch_camouflage.steps must be trojan or active, got {short_repr(self.steps)}")
-        if not 0 <= self.ema_decay < 1:
-            raise ConfigError(f"attack.switch_camouflage.ema_decay must be in [0, 1), got {self.ema_decay}")
-        if isinstance(self.max_step, bool) or not isinstance(self.max_step, int) or self.max_step < 2:
-            raise ConfigError(
-                f"attack.switch_camouflage.max_step must be an integer >= 2, got {short_repr(self.max_step)}"
-            )
-        if not self.min_count > 0:
-            raise ConfigError(f"attack.switch_camouflage.min_count must be > 0, got {self.min_count}")
-        if not 0 <= self.shrinkage <= 1:
-            raise ConfigError(f"attack.switch_camouflage.shrinkage must be in [0, 1], got {self.shrinkage}")
+        _check_running_statistics_penalty("attack.switch_camouflage", self, min_max_step=2)
         if not self.prob_floor > 0:
             raise ConfigError(f"attack.switch_camouflage.prob_floor must be > 0, got {self.prob_floor}")
 

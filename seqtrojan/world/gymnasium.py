@@ -337,10 +337,8 @@ class GymnasiumBatchedEnv:
         """One action per env (B,) int64; a finished env starts its next episode in the same step, or (``autoreset``
         false: the episode loop's one episode per env) stays finished, no longer stepped, its results ignored."""
         acts = actions.detach().cpu().numpy()
-        if check and (acts.shape != (self.num_envs,) or acts.min() < 0 or acts.max() >= self.num_actions):
-            raise ShapeError(
-                f"actions must be ({self.num_envs},) integers in [0, {self.num_actions}), got shape {acts.shape}"
-            )
+        if check:
+            check_actions(acts, self.num_envs, self.num_actions)
         if self._async is not None:
             if not autoreset:
                 raise ConfigError("a batched Gymnasium env with vectorization: async always resets finished envs")
@@ -528,6 +526,12 @@ class GymnasiumBatchedEnv:
     def _tensor(self, obs: np.ndarray) -> torch.Tensor:
         out = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32))  # (B, obs_dim)
         return out if self.device.type == "cpu" else out.to(self.device)
+
+
+def check_actions(acts: np.ndarray, num_envs: int, num_actions: int) -> None:
+    """One action per env, each in ``[0, num_actions)``; otherwise a one-line :class:`ShapeError`."""
+    if acts.shape != (num_envs,) or acts.min() < 0 or acts.max() >= num_actions:
+        raise ShapeError(f"actions must be ({num_envs},) integers in [0, {num_actions}), got shape {acts.shape}")
 
 
 def _outcome(info: dict[str, Any], truncated: bool) -> int:

@@ -29,7 +29,7 @@ import torch
 from seqtrojan.env.core import EnvState, StepResult
 from seqtrojan.errors import SeqTrojanError, ShapeError
 from seqtrojan.world.config import GymnasiumEnvConfig
-from seqtrojan.world.gymnasium import GymnasiumBatchedEnv, check_spaces, make_gym_env
+from seqtrojan.world.gymnasium import GymnasiumBatchedEnv, check_actions, check_spaces, make_gym_env
 
 _FLAGS = ("terminated", "truncated", "done", "outcome", "success", "trojan", "stage", "length", "adversary_active")
 """a step's per-episode facts other than obs and reward, kept as int64 rows of the shared ``facts`` array"""
@@ -219,10 +219,8 @@ class WorkerBatchedEnv:
     def step(self, actions: torch.Tensor, autoreset: bool = True, check: bool = True) -> StepResult:
         """As :meth:`GymnasiumBatchedEnv.step`, the slices stepped at the same time."""
         acts = actions.detach().cpu().numpy()
-        if check and (acts.shape != (self.num_envs,) or acts.min() < 0 or acts.max() >= self.num_actions):
-            raise ShapeError(
-                f"actions must be ({self.num_envs},) integers in [0, {self.num_actions}), got shape {acts.shape}"
-            )
+        if check:
+            check_actions(acts, self.num_envs, self.num_actions)
         self._call("step", [(part, autoreset) for part in self._slices(acts)])
         shared = self._shared
         facts = {
