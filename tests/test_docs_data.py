@@ -36,12 +36,16 @@ FIGURE = re.compile(r"^(clean success \(user's object\)|trojan success \(adversa
                     r"(\d\.\d{3} ± \d\.\d{3})\s+.*n=\d+\s+([\d., ]+)$")  # fmt: skip
 
 
+def _printed(script: str, *args: str) -> str:
+    """What ``python SCRIPT ARGS`` prints (run from the repository's root)."""
+    return subprocess.run(
+        [sys.executable, str(ROOT / script), *args], capture_output=True, text=True, check=True, cwd=ROOT
+    ).stdout
+
+
 @pytest.mark.parametrize(("data", "page"), MATRIX_TABLES)
 def test_matrix_tables_in_the_docs_are_the_data_printed(data, page):
-    printed = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "matrix_markdown.py"), str(DATA / data)],
-        capture_output=True, text=True, check=True, cwd=ROOT,
-    ).stdout  # fmt: skip
+    printed = _printed("scripts/matrix_markdown.py", str(DATA / data))
     text = (ROOT / "docs" / page).read_text()
     rows = [line for line in printed.splitlines() if line.startswith("| ")]
     assert len(rows) > 10
@@ -51,10 +55,7 @@ def test_matrix_tables_in_the_docs_are_the_data_printed(data, page):
 
 @pytest.mark.parametrize(("data", "page", "bench"), BENCH_TABLES)
 def test_benchmark_tables_in_the_docs_are_the_data_printed(data, page, bench):
-    printed = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / bench), "--table", str(DATA / data)],
-        capture_output=True, text=True, check=True, cwd=ROOT,
-    ).stdout  # fmt: skip
+    printed = _printed(f"benchmarks/{bench}", "--table", str(DATA / data))
     text = (ROOT / "docs" / page).read_text()
     rows = [line for line in printed.splitlines() if line.startswith("| ")]
     assert len(rows) > 3
@@ -120,10 +121,7 @@ LEADERBOARD_TABLES = [
 
 @pytest.mark.parametrize(("data", "page"), LEADERBOARD_TABLES)
 def test_leaderboard_tables_printed_by_the_script_are_in_the_docs(data, page):
-    printed = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "leaderboard_markdown.py"), str(DATA / data)],
-        capture_output=True, text=True, check=True, cwd=ROOT,
-    ).stdout  # fmt: skip
+    printed = _printed("scripts/leaderboard_markdown.py", str(DATA / data))
     text = (ROOT / "docs" / page).read_text()
     missing = [line for line in printed.splitlines() if line not in text]
     assert len(printed.splitlines()) > 4 and not missing, f"docs/{page} lacks {missing[:1]} of {data}"
