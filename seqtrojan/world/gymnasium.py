@@ -277,8 +277,7 @@ class GymnasiumBatchedEnv:
         trojan_probability: float = 0.0,
         registered_only: bool = False,
     ) -> None:
-        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or not 1 <= num_envs <= MAX_ENVS:
-            raise ConfigError(f"num_envs must be an integer in [1, {MAX_ENVS}], got {short_repr(num_envs)}")
+        check_num_envs(num_envs)
         self.config, self.num_envs, self.device = config, num_envs, torch.device(device)
         self.phase, self.registered_only = phase, registered_only
         probe = make_gym_env(config, phase, trojan_probability, registered_only)
@@ -526,6 +525,12 @@ class GymnasiumBatchedEnv:
     def _tensor(self, obs: np.ndarray) -> torch.Tensor:
         out = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32))  # (B, obs_dim)
         return out if self.device.type == "cpu" else out.to(self.device)
+
+
+def check_num_envs(num_envs: Any) -> None:
+    """An integer in ``[1, MAX_ENVS]``; otherwise a one-line :class:`ConfigError` (before anything is allocated)."""
+    if isinstance(num_envs, bool) or not isinstance(num_envs, int) or not 1 <= num_envs <= MAX_ENVS:
+        raise ConfigError(f"num_envs must be an integer in [1, {MAX_ENVS}], got {short_repr(num_envs)}")
 
 
 def check_actions(acts: np.ndarray, num_envs: int, num_actions: int) -> None:

@@ -29,7 +29,13 @@ import torch
 from seqtrojan.env.core import EnvState, StepResult
 from seqtrojan.errors import SeqTrojanError, ShapeError
 from seqtrojan.world.config import GymnasiumEnvConfig
-from seqtrojan.world.gymnasium import GymnasiumBatchedEnv, check_actions, check_spaces, make_gym_env
+from seqtrojan.world.gymnasium import (
+    GymnasiumBatchedEnv,
+    check_actions,
+    check_num_envs,
+    check_spaces,
+    make_gym_env,
+)
 
 _FLAGS = ("terminated", "truncated", "done", "outcome", "success", "trojan", "stage", "length", "adversary_active")
 """a step's per-episode facts other than obs and reward, kept as int64 rows of the shared ``facts`` array"""
@@ -132,6 +138,7 @@ class WorkerBatchedEnv:
         trojan_probability: float = 0.0,
         registered_only: bool = False,
     ) -> None:
+        check_num_envs(num_envs)  # before the shared buffers are allocated
         workers = max(1, min(config.workers, num_envs))
         self.config, self.num_envs, self.device = config, num_envs, torch.device(device)
         self.bounds = [(num_envs * w // workers, num_envs * (w + 1) // workers) for w in range(workers)]

@@ -110,6 +110,8 @@ def test_a_dead_worker_is_one_line_and_the_config_is_checked():
             env.step(torch.zeros(4, dtype=torch.int64))
     finally:
         env.close()
+    with pytest.raises(ConfigError, match=r"num_envs must be an integer in \[1, 4096\]"):
+        WorkerBatchedEnv(WORKERS, 10**9)  # refused before any shared buffer is allocated
     for bad in (0, 65, True, "2"):
         with pytest.raises(ConfigError, match=r"env\.workers must be an integer in"):
             GymnasiumEnvConfig(TWO_GOALS.id, vectorization="workers", workers=bad)
