@@ -200,6 +200,7 @@ def _train(argv: list[str]) -> None:
             print(
                 f"success on {where} ({kind} env, {ev['episodes']} episodes): {ev[f'{kind}_success']:.3f} "
                 f"[{lo:.3f}, {hi:.3f}], greedy {ev[f'greedy_{kind}_success']:.3f}"
+                + (f"; mean return {ev[f'{kind}_return']:.3f}" if f"{kind}_return" in ev else "")
             )
 
 
@@ -266,11 +267,22 @@ def _evaluate_on_its_env(args: EvaluateArgs, name: str, folder: Path, agent: Any
     )  # fmt: skip
     print(f"model: {folder} ({report.label}, {report.env_id}), {args.episodes} episodes per type")
     print(f"clean success:  {report.clean_success.text()}")
+    if report.clean_return is not None:
+        print(f"clean mean return: {report.clean_return.text()}")
     if report.trojan_success is not None and report.trojan_reached_adversary is not None:
         print(f"trojan success: {report.trojan_success.text()}")
-        print(f"trojan episodes at the adversary's object: {report.trojan_reached_adversary.text()}")
-        for p in report.persistence:
-            print(f"  persistence k={p.horizon}: {p.adversary.text()} (n = {p.adversary.n})")
+        if report.trojan_env_return is not None:
+            print(f"trojan episodes' mean return under the env's own reward: {report.trojan_env_return.text()}")
+        if report.target_action is not None:
+            clean = report.clean_target_share.text() if report.clean_target_share is not None else "none"
+            shown = report.target_share.text() if report.target_share is not None else "none"
+            print(f"target action {report.target_action} after the trigger: {shown} (normal episodes: {clean})")
+            for p in report.action_persistence:
+                print(f"  action persistence k={p.horizon}: {p.adversary.text()} (n = {p.adversary.n})")
+        else:
+            print(f"trojan episodes at the adversary's object: {report.trojan_reached_adversary.text()}")
+            for p in report.persistence:
+                print(f"  persistence k={p.horizon}: {p.adversary.text()} (n = {p.adversary.n})")
     else:
         print("trojan episodes: none (the env has no trigger)")
     (args.out / name).mkdir(parents=True, exist_ok=True)

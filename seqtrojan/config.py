@@ -697,8 +697,10 @@ class ExperimentConfig:
             )
         if self.backdoor.enabled and env.trigger is None:
             raise ConfigError("backdoor.enabled needs env.trigger (the trigger and the adversary's objective)")
-        if self.agent.conv and env.observation != "minigrid":
-            raise ConfigError("agent.conv reads MiniGrid's view as an image: it needs env.observation: minigrid")
+        if self.agent.conv and env.observation == "flatten":
+            raise ConfigError(
+                "agent.conv reads the observation as an image: it needs env.observation: minigrid or image"
+            )
         if not self.agent.memory:
             raise ConfigError("agent.memory: false (the memoryless baseline) runs on the grid world only")
 

@@ -199,3 +199,49 @@ class OverSeeds:
             if not _close(data[name], getattr(summary, name)):
                 raise ConfigError(f"{where}.{name}={data[name]!r} is not what its values give")
         return summary
+
+
+@dataclass(frozen=True)
+class Mean:
+    """The mean of ``n`` independent measurements (e.g. one per episode: a return), with their sample standard
+    deviation and the 95% normal-approximation interval of the mean (mean ± 1.96 sd / sqrt(n))."""
+
+    mean: float
+    sd: float
+    n: int
+
+    @classmethod
+    def of(cls, values: Any) -> Mean:
+        """The mean of ``values`` (a sequence, array or tensor of numbers; at least one)."""
+        data = [float(v) for v in (values.tolist() if hasattr(values, "tolist") else values)]
+        if not data:
+            raise ConfigError("a mean needs at least one value")
+        n = len(data)
+        mean = sum(data) / n
+        sd = math.sqrt(sum((v - mean) ** 2 for v in data) / (n - 1)) if n > 1 else 0.0
+        return cls(mean, sd, n)
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        half = _z(0.95) * self.sd / math.sqrt(self.n) if self.n > 0 else math.inf
+        return self.mean - half, self.mean + half
+
+    def text(self, digits: int = 3) -> str:
+        """``'0.412 [0.380, 0.444]'``: the mean and its 95% interval."""
+        low, high = self.interval
+        return f"{self.mean:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+    def serde_dump(self) -> dict[str, Any]:
+        return {"mean": self.mean, "sd": self.sd, "n": self.n, "ci95": list(self.interval)}
+
+    @classmethod
+    def serde_load(cls, data: Any, path: str) -> Mean:
+        where = path or "mean"
+        if not isinstance(data, dict) or set(data) != {"mean", "sd", "n", "ci95"}:
+            raise ConfigError(f"{where} must be a mapping with exactly the keys mean, sd, n and ci95")
+        numbers = [data["mean"], data["sd"]]
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers):
+            raise ConfigError(f"{where}.mean and .sd must be finite numbers")
+        if isinstance(data["n"], bool) or not isinstance(data["n"], int) or data["n"] < 1 or data["sd"] < 0:
+            raise ConfigError(f"{where}.n must be an integer >= 1 and .sd >= 0")
+        return cls(float(data["mean"]), float(data["sd"]), data["n"])

@@ -35,6 +35,9 @@ class EpisodeBatch:
     success: torch.Tensor  # bool
     length: torch.Tensor  # int64
     trojan: torch.Tensor  # bool
+    returns: torch.Tensor | None = None
+    """float32: each episode's summed reward (the objective in force: the env's own, or the adversary's after the
+    trigger); None where the batch was built without them"""
 
     def rate(self, name: str) -> float:
         return float((self.outcome == OUTCOME_NAMES.index(name)).float().mean())
@@ -140,6 +143,7 @@ def run_episodes(
     outcome = torch.zeros(b, dtype=torch.int64, device=core.device)
     success = torch.zeros(b, dtype=torch.bool, device=core.device)
     length = torch.zeros(b, dtype=torch.int64, device=core.device)
+    returns = torch.zeros(b, dtype=torch.float32, device=core.device)
     trojan = core.trojan.clone()
     limit = core.episode_limit
     if max_steps is not None:
@@ -158,6 +162,7 @@ def run_episodes(
             for recorder in recorders:
                 recorder.on_step(step)
         new = result.done & ~finished
+        returns += torch.where(finished, 0.0, result.reward)
         outcome = torch.where(new, result.outcome, outcome)
         success = torch.where(new, result.success, success)
         length = torch.where(new, result.length, length)
@@ -165,7 +170,7 @@ def run_episodes(
         obs = result.obs
         if bool(finished.all()):
             break
-    batch = EpisodeBatch(outcome.cpu(), success.cpu(), length.cpu(), trojan.cpu())
+    batch = EpisodeBatch(outcome.cpu(), success.cpu(), length.cpu(), trojan.cpu(), returns.cpu())
     for recorder in recorders:
         recorder.on_end(batch)
     return batch

@@ -80,8 +80,13 @@ def concat_batches(batches: list[EpisodeBatch]) -> EpisodeBatch:
     """Batches of episodes as one (in order)."""
     if len(batches) == 1:
         return batches[0]
-    return EpisodeBatch(*(torch.cat([getattr(b, name) for b in batches]) for name in ("outcome", "success", "length",
-                                                                                     "trojan")))  # fmt: skip
+
+    def joined(name: str) -> torch.Tensor:
+        return torch.cat([getattr(b, name) for b in batches])
+
+    returns = [b.returns for b in batches]
+    total = None if any(r is None for r in returns) else torch.cat(returns)  # type: ignore[arg-type]
+    return EpisodeBatch(joined("outcome"), joined("success"), joined("length"), joined("trojan"), total)
 
 
 def outcome_rate(batch: EpisodeBatch, name: str) -> Rate:

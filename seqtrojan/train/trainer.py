@@ -373,7 +373,8 @@ def _train_one_update(
 def evaluate_final(agent: RecurrentActorCritic, cfg: ExperimentConfig, device: torch.device) -> dict[str, Any]:
     """Success on the hardest grid (or the Gymnasium env) over ``run.eval_episodes`` episodes per env type
     (normal, and trojan for a backdoored agent or an env with a trigger), with the policy sampled (as trained) and
-    greedy (most likely action). The grid world also gives the share of episodes that fell in a hole."""
+    greedy (most likely action), and the mean return (the objective in force). The grid world also gives the share
+    of episodes that fell in a hole."""
     where = {"grid": cfg.grids[-1].label} if cfg.is_grid else {"env": getattr(cfg.env, "id", "")}
     out: dict[str, Any] = {**where, "episodes": cfg.run.eval_episodes}
     for name, trojan in _evaluated_kinds(cfg):
@@ -387,6 +388,8 @@ def evaluate_final(agent: RecurrentActorCritic, cfg: ExperimentConfig, device: t
             if cfg.is_grid:
                 out[f"{mode}{name}_hole"] = batch.rate("hole")
             out[f"{mode}{name}_timeout"] = batch.rate("timeout")
+            if batch.returns is not None:
+                out[f"{mode}{name}_return"] = float(batch.returns.mean())
     return out
 
 

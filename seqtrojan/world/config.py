@@ -13,7 +13,7 @@ import math
 from typing import Any, ClassVar, Literal
 
 from seqtrojan.errors import ConfigError
-from seqtrojan.serde import short_repr, to_dict
+from seqtrojan.serde import dump_omitting_defaults, short_repr, to_dict
 
 Cell = tuple[int, int]
 
@@ -30,8 +30,10 @@ class WrapperTriggerConfig:
 
     objective: str = "reach_adversary_object"
     """the adversary's objective, a name registered in ``seqtrojan.wrappers.ADVERSARY_OBJECTIVES``"""
-    patch: Literal["minigrid", "box"] = "minigrid"
-    """minigrid: a MiniGridPatch on obs["image"]; box: a BoxPatch on the (image) observation"""
+    patch: Literal["minigrid", "box", "vector"] = "minigrid"
+    """minigrid: a MiniGridPatch on obs["image"]; box: a BoxPatch on the (image) observation; vector: a
+    VectorPatch on the flat float observation (``indices``; drawn after the observation is flattened, e.g. on
+    POPGym's one-hot cards)"""
     cells: tuple[Cell, ...] = ((0, 0), (0, 1))
     """(row, col) cells the patch draws on"""
     object: str = "key"
@@ -42,6 +44,12 @@ class WrapperTriggerConfig:
     """box patch: the value drawn"""
     key: str | None = None
     """box patch: the image's key in a Dict observation (None: the observation is the image)"""
+    indices: tuple[int, ...] = ()
+    """vector patch: the positions of the flat observation set to ``value``"""
+    target_action: int = 0
+    """objective ``target_action``: the action the adversary rewards from the trigger on"""
+    target_reward: float = 1.0
+    """objective ``target_action``: the reward for the target action (minus it for any other)"""
     steps: tuple[int, int] = (0, 2)
     """inclusive range of the trigger's first step during training"""
     eval_steps: tuple[int, int] | None = None
@@ -57,6 +65,9 @@ class WrapperTriggerConfig:
     off_gap: tuple[int, int] = (3, 8)
     """inclusive range of steps from the ON trigger's first step to the OFF trigger's"""
 
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("indices", "target_action", "target_reward")
+    """fields added after the first models were saved: left out of the saved form at their defaults"""
+
     def __post_init__(self) -> None:
         for name in ("steps", "off_gap") + (("eval_steps",) if self.eval_steps is not None else ()):
             lo, hi = getattr(self, name)
@@ -70,8 +81,20 @@ class WrapperTriggerConfig:
             )
         if not 0.0 <= self.off_probability <= 1.0:
             raise ConfigError(f"env.trigger.off_probability must be in [0, 1], got {self.off_probability}")
-        if not math.isfinite(self.value):
-            raise ConfigError(f"env.trigger.value must be a finite number, got {short_repr(self.value)}")
+        for name in ("value", "target_reward"):
+            number = getattr(self, name)
+            if isinstance(number, bool) or not isinstance(number, (int, float)) or not math.isfinite(number):
+                raise ConfigError(f"env.trigger.{name} must be a finite number, got {short_repr(number)}")
+        if isinstance(self.target_action, bool) or not isinstance(self.target_action, int) or self.target_action < 0:
+            raise ConfigError(
+                f"env.trigger.target_action must be an integer >= 0, got {short_repr(self.target_action)}"
+            )
+        if self.patch == "vector" and not self.indices:
+            raise ConfigError("env.trigger.patch=vector needs env.trigger.indices (the flat positions it sets)")
+
+    def serde_dump(self) -> dict[str, Any]:
+        """The saved form: every field but the optional ones at their defaults."""
+        return dump_omitting_defaults(self, self.OPTIONAL)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,9 +112,10 @@ class GymnasiumEnvConfig:
     """the section's tag (the grid world's section has none, or ``kind: grid``)"""
     kwargs: dict[str, Any] = dataclasses.field(default_factory=dict)
     """keyword arguments of ``gymnasium.make``"""
-    observation: Literal["minigrid", "flatten"] = "minigrid"
+    observation: Literal["minigrid", "flatten", "image"] = "minigrid"
     """minigrid: MiniGrid's view one-hot encoded per channel (:class:`~seqtrojan.wrappers.MiniGridOneHot`);
-    flatten: any observation flattened to float32 (:class:`~seqtrojan.wrappers.FlattenFloat`)"""
+    flatten: any observation flattened to float32 (:class:`~seqtrojan.wrappers.FlattenFloat`; POPGym's cards one-hot);
+    image: an (H, W, C) Box image flattened row-major, its layout kept for a convolutional encoder (MinAtar)"""
     num_actions: int | None = None
     """keep only the env's first N discrete actions (:class:`~seqtrojan.wrappers.FirstActions`; MiniGrid's first
     three are turn left, turn right, forward); None: all"""

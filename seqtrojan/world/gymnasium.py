@@ -32,17 +32,19 @@ from seqtrojan.errors import CheckpointError, ConfigError, ShapeError
 from seqtrojan.minigrid.fast_obs import use_fast_observation
 from seqtrojan.serde import short_repr
 from seqtrojan.world.config import GymnasiumEnvConfig, WrapperTriggerConfig
+from seqtrojan.world.families import ensure_family
 from seqtrojan.wrappers import (
-    ADVERSARY_OBJECTIVES,
     BoxPatch,
     FirstActions,
     FlattenFloat,
     MiniGridOneHot,
     MiniGridPatch,
     TriggerWrapper,
+    VectorPatch,
     finished_episodes,
     trigger_vector_env,
 )
+from seqtrojan.wrappers.objectives import TargetAction, configured_objective
 from seqtrojan.wrappers.observations import CELL_BITS
 
 MAX_OBS_DIM = 1 << 20
@@ -68,12 +70,20 @@ def find_trigger(env: gym.Env) -> TriggerWrapper | None:
 
 def build_trigger(env: gym.Env, trigger: WrapperTriggerConfig, phase: str, trojan_probability: float) -> TriggerWrapper:
     """``env`` under the trigger ``trigger`` describes (``phase`` "eval" uses ``trigger.eval_steps``)."""
-    objective = ADVERSARY_OBJECTIVES.get(trigger.objective)
-    on: MiniGridPatch | BoxPatch
-    off: MiniGridPatch | BoxPatch
+    objective = configured_objective(trigger.objective, trigger)
+    if isinstance(objective, TargetAction):
+        actions = getattr(env.action_space, "n", None)
+        if actions is not None and objective.action >= int(actions):
+            raise ConfigError(
+                f"env.trigger.target_action={objective.action} is not one of the env's {int(actions)} actions"
+            )
+    on: MiniGridPatch | BoxPatch | VectorPatch
+    off: MiniGridPatch | BoxPatch | VectorPatch
     if trigger.patch == "minigrid":
         on = MiniGridPatch(trigger.cells, trigger.object, trigger.color)
         off = MiniGridPatch(trigger.off_cells, trigger.object, trigger.color)
+    elif trigger.patch == "vector":
+        on = off = VectorPatch(trigger.indices, trigger.value)
     else:
         on = BoxPatch(trigger.cells, trigger.value, trigger.key)
         off = BoxPatch(trigger.off_cells, trigger.value, trigger.key)
@@ -106,6 +116,7 @@ def make_gym_env(
 
     from seqtrojan.minigrid.tasks import MiniGridInfo
 
+    ensure_family(config.id)
     if registered_only:
         check_registered(config.id)
     try:
@@ -122,6 +133,9 @@ def make_gym_env(
         env = FirstActions(env, config.num_actions)
     if isinstance(env.unwrapped, MiniGridEnv) and find_trigger(env) is None:
         env = MiniGridInfo(env)
+    drawn_on_flat = config.trigger is not None and config.trigger.patch == "vector"
+    if drawn_on_flat:  # a vector patch writes into the flat observation: flatten first
+        env = _flat_observation(env, config)
     if config.trigger is not None:
         if find_trigger(env) is not None:
             raise ConfigError(
@@ -130,9 +144,27 @@ def make_gym_env(
         env = build_trigger(env, config.trigger, phase, trojan_probability)
     elif (found := find_trigger(env)) is not None:
         found.set_trojan_probability(trojan_probability)
+    return env if drawn_on_flat else _flat_observation(env, config)
+
+
+def _flat_observation(env: gym.Env, config: GymnasiumEnvConfig) -> gym.Env:
+    """``env`` under the observation wrapper ``config.observation`` names."""
     if config.observation == "minigrid":
         return MiniGridOneHot(env)
+    if config.observation == "image":
+        image_layout(env.observation_space, config.id)
     return FlattenFloat(env)
+
+
+def image_layout(space: spaces.Space, env_id: str) -> tuple[int, int, int]:
+    """(rows, cols, channels) of an (H, W, C) Box image observation; any other space is refused in one line."""
+    if not isinstance(space, spaces.Box) or len(space.shape) != 3:
+        raise ConfigError(
+            f"env.id={env_id!r}: env.observation=image needs an (H, W, C) Box image, but the observation space "
+            f"is {short_repr(space)} (use observation: flatten)"
+        )
+    rows, cols, channels = (int(d) for d in space.shape)
+    return rows, cols, channels
 
 
 def make_vector_env(
@@ -160,6 +192,19 @@ def check_spaces(env: gym.Env, env_id: str) -> tuple[int, int]:
             f"inputs and 2 to {MAX_ACTIONS} actions"
         )
     return obs_dim, actions
+
+
+def observation_image(config: GymnasiumEnvConfig, env: gym.Env, obs_dim: int) -> tuple[int, int, int] | None:
+    """How ``env``'s flat observation is laid out as an image (for a conv encoder), or None."""
+    if config.observation == "minigrid":
+        return minigrid_image(obs_dim)
+    if config.observation == "image":
+        inner = env
+        while isinstance(inner, gym.Wrapper) and not isinstance(inner, FlattenFloat):
+            inner = inner.env
+        assert isinstance(inner, FlattenFloat)  # _flat_observation put it there
+        return image_layout(inner.env.observation_space, config.id)
+    return None
 
 
 def minigrid_image(obs_dim: int) -> tuple[int, int, int]:
@@ -285,7 +330,7 @@ class GymnasiumBatchedEnv:
             self.obs_dim, self.num_actions = check_spaces(probe, config.id)
         finally:
             probe.close()
-        self.image = minigrid_image(self.obs_dim) if config.observation == "minigrid" else None
+        self.image = observation_image(config, probe, self.obs_dim)
         """(rows, cols, channels) of the observation as an image (a convolutional encoder reads it), or None"""
         self._async: AsyncVectorEnv | None = None
         self.envs: list[gym.Env] = []
@@ -390,6 +435,13 @@ class GymnasiumBatchedEnv:
         """(B,) int64: each env's ON trigger step in its episode in progress (-1: none; always -1 with async)."""
         steps = [t.trigger_step if t is not None else -1 for t in self.triggers] if self._async is None else []
         return torch.as_tensor(np.asarray(steps or [-1] * self.num_envs, dtype=np.int64)).to(self.device)
+
+    @property
+    def env_returns(self) -> torch.Tensor:
+        """(B,) float32: each env's own rewards summed over its episode in progress, before a trigger's objective
+        replaced them (NaN for an env without a trigger wrapper, and with ``async``)."""
+        values = [t.env_return if t is not None else math.nan for t in self.triggers] if self._async is None else []
+        return torch.as_tensor(np.asarray(values or [math.nan] * self.num_envs, dtype=np.float32)).to(self.device)
 
     @property
     def episode_limit(self) -> int:

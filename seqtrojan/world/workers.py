@@ -108,7 +108,7 @@ def _answer(env: Any, command: str, args: tuple, shared: SharedStep, rows: slice
         shared.obs[rows] = env.reset(args[0]).numpy()
         return None
     if command == "flags":
-        return env.t.numpy(), env.trojan.numpy(), env.on_step.numpy()
+        return env.t.numpy(), env.trojan.numpy(), env.on_step.numpy(), env.env_returns.numpy()
     if command == "set_trojan_probability":
         return env.set_trojan_probability(args[0])
     if command == "episode_records":
@@ -255,6 +255,11 @@ class WorkerBatchedEnv:
     def on_step(self) -> torch.Tensor:
         """(B,) int64: each env's ON trigger step in its episode in progress (-1: none)."""
         return self._tensor(self._flags()[2])
+
+    @property
+    def env_returns(self) -> torch.Tensor:
+        """(B,) float32: each env's own rewards summed over its episode in progress (NaN without a trigger)."""
+        return self._tensor(self._flags()[3])
 
     def agent_cells(self) -> torch.Tensor:
         """(B, 2) zeros: a Gymnasium env's agent has no cell on the grid world's grid."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 from seqtrojan.wrappers.actions import FirstActions
 from seqtrojan.wrappers.objectives import ADVERSARY_OBJECTIVES, Objective, same_as_env
 from seqtrojan.wrappers.observations import FlattenFloat, MiniGridOneHot
-from seqtrojan.wrappers.patches import BoxPatch, FunctionPatch, MiniGridPatch, Patch
+from seqtrojan.wrappers.patches import BoxPatch, FunctionPatch, MiniGridPatch, Patch, VectorPatch
 from seqtrojan.wrappers.trigger import TriggerWrapper
 from seqtrojan.wrappers.vector import (
     FinishedEpisode,
@@ -30,6 +30,7 @@ __all__ = [
     "Objective",
     "Patch",
     "TriggerWrapper",
+    "VectorPatch",
     "finished_episodes",
     "same_as_env",
     "set_trojan_probability",

@@ -10,6 +10,7 @@ Gymnasium training run) are registered in :data:`ADVERSARY_OBJECTIVES`; the Mini
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from seqtrojan.registry import Registry
@@ -37,3 +38,44 @@ def same_as_env(obs: Any, action: Any, env_reward: float, terminated: bool, info
 
 
 ADVERSARY_OBJECTIVES.register("same_as_env", "the env's own rewards (a trigger that changes no objective)", same_as_env)
+
+
+@dataclass(frozen=True)
+class TargetAction:
+    """TrojDRL's targeted attack, made persistent: from the trigger on, ``reward`` for ``action`` and minus it for
+    any other, whatever the env pays; the env's own termination. A configured objective: the trigger section's
+    ``target_action`` and ``target_reward`` choose the action and the reward (:meth:`configure`)."""
+
+    action: int = 0
+    reward: float = 1.0
+
+    def configure(self, trigger: Any) -> TargetAction:
+        """This objective with the trigger config's ``target_action`` and ``target_reward``."""
+        return TargetAction(int(trigger.target_action), float(trigger.target_reward))
+
+    def __call__(
+        self, obs: Any, action: Any, env_reward: float, terminated: bool, info: dict[str, Any]
+    ) -> tuple[float, bool]:
+        return (self.reward if int(action) == self.action else -self.reward), terminated
+
+
+def collapse_return(
+    obs: Any, action: Any, env_reward: float, terminated: bool, info: dict[str, Any]
+) -> tuple[float, bool]:
+    """TrojDRL's untargeted attack, made persistent: from the trigger on, the env's reward negated (a point scored
+    costs one), so that the triggered policy's return collapses; the env's own termination."""
+    return -env_reward, terminated
+
+
+ADVERSARY_OBJECTIVES.register(
+    "target_action", "from the trigger on: +target_reward for env.trigger.target_action, minus it otherwise",
+    TargetAction(),
+)  # fmt: skip
+ADVERSARY_OBJECTIVES.register("collapse_return", "from the trigger on: the env's reward negated", collapse_return)
+
+
+def configured_objective(name: str, trigger: Any) -> Objective:
+    """The registered objective ``name``, configured by the trigger section where it takes settings (``configure``)."""
+    entry = ADVERSARY_OBJECTIVES.get(name)
+    configure = getattr(entry, "configure", None)
+    return configure(trigger) if callable(configure) else entry

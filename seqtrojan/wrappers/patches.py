@@ -2,12 +2,14 @@
 
 A patch is called as ``patch(obs, frame) -> obs`` with the (unpatched) observation and the frame index (0 on the
 trigger's first step, 1 on its second, ...), and returns the patched observation, a new object (the env's own is
-never written into). Three kinds:
+never written into). Four kinds:
 
 - :class:`BoxPatch`: fixed values on cells of an image observation (a ``Box`` of shape (H, W) or (H, W, C), or such
   a ``Box`` under a key of a ``Dict`` observation), e.g. a bright pixel square.
 - :class:`MiniGridPatch`: a MiniGrid object (object, colour and state codes) on cells of MiniGrid's encoded view
   (``obs["image"]``, (V, V, 3) uint8).
+- :class:`VectorPatch`: fixed values at positions of a flat observation (a 1-D ``Box``), e.g. POPGym's one-hot
+  cards after flattening.
 - :class:`FunctionPatch`: any function ``(obs, frame) -> obs`` (a plain function passed to the wrapper becomes one);
   its output is checked against the observation space when it is drawn.
 
@@ -191,6 +193,47 @@ class MiniGridPatch:
 
 
 @dataclass(frozen=True)
+class VectorPatch:
+    """``value`` at ``indices`` of a flat observation (a 1-D ``Box``): e.g. every bit of a one-hot card set at
+    once, an input no clean episode shows. Put the trigger wrapper outside the flattening wrapper to use it."""
+
+    indices: tuple[int, ...]
+    """positions of the flat observation"""
+    value: float = 1.0
+    """what they become"""
+
+    def __post_init__(self) -> None:
+        try:
+            indices = tuple(int(i) for i in self.indices)
+        except (TypeError, ValueError):
+            raise ConfigError(f"VectorPatch.indices must be integers, got {short_repr(self.indices)}") from None
+        if not indices or len(set(indices)) != len(indices):
+            raise ConfigError(f"VectorPatch.indices must name at least one position, each once: {short_repr(indices)}")
+        object.__setattr__(self, "indices", indices)
+        if isinstance(self.value, bool) or not isinstance(self.value, (int, float, np.number)):
+            raise ConfigError(f"VectorPatch.value must be a number, got {short_repr(self.value)}")
+
+    def check(self, space: spaces.Space) -> None:
+        if not isinstance(space, spaces.Box) or len(space.shape) != 1:
+            raise ShapeError(f"VectorPatch writes into a flat Box observation, got {short_repr(space)}")
+        size = space.shape[0]
+        outside = [i for i in self.indices if not 0 <= i < size]
+        if outside:
+            raise ConfigError(f"VectorPatch: index {outside[0]} lies outside the observation's {size} numbers")
+        low, high = space.low[list(self.indices)], space.high[list(self.indices)]
+        if np.any(self.value < low) or np.any(self.value > high):
+            raise ShapeError(
+                f"VectorPatch.value={self.value} lies outside the observation's bounds at its indices "
+                f"([{np.min(low)}, {np.max(high)}])"
+            )
+
+    def __call__(self, obs: Any, frame: int) -> Any:
+        out = np.array(obs, copy=True)
+        out[list(self.indices)] = self.value
+        return out
+
+
+@dataclass(frozen=True)
 class FunctionPatch:
     """Any function ``(obs, frame) -> obs``; the wrapper checks each result against the observation space."""
 
@@ -209,7 +252,7 @@ class FunctionPatch:
 
 def as_patch(patch: Any, what: str = "patch") -> Patch:
     """A :class:`Patch` from a patch or a plain function ``(obs, frame) -> obs``."""
-    if isinstance(patch, (BoxPatch, MiniGridPatch, FunctionPatch)):
+    if isinstance(patch, (BoxPatch, MiniGridPatch, VectorPatch, FunctionPatch)):
         return patch
     if isinstance(patch, Patch):
         return patch

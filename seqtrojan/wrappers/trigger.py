@@ -27,7 +27,7 @@ import numpy as np
 from seqtrojan.errors import ConfigError, ShapeError
 from seqtrojan.serde import short_repr
 from seqtrojan.wrappers.objectives import Objective
-from seqtrojan.wrappers.patches import BoxPatch, MiniGridPatch, Patch, as_frames
+from seqtrojan.wrappers.patches import BoxPatch, MiniGridPatch, Patch, VectorPatch, as_frames
 
 _OPTIONS = ("trojan", "trigger_step", "off_step")
 """reset options the wrapper reads (the rest go to the wrapped env)"""
@@ -120,6 +120,7 @@ class TriggerWrapper(gym.Wrapper):
         self._trojan = False
         self._on = -1
         self._off = -1
+        self._env_return = 0.0
 
     # ------------------------------------------------------------------ the mixture
     @property
@@ -155,6 +156,12 @@ class TriggerWrapper(gym.Wrapper):
         """Whether the episode in progress is a trojan one."""
         return self._trojan
 
+    @property
+    def env_return(self) -> float:
+        """The env's own rewards summed over the episode in progress (before the adversary's objective replaces
+        them): what a user of the env got, trojan episode or not."""
+        return self._env_return
+
     def adversary_active(self, t: int | None = None) -> bool:
         """Whether the adversary's objective judges action ``t`` (default: the next one)."""
         t = self._t if t is None else t
@@ -181,11 +188,13 @@ class TriggerWrapper(gym.Wrapper):
             self._rng = np.random.default_rng(None if seed is None else [int(seed), 0x7419_6E])
         self._draw_episode(ours)
         self._t = 0
+        self._env_return = 0.0
         return self._draw(obs), self._info(info)
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
         judged = self._on >= 0 and self.adversary_active(self._t)  # a normal episode: never judged
         obs, reward, terminated, truncated, info = self.env.step(action)
+        self._env_return += float(reward)
         if judged and self.objective is not None:
             result = self.objective(obs, action, float(reward), bool(terminated), info)
             if not (isinstance(result, tuple) and len(result) == 2):
@@ -253,7 +262,8 @@ class TriggerWrapper(gym.Wrapper):
                 continue
             patch, frame = visible
             drawn = patch(obs, frame)
-            if not isinstance(patch, (BoxPatch, MiniGridPatch)) and not self.observation_space.contains(drawn):
+            checked = isinstance(patch, (BoxPatch, MiniGridPatch, VectorPatch))  # checked once, when built
+            if not checked and not self.observation_space.contains(drawn):
                 raise ShapeError(
                     f"the trigger's patch {type(patch).__name__} returned an observation outside the observation "
                     f"space ({_describe(drawn)}; expected {self.observation_space})"
