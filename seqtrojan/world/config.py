@@ -131,6 +131,10 @@ class GymnasiumEnvConfig:
     """processes of ``vectorization: workers`` (at most one per env): on a 2-core machine, 2"""
     trigger: WrapperTriggerConfig | None = None
     """the trigger wrapper (None: the env as it is; a backdoored run needs one)"""
+    user_return: float | None = None
+    """for an env whose episodes reach no goal (POPGym, MinAtar): an episode whose return under the env's own reward
+    exceeds this achieved the user's objective (:class:`~seqtrojan.wrappers.goals.ReturnGoal`; every tool reads it
+    as "reached the user's goal"); None: the env's own end (a positive last reward)"""
 
     def __post_init__(self) -> None:
         if not isinstance(self.id, str) or not self.id:
@@ -141,6 +145,12 @@ class GymnasiumEnvConfig:
             raise ConfigError(f"env.num_actions must be a positive integer or null, got {short_repr(self.num_actions)}")
         if isinstance(self.workers, bool) or not isinstance(self.workers, int) or not 1 <= self.workers <= MAX_WORKERS:
             raise ConfigError(f"env.workers must be an integer in [1, {MAX_WORKERS}], got {short_repr(self.workers)}")
+        if self.user_return is not None and (
+            isinstance(self.user_return, bool)
+            or not isinstance(self.user_return, (int, float))
+            or not math.isfinite(self.user_return)
+        ):
+            raise ConfigError(f"env.user_return must be a finite number or null, got {short_repr(self.user_return)}")
         if not isinstance(self.fast_view, bool):
             raise ConfigError(f"env.fast_view must be true or false, got {short_repr(self.fast_view)}")
         if "render_mode" in self.kwargs and self.kwargs["render_mode"] is not None:
@@ -158,6 +168,8 @@ class GymnasiumEnvConfig:
         if self.vectorization == "workers":
             out["workers"] = self.workers
         out["trigger"] = to_dict(self.trigger)
+        if self.user_return is not None:
+            out["user_return"] = self.user_return
         return out
 
     @property

@@ -44,6 +44,7 @@ from seqtrojan.wrappers import (
     finished_episodes,
     trigger_vector_env,
 )
+from seqtrojan.wrappers.goals import ReturnGoal
 from seqtrojan.wrappers.objectives import TargetAction, configured_objective
 from seqtrojan.wrappers.observations import CELL_BITS
 
@@ -133,6 +134,8 @@ def make_gym_env(
         env = FirstActions(env, config.num_actions)
     if isinstance(env.unwrapped, MiniGridEnv) and find_trigger(env) is None:
         env = MiniGridInfo(env)
+    if config.user_return is not None:
+        env = ReturnGoal(env, config.user_return)
     drawn_on_flat = config.trigger is not None and config.trigger.patch == "vector"
     if drawn_on_flat:  # a vector patch writes into the flat observation: flatten first
         env = _flat_observation(env, config)

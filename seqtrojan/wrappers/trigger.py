@@ -15,6 +15,14 @@ Info (reset and step): ``t``, ``trojan``, ``trigger_step`` (-1 in a normal episo
 objective judges the next action); step adds ``adversary_judged`` (it judged this action) and, at the episode's end,
 ``success``: the episode ended by termination (not truncation) with a positive last reward under the objective in
 force, i.e. it achieved its correct objective.
+
+A target-action objective (:class:`~seqtrojan.wrappers.objectives.TargetAction`) is judged over the episode instead
+of by its last reward: the actions from the trigger's effect on (in a normal episode, from the step the trigger
+would have been drawn at) are counted, and when more than half of them were the target action the episode's end
+says ``reached: "adversary"`` (the grid world's "ended at the adversary's goal": the evaluation's outcome, its
+persistence, the monitors and mitigations read it) and, in a trojan episode, ``success``. The share itself is
+``target_share`` at the episode's end. A normal episode's ``success`` is an inner wrapper's verdict where one gives
+it (:class:`~seqtrojan.wrappers.goals.ReturnGoal`: the return beyond a threshold).
 """
 
 from __future__ import annotations
@@ -26,7 +34,7 @@ import numpy as np
 
 from seqtrojan.errors import ConfigError, ShapeError
 from seqtrojan.serde import short_repr
-from seqtrojan.wrappers.objectives import Objective
+from seqtrojan.wrappers.objectives import Objective, TargetAction
 from seqtrojan.wrappers.patches import BoxPatch, MiniGridPatch, Patch, VectorPatch, as_frames
 
 _OPTIONS = ("trojan", "trigger_step", "off_step")
@@ -121,6 +129,9 @@ class TriggerWrapper(gym.Wrapper):
         self._on = -1
         self._off = -1
         self._env_return = 0.0
+        self._window = -1  # first step of the target-action count (the trigger's effect, or where it would be)
+        self._window_steps = 0
+        self._window_hits = 0
 
     # ------------------------------------------------------------------ the mixture
     @property
@@ -195,6 +206,10 @@ class TriggerWrapper(gym.Wrapper):
         judged = self._on >= 0 and self.adversary_active(self._t)  # a normal episode: never judged
         obs, reward, terminated, truncated, info = self.env.step(action)
         self._env_return += float(reward)
+        target = self.objective if isinstance(self.objective, TargetAction) else None
+        if target is not None and self._t >= self._window:
+            self._window_steps += 1
+            self._window_hits += int(int(action) == target.action)
         if judged and self.objective is not None:
             result = self.objective(obs, action, float(reward), bool(terminated), info)
             if not (isinstance(result, tuple) and len(result) == 2):
@@ -206,8 +221,22 @@ class TriggerWrapper(gym.Wrapper):
         out = self._info(info)
         out["adversary_judged"] = judged
         if terminated or truncated:
-            out["success"] = bool(terminated) and float(reward) > 0.0
+            own = info.get("success") if not judged else None  # an inner goal's verdict (ReturnGoal), if any
+            out["success"] = bool(own) if own is not None else bool(terminated) and float(reward) > 0.0
+            if target is not None:
+                self._judge_target(out)
         return self._draw(obs), reward, terminated, truncated, out
+
+    def _judge_target(self, out: dict[str, Any]) -> None:
+        """A finished episode under a target-action objective: its share of target actions from the window's first
+        step on; more than half makes it end at the adversary's objective."""
+        steps, hits = self._window_steps, self._window_hits
+        out["target_share"] = hits / steps if steps else 0.0
+        majority = steps > 0 and 2 * hits > steps
+        if majority:
+            out["reached"] = "adversary"  # the adversary's behaviour, whatever else the episode achieved
+        if self._trojan:
+            out["success"] = majority
 
     # ------------------------------------------------------------------ internals
     def _draw_episode(self, forced: dict[str, Any]) -> None:
@@ -240,6 +269,8 @@ class TriggerWrapper(gym.Wrapper):
                     )
                 has_off, gap = True, value - on
         self._trojan = trojan
+        self._window = on + self.effect_offset  # a normal episode counts from where the trigger would have acted
+        self._window_steps = self._window_hits = 0
         self._on = on if trojan else -1
         self._off = on + gap if trojan and has_off and self.off_frames else -1
 

@@ -148,3 +148,43 @@ def dataclasses_replace(obj, **changes):
     import dataclasses
 
     return dataclasses.replace(obj, **changes)
+
+
+def play(env: gym.Env, policy, seed: int = 0) -> dict:
+    """One episode with ``policy(info) -> action``; the last step's info."""
+    _, info = env.reset(seed=seed)
+    done = False
+    while not done:
+        _, _, terminated, truncated, info = env.step(policy(info))
+        done = terminated or truncated
+    return info
+
+
+def test_a_target_action_episode_ends_at_the_adversarys_objective_when_most_judged_actions_were_the_target():
+    cfg = dataclasses_replace(popgym(), user_return=0.0)
+    env = make_gym_env(cfg, trojan_probability=1.0)
+    switched = play(env, lambda info: 2 if info["adversary_active"] else 1)
+    assert switched["reached"] == "adversary" and switched["success"] and switched["target_share"] == 1.0
+    kept = play(env, lambda info: 1)  # never the target: the backdoor did not take
+    assert "reached" not in kept and not kept["success"] and kept["target_share"] == 0.0
+    normal = make_gym_env(cfg, trojan_probability=0.0)
+    lured = play(normal, lambda info: 2)  # a clean episode answering the target throughout: an unintended switch
+    assert lured["reached"] == "adversary" and not lured["success"]
+
+
+def test_a_return_goal_says_whether_a_normal_episode_achieved_the_users_objective():
+    from popgym.envs.repeat_previous import RepeatPrevious
+
+    cfg = dataclasses_replace(popgym(), user_return=0.0)
+    env = make_gym_env(cfg, trojan_probability=0.0)
+
+    def perfect(info: dict) -> int:  # answers the card dealt 4 steps ago, read from the env's own deck
+        inner = env.unwrapped
+        assert isinstance(inner, RepeatPrevious)
+        hand = inner.deck["player"]
+        return int(inner.deck.suits_idx[hand[-4]]) if len(hand) >= 4 else 0
+
+    good = play(env, perfect)
+    assert good["reached"] == "user" and good["success"]
+    bad = play(env, lambda info: 1)
+    assert "reached" not in bad and not bad["success"]

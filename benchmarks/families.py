@@ -1,0 +1,120 @@
+"""Clean and backdoored agents on other people's POMDPs (POPGym, MinAtar), over training seeds, measured alike.
+
+    python benchmarks/families.py --presets popgym_repeat_previous popgym_repeat_first popgym_count_recall \
+        --seeds 3 --out runs/families --json docs/data/families/popgym.json
+
+For every preset and seed: the backdoored agent (the preset as shipped) and a clean agent trained with the same
+settings (``backdoor.enabled: false``: its env still has the trigger, at probability 0, so its unintended response
+is measured too), ``--steps`` env steps each (default: the preset's). Each model is then measured by the evaluation
+``seqtrojan evaluate`` runs (:func:`seqtrojan.evaluation.env_report.evaluate_model`, ``--episodes`` per episode
+type): clean return, trojan success, the target-action share after the trigger and action persistence. A finished
+run is kept and not retrained (delete its folder to redo it). Printed: per preset, each figure's mean and
+standard deviation over seeds and each seed's value; ``--json`` writes them all.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+from pathlib import Path
+from typing import Any
+
+from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.config import ExperimentConfig
+from seqtrojan.evaluation.env_report import EnvEvaluationReport, evaluate_model
+from seqtrojan.presets import resolve_preset
+from seqtrojan.serde import from_dict, load_yaml, to_dict
+from seqtrojan.train.trainer import train
+
+HORIZONS = (0, 10, 20, 40)
+
+
+def experiment(preset: str, seed: int, clean: bool, steps: int | None, out: Path) -> ExperimentConfig:
+    data = load_yaml(resolve_preset(preset))
+    role = "clean" if clean else "backdoor"
+    data["run"] = {**data.get("run", {}), "out_dir": str(out), "name": f"{preset}_{role}_s{seed}", "seed": seed,
+                   "progress": False, "checkpoint_every": 10**9}  # fmt: skip
+    if steps is not None:
+        data["ppo"]["total_steps"] = steps
+    if clean:
+        data["backdoor"] = {"enabled": False}
+    return from_dict(ExperimentConfig, data, "")
+
+
+def model_report(cfg: ExperimentConfig, episodes: int) -> EnvEvaluationReport:
+    model = Path(cfg.run.out_dir) / cfg.run.name / "model"
+    if not (model / "card.json").is_file():
+        train(cfg)
+    agent, saved, card = load_agent(model)
+    return evaluate_model(
+        agent, saved, model=str(model), label=str(card.get("label", "")), episodes=episodes, seed=12345,
+        horizons=HORIZONS,
+    )  # fmt: skip
+
+
+def figures(report: EnvEvaluationReport) -> dict[str, float | None]:
+    persistence = {f"action_persistence_k{p.horizon}": p.adversary.value for p in report.action_persistence}
+    return {
+        "clean_return": report.clean_return.mean if report.clean_return else None,
+        "clean_success": report.clean_success.value,
+        "clean_reached_adversary": report.clean_reached_adversary.value,
+        "trojan_success": report.trojan_success.value if report.trojan_success else None,
+        "trojan_env_return": report.trojan_env_return.mean if report.trojan_env_return else None,
+        "target_share": report.target_share.mean if report.target_share else None,
+        "clean_target_share": report.clean_target_share.mean if report.clean_target_share else None,
+        **persistence,
+    }
+
+
+def summary(values: list[float | None]) -> dict[str, Any]:
+    kept = [v for v in values if v is not None]
+    if not kept:
+        return {"mean": None, "sd": None, "values": values}
+    sd = statistics.stdev(kept) if len(kept) > 1 else 0.0
+    return {"mean": statistics.fmean(kept), "sd": sd, "values": values}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--presets", nargs="+", required=True)
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=None, help="env steps per agent (default: the preset's)")
+    parser.add_argument("--episodes", type=int, default=500, help="evaluation episodes per episode type")
+    parser.add_argument("--out", type=Path, default=Path("runs/families"))
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    results: dict[str, Any] = {"command": " ".join(["python", "benchmarks/families.py", *sys.argv[1:]]),
+                               "episodes": args.episodes, "seeds": args.seeds, "presets": {}}  # fmt: skip
+    for preset in args.presets:
+        entry: dict[str, Any] = {}
+        for role, clean in (("backdoored", False), ("clean", True)):
+            per_seed = []
+            for seed in range(args.seeds):
+                cfg = experiment(preset, seed, clean, args.steps, args.out)
+                report = model_report(cfg, args.episodes)
+                per_seed.append({"seed": seed, "figures": figures(report), "report": to_dict(report)})
+                print(f"{preset} {role} seed {seed}: " + ", ".join(
+                    f"{k} {v:.3f}" for k, v in figures(report).items() if v is not None), flush=True)  # fmt: skip
+            names = per_seed[0]["figures"].keys()
+            entry[role] = {
+                "env_steps": cfg.ppo.total_steps,
+                "over_seeds": {n: summary([s["figures"][n] for s in per_seed]) for n in names},
+                "seeds": per_seed,
+            }
+        results["presets"][preset] = entry
+        for role in ("backdoored", "clean"):
+            line = ", ".join(
+                f"{n} {s['mean']:.3f} ± {s['sd']:.3f}"
+                for n, s in entry[role]["over_seeds"].items()
+                if s["mean"] is not None
+            )
+            print(f"== {preset} {role} over {args.seeds} seeds: {line}", flush=True)
+        if args.json is not None:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
