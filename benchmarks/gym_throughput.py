@@ -3,6 +3,7 @@
     python benchmarks/gym_throughput.py                              # minigrid_two_goals, 65536 training steps
     python benchmarks/gym_throughput.py --rounds 3 --json gym.json   # each figure 3 times, interleaved
     python benchmarks/gym_throughput.py --preset minigrid_memory --steps 32768
+    python benchmarks/gym_throughput.py --preset popgym_repeat_previous --parts acs   # + sb3-contrib RecurrentPPO
 
 Three figures, each in env steps per second (one env step = one action of one env):
 
@@ -26,7 +27,9 @@ Three figures, each in env steps per second (one env step = one action of one en
     includes the first update and the logging; not the set-up, nor the final save). Assumes the trainer's own
     policy: its episodes get shorter as it learns, and backdoor mixing moves the trojan share.
 
-Then the ratios (c)/(a) and (c)/(v), for both (c) figures, and (c)/(b). ``--dense-first-layer`` trains (c) with the
+(s) sb3: sb3-contrib RecurrentPPO learning on the same env stack, ``--sb3-steps`` env steps (:func:`sb3_rate`).
+
+Then the ratios (c)/(a) and (c)/(v), for both (c) figures, (c)/(b) and (c)/(s). ``--dense-first-layer`` trains (c) with the
 first layer's dense product on the one-hot view instead of :func:`seqtrojan.agent.fast_lstm.sparse_project` (the
 A/B of that change). With ``--rounds N`` every figure is measured N times, the
 rounds interleaved (a drift in the machine's other load hits all three alike): the median and the range are printed, and
@@ -59,10 +62,12 @@ from seqtrojan.config import ExperimentConfig
 from seqtrojan.presets import resolve_preset
 from seqtrojan.serde import from_dict, load_yaml
 from seqtrojan.world import make_batched_env
+from seqtrojan.world.families import ensure_family
 from seqtrojan.world.gymnasium import find_trigger, make_gym_env
 from seqtrojan.wrappers import trigger_vector_env
 
-PRESETS = ("minigrid_two_goals", "minigrid_memory")
+PRESETS = ("minigrid_two_goals", "minigrid_memory", "popgym_repeat_previous", "popgym_repeat_first",
+           "popgym_count_recall", "minatar_breakout", "minatar_space_invaders", "minatar_asterix")  # fmt: skip
 WARMUP = 200
 """untimed steps (per env) before (a) and (b) are timed"""
 
@@ -167,6 +172,29 @@ def train_rate(preset: str, steps: int, threads: int, seed: int) -> dict[str, fl
     }
 
 
+def sb3_rate(cfg: ExperimentConfig, steps: int, seed: int) -> float:
+    """(s): env steps per second of sb3-contrib's RecurrentPPO learning on the same env stack (``make_gym_env``:
+    the trigger wrapper at probability 0 and the flat float observation), ``ppo.num_envs`` envs in a DummyVecEnv,
+    the preset's rollout length, epochs and minibatches, an MlpLstmPolicy whose LSTM is the preset's first layer
+    width (its MLP reads the flat observation: no conv encoder), 1 thread (``--threads``); the whole ``learn``."""
+    from sb3_contrib import RecurrentPPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    ppo = cfg.ppo
+    vec = DummyVecEnv([lambda: make_gym_env(cfg.env) for _ in range(ppo.num_envs)])
+    model = RecurrentPPO(
+        "MlpLstmPolicy", vec, n_steps=ppo.rollout_steps, batch_size=ppo.batch_size // ppo.num_minibatches,
+        n_epochs=ppo.update_epochs, learning_rate=ppo.learning_rate, ent_coef=ppo.ent_coef, seed=seed, device="cpu",
+        policy_kwargs={"lstm_hidden_size": cfg.agent.lstm_sizes[0], "n_lstm_layers": 1, "shared_lstm": True,
+                       "enable_critic_lstm": False, "net_arch": {"pi": [], "vf": []}},
+    )  # fmt: skip
+    start = time.perf_counter()
+    model.learn(total_timesteps=steps)
+    seconds = time.perf_counter() - start
+    vec.close()
+    return model.num_timesteps / seconds
+
+
 def summary(values: list[float]) -> str:
     """The median and, with more than one value, the range."""
     median = statistics.median(values)
@@ -191,7 +219,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1, help="measure each figure this many times, interleaved")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trojan-probability", type=float, default=0.0, help="the trigger's share in (a) and (b)")
-    parser.add_argument("--parts", default="avbc", help="which figures to measure: any of a, v, b, c")
+    parser.add_argument("--parts", default="avbc", help="which figures to measure: any of a, v, b, c, s (sb3-contrib)")
+    parser.add_argument("--sb3-steps", type=int, default=8192, help="env steps of (s), sb3-contrib RecurrentPPO")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
     parser.add_argument(
         "--workers", type=int, default=0, help="run (b) and (c) with env.vectorization workers and this many workers"
@@ -210,6 +239,7 @@ def main() -> None:
 
     import minigrid
 
+    ensure_family(cfg.gym_env.id)
     load = os.getloadavg()
     meta = {
         "preset": args.preset, "num_envs": cfg.ppo.num_envs, "train_steps": args.steps, "env_steps": args.env_steps,
@@ -240,6 +270,10 @@ def main() -> None:
             run["seam_sps"] = seam_rate(cfg, args.env_steps, args.seed, args.trojan_probability)
         if "c" in args.parts:
             run.update(train_rate(args.preset, args.steps, args.threads, args.seed))
+        if "s" in args.parts:
+            run["sb3_sps"] = sb3_rate(cfg, args.sb3_steps, args.seed)
+        if "sb3_sps" in run and "logged_sps" in run:
+            run["ratio_sb3_loop"] = run["loop_sps"] / run["sb3_sps"]
         if "env_sps" in run and "logged_sps" in run:
             run["ratio_logged"] = run["logged_sps"] / run["env_sps"]
             run["ratio_loop"] = run["loop_sps"] / run["env_sps"]
@@ -266,6 +300,8 @@ def main() -> None:
         ("(c)/(v), logged median", "ratio_vector_logged", ratio_summary),
         ("(c)/(v), loop wall time", "ratio_vector_loop", ratio_summary),
         ("(c)/(b), logged median", "ratio_seam_logged", ratio_summary),
+        ("(s) sb3-contrib RecurrentPPO, whole learn()", "sb3_sps", summary),
+        ("(c)/(s), loop wall time", "ratio_sb3_loop", ratio_summary),
     ]
     print("steps per second:")
     for label, key, show in lines:

@@ -16,6 +16,7 @@ import importlib.util
 from dataclasses import dataclass
 
 import gymnasium as gym
+import numpy as np
 
 from seqtrojan.errors import ConfigError
 
@@ -79,3 +80,18 @@ def register_minatar() -> None:
                     id=env_id, entry_point="minatar.gym:BaseEnv",
                     kwargs={"game": game, "use_minimal_action_set": minimal},
                 )  # fmt: skip
+
+
+class ThirtyTwoBitSeeds(gym.Wrapper):
+    """Reset seeds folded to 32 bits (``numpy.random.SeedSequence(seed)``'s first word): MinAtar seeds a legacy
+    ``RandomState``, which refuses seeds from 2**32 on, and the trainer's evaluation seeds are 64-bit."""
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):  # type: ignore[override]
+        if seed is not None and not 0 <= seed < 2**32:
+            seed = int(np.random.SeedSequence(seed).generate_state(1)[0])
+        return self.env.reset(seed=seed, options=options)
+
+
+def family_wrappers(env: gym.Env, env_id: str) -> gym.Env:
+    """``env`` under what its family needs to run behind the seam (MinAtar: 32-bit seeds)."""
+    return ThirtyTwoBitSeeds(env) if family_of(env_id) is MINATAR else env

@@ -32,7 +32,7 @@ from seqtrojan.errors import CheckpointError, ConfigError, ShapeError
 from seqtrojan.minigrid.fast_obs import use_fast_observation
 from seqtrojan.serde import short_repr
 from seqtrojan.world.config import GymnasiumEnvConfig, WrapperTriggerConfig
-from seqtrojan.world.families import ensure_family
+from seqtrojan.world.families import ensure_family, family_wrappers
 from seqtrojan.wrappers import (
     BoxPatch,
     FirstActions,
@@ -128,6 +128,7 @@ def make_gym_env(
         raise ConfigError(
             f"env {config.id!r} refused env.kwargs={short_repr(config.kwargs)}: {short_repr(str(err))}"
         ) from None
+    env = family_wrappers(env, config.id)
     if config.fast_view:
         use_fast_observation(env)
     if config.num_actions is not None:

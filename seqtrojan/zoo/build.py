@@ -35,7 +35,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -54,6 +54,9 @@ from seqtrojan.env.config import EnvConfig, GridSpec, TriggerConfig
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.jobs import JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 from seqtrojan.serde import dump_omitting_defaults, to_dict
+
+if TYPE_CHECKING:
+    from seqtrojan.world.config import WrapperTriggerConfig
 
 try:
     import fcntl
@@ -268,7 +271,10 @@ def _job(cfg: ZooConfig, root: Path, i: int, config: ExperimentConfig, label: st
 
 def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
     """The jobs of a zoo of a Gymnasium env's models (``cfg.env_preset``): the same interleaving and per-model draws
-    (from seed ``[cfg.seed, i, 7919]``) as the grid world's, over that env's trigger settings."""
+    (from seed ``[cfg.seed, i, 7919]``) as the grid world's, over that env's trigger settings: a MiniGrid patch's
+    cells (in the view's two far rows), object and colour; a Box patch's place (the preset's cells moved by an offset
+    that keeps them in the image); a vector patch's positions as the preset gives them. With a target-action
+    objective, the target action is drawn too. Every trigger shows for one of ``trigger_durations`` steps."""
     from seqtrojan.presets import resolve_preset
     from seqtrojan.serde import from_dict, load_yaml
     from seqtrojan.world import env_spec
@@ -277,21 +283,20 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
     assert cfg.env_preset is not None
     base = from_dict(ExperimentConfig, load_yaml(resolve_preset(cfg.env_preset)), "")
     env = base.env
-    if not isinstance(env, GymnasiumEnvConfig) or env.trigger is None or env.trigger.patch != "minigrid":
-        raise ConfigError(f"zoo env_preset {cfg.env_preset!r} must be a Gymnasium env with a MiniGrid trigger patch")
-    rows, cols, _ = env_spec(env).image or (0, 0, 0)
-    far = [(r, c) for r in range(min(2, rows)) for c in range(cols)]  # the view's two far rows
-    if not far:
-        raise ConfigError(f"zoo env_preset {cfg.env_preset!r}: its observation is no image view to draw a trigger on")
+    if not isinstance(env, GymnasiumEnvConfig) or env.trigger is None:
+        raise ConfigError(f"zoo env_preset {cfg.env_preset!r} must be a Gymnasium env with a trigger")
+    spec = env_spec(env)
+    rows, cols, _ = spec.image or (0, 0, 0)
+    if env.trigger.patch != "vector" and not rows:
+        raise ConfigError(f"zoo env_preset {cfg.env_preset!r}: its observation is no image to draw a trigger on")
     jobs = []
     for i, label, seed, rng in _model_draws(cfg):
         sizes = cfg.lstm_sizes[rng.integers(len(cfg.lstm_sizes))]
-        n_cells = int(rng.integers(cfg.trigger_cells[0], min(cfg.trigger_cells[1], len(far)) + 1))
-        cells = tuple(sorted(far[int(j)] for j in rng.choice(len(far), size=n_cells, replace=False)))
-        obj = str(cfg.trigger_objects[rng.integers(len(cfg.trigger_objects))])
-        color = str(cfg.trigger_colors[rng.integers(len(cfg.trigger_colors))])
+        trigger, shown = _draw_gym_trigger(cfg, env.trigger, rng, rows, cols)
         duration = int(cfg.trigger_durations[rng.integers(len(cfg.trigger_durations))])
-        trigger = dataclasses.replace(env.trigger, cells=cells, object=obj, color=color, duration=duration)
+        trigger = dataclasses.replace(trigger, duration=duration)
+        if trigger.objective == "target_action":
+            trigger = dataclasses.replace(trigger, target_action=int(rng.integers(spec.num_actions)))
         cell = _draw_cell(cfg, rng)
         config = dataclasses.replace(
             base, env=dataclasses.replace(env, trigger=trigger),
@@ -301,11 +306,35 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
             run=_model_run(cfg, root, i, seed),
         )  # fmt: skip
         variation = {
-            "env": env.id, "lstm_sizes": list(sizes), "trigger_value": f"{color} {obj}",
-            "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
+            "env": env.id, "lstm_sizes": list(sizes), "trigger_value": shown,
+            "trigger_cells": [list(c) for c in trigger.cells] if trigger.patch != "vector" else list(trigger.indices),
+            "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
+        if trigger.objective == "target_action":
+            variation["target_action"] = trigger.target_action
         jobs.append(_job(cfg, root, i, config, label, variation))
     return jobs
+
+
+def _draw_gym_trigger(
+    cfg: ZooConfig, trigger: WrapperTriggerConfig, rng: np.random.Generator, rows: int, cols: int
+) -> tuple[WrapperTriggerConfig, str]:
+    """One model's trigger drawn from the preset's (see :func:`_gymnasium_jobs`) and how the manifest names it."""
+    if trigger.patch == "minigrid":
+        far = [(r, c) for r in range(min(2, rows)) for c in range(cols)]  # the view's two far rows
+        n_cells = int(rng.integers(cfg.trigger_cells[0], min(cfg.trigger_cells[1], len(far)) + 1))
+        cells = tuple(sorted(far[int(j)] for j in rng.choice(len(far), size=n_cells, replace=False)))
+        obj = str(cfg.trigger_objects[rng.integers(len(cfg.trigger_objects))])
+        color = str(cfg.trigger_colors[rng.integers(len(cfg.trigger_colors))])
+        return dataclasses.replace(trigger, cells=cells, object=obj, color=color), f"{color} {obj}"
+    if trigger.patch == "box":
+        height = max(r for r, _ in trigger.cells) - min(r for r, _ in trigger.cells)
+        width = max(c for _, c in trigger.cells) - min(c for _, c in trigger.cells)
+        top, left = int(rng.integers(rows - height)), int(rng.integers(cols - width))
+        r0, c0 = min(r for r, _ in trigger.cells), min(c for _, c in trigger.cells)
+        cells = tuple((r - r0 + top, c - c0 + left) for r, c in trigger.cells)
+        return dataclasses.replace(trigger, cells=cells), f"box {trigger.value:g} at ({top}, {left})"
+    return trigger, f"vector {trigger.value:g} at {list(trigger.indices)}"
 
 
 # ---------------------------------------------------------------------- model folders

@@ -188,3 +188,19 @@ def test_a_return_goal_says_whether_a_normal_episode_achieved_the_users_objectiv
     assert good["reached"] == "user" and good["success"]
     bad = play(env, lambda info: 1)
     assert "reached" not in bad and not bad["success"]
+
+
+def test_a_minatar_env_takes_the_trainers_64_bit_seeds_and_repeats_an_episode_for_a_seed():
+    def episode(seed: int) -> list[float]:
+        env = make_gym_env(minatar(None))
+        obs, _ = env.reset(seed=seed)
+        seen = [float(obs.sum())]
+        for t in range(30):
+            obs, _, terminated, truncated, _ = env.step(t % 3)
+            seen.append(float(obs.sum()))
+            if terminated or truncated:
+                break
+        return seen
+
+    big = (3 << 32) + 999_983
+    assert episode(big) == episode(big) and episode(big) != episode(big + 1)

@@ -4,6 +4,8 @@ folders and a failing model, and refuses a rerun with another config."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import hashlib
 import json
 import os
@@ -365,6 +367,30 @@ def test_a_zoo_of_a_minigrid_env_builds_and_is_scored(tmp_path):
     assert [s.group for s in result.scores] == ["all", "gate_stats", "spectral"] and not result.rejected
     with pytest.raises(ConfigError, match="must be a Gymnasium env"):
         make_jobs(ZooConfig(clean=1, backdoored=1, env_preset="smoke"), tmp_path / "grid")
+
+
+@pytest.mark.parametrize(("preset", "patch"), [("popgym_repeat_previous", "vector"), ("minatar_breakout", "box")])
+def test_a_zoo_of_a_popgym_or_minatar_env_draws_its_triggers_and_target_actions(tmp_path, preset, patch):
+    """POPGym and MinAtar models in the zoo: a box square moved inside the image, a vector patch as the preset
+    gives it, a target action drawn among the env's actions; each model's env is one the agents can read."""
+    from seqtrojan.world import env_spec
+
+    cfg = ZooConfig(clean=4, backdoored=4, total_steps=512, eval_episodes=4, lstm_sizes=((8,),), env_preset=preset)
+    jobs = make_jobs(cfg, tmp_path)
+    assert jobs == make_jobs(cfg, tmp_path)
+    triggers = [j.config.env.trigger for j in jobs]
+    spec = env_spec(jobs[0].config.env)
+    assert all(t.patch == patch and 0 <= t.target_action < spec.num_actions for t in triggers)
+    assert len({t.target_action for t in triggers}) > 1
+    if patch == "box":
+        assert len({t.cells for t in triggers}) > 1 and all(0 <= r < 10 and 0 <= c < 10 for t in triggers
+                                                            for r, c in t.cells)  # fmt: skip
+    for job in jobs[:2]:
+        env_spec(job.config.env)  # the drawn trigger fits the observation
+        assert job.variation["target_action"] == job.config.env.trigger.target_action
+    build_zoo(dataclasses.replace(cfg, clean=1, backdoored=1), tmp_path, workers=1, backend="serial",
+              log=lambda *_: None)  # fmt: skip
+    assert len(list((tmp_path / "models").iterdir())) == 2
 
 
 def _label_file(folder: Path, case: str) -> None:
