@@ -31,6 +31,7 @@ one-hot views have no known bounds here: the detector abstains on them (a probab
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -56,19 +57,25 @@ class ReconstructionSettings:
     """steps after ``at`` over which the persistent divergence is averaged"""
     steps: int = 40
     """gradient steps per restart"""
-    restarts: int = 1
-    """searches per step of ``at``, each from its own random start"""
+    mask_starts: tuple[float, ...] = (0.12, 0.5)
+    """the mask level each search starts from (one search per step of ``at`` and start; the mask's and the pattern's
+    numbers are drawn around it): from a small mask alone the search can miss a trigger that covers much of the view
+    and settle on a local optimum of its own objective"""
     learning_rate: float = 0.1
     penalty: float = 0.2
     """weight of the mask's mean (its L1 size over the number of inputs) against the divergence"""
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("episodes", "horizon", "steps", "restarts"):
+        for name in ("episodes", "horizon", "steps"):
             if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
                 raise ConfigError(f"reconstruction {name} must be an integer >= 1, got {getattr(self, name)!r}")
         if not self.at or not all(isinstance(t, int) and t >= 0 for t in self.at):
             raise ConfigError(f"reconstruction at must be one or more steps >= 0, got {self.at!r}")
+        if not self.mask_starts or not all(0.0 < m < 1.0 for m in self.mask_starts):
+            raise ConfigError(
+                f"reconstruction mask_starts must be one or more levels in (0, 1), got {self.mask_starts!r}"
+            )
         if not (self.learning_rate > 0 and self.penalty >= 0):
             raise ConfigError(
                 f"reconstruction learning_rate must be > 0 and penalty >= 0, got {self.learning_rate!r}, "
@@ -131,7 +138,7 @@ class _Replay:
 
 
 def reconstruct(suspect: Suspect, settings: ReconstructionSettings) -> Reconstruction | None:
-    """The best relaxed trigger over the steps of ``settings.at`` and ``settings.restarts`` restarts each, or None
+    """The best relaxed trigger over the steps of ``settings.at`` and the ``settings.mask_starts``, or None
     where the search does not apply (an observation without known bounds) or no episode lasts the first step of
     ``at`` plus the horizon."""
     if not has_unit_bounds(suspect):
@@ -144,16 +151,17 @@ def reconstruct(suspect: Suspect, settings: ReconstructionSettings) -> Reconstru
         if at + s.horizon >= obs.shape[0]:  # every episode ended before the horizon's last step
             continue
         replay = _Replay(suspect, obs[: at + s.horizon + 1], running[: at + s.horizon + 1], at)
-        for _ in range(s.restarts):
-            found = _optimise(replay, s, generator)
+        for start in s.mask_starts:
+            found = _optimise(replay, s, start, generator)
             if best is None or found.objective > best.objective:
                 best = found
     return best
 
 
-def _optimise(replay: _Replay, s: ReconstructionSettings, generator: torch.Generator) -> Reconstruction:
+def _optimise(replay: _Replay, s: ReconstructionSettings, start: float, generator: torch.Generator) -> Reconstruction:
     dim = replay.obs.shape[-1]
-    logit_mask = (torch.randn(dim, generator=generator) * 0.5 - 2.0).requires_grad_(True)
+    level = math.log(start / (1.0 - start))  # the logit of the starting mask level
+    logit_mask = (torch.randn(dim, generator=generator) * 0.5 + level).requires_grad_(True)
     logit_pattern = torch.randn(dim, generator=generator).requires_grad_(True)
     optimiser = torch.optim.Adam([logit_mask, logit_pattern], lr=s.learning_rate)
     with torch.enable_grad():

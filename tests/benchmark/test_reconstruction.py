@@ -34,11 +34,11 @@ def features(twins) -> tuple[dict[str, float], dict[str, float]]:
 
 
 def test_the_backdoored_twin_is_changed_for_longer_by_a_small_trigger(features):
-    """Measured (seed 0, one thread): persistent divergence 0.46 against 0.12, at the horizon's last step 0.53 against
-    0.04; the clean twin's change fades (persistence 0.6), the backdoored one's grows (1.3)."""
+    """Measured (seed 0, one thread): persistent divergence 0.50 against 0.19, at the horizon's last step 0.64 against
+    0.01; the clean twin's change fades (persistence 0.28), the backdoored one's grows (1.8)."""
     backdoored, clean = features
     assert backdoored["divergence"] > 0.3 and backdoored["divergence"] > 2 * clean["divergence"]
-    assert backdoored["divergence_last"] > 5 * clean["divergence_last"]
+    assert backdoored["divergence_last"] > 10 * clean["divergence_last"]
     assert backdoored["persistence"] > 1.0 > clean["persistence"]
     assert backdoored["divergence_per_mask"] > clean["divergence_per_mask"]
     for row in features:
@@ -82,7 +82,7 @@ def test_the_detector_is_registered_fits_and_abstains_without_bounds(twins):
 @pytest.mark.parametrize(
     ("change", "message"),
     [({"at": ()}, "at must be one or more steps"), ({"steps": 0}, "steps must be an integer >= 1"),
-     ({"penalty": -1.0}, "penalty >= 0")],
+     ({"penalty": -1.0}, "penalty >= 0"), ({"mask_starts": (0.5, 1.0)}, "mask_starts must be one or more levels")],
 )  # fmt: skip
 def test_bad_settings_are_refused(change, message):
     with pytest.raises(ConfigError, match=message):
