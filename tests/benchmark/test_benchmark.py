@@ -196,6 +196,8 @@ def test_the_cli_writes_the_leaderboard_and_lists_the_detectors(tmp_path, capsys
     board = json.loads((tmp_path / "s" / LEADERBOARD_FILE).read_text())
     assert [d["detector"] for d in board["detectors"]] == ["metadata_baseline"] and board["models"]["holdout"] > 0
     assert "leaderboard.json" in capsys.readouterr().out
+    page = (tmp_path / "s" / "report.html").read_text()  # the leaderboard as a report section, on its own page
+    assert "<h2>Offline detection: the benchmark leaderboard</h2>" in page and ">metadata_baseline</td>" in page
     assert main(["defenses"]) == 0
     listed = capsys.readouterr().out
     assert all(name in listed for name in DETECTORS.names()) and len(DETECTORS.names()) >= 6
