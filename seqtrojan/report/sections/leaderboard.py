@@ -33,6 +33,9 @@ def leaderboard_page(board: Leaderboard) -> str:
 
 
 def leaderboard_section(board: Leaderboard) -> list[str]:
+    """The section's HTML parts: per detector and split the models (poisoned), ROC-AUC with Newcombe's interval,
+    cross-entropy and Brier score with their bootstrap intervals, milliseconds per model and answers over the
+    budget; the same by factor (folded); the models rejected or left out, with their reasons."""
     counts = board.models
     parts = [
         "<h2>Offline detection: the benchmark leaderboard</h2>",
