@@ -6,7 +6,7 @@ reason to keep one.
     features = reconstruction_features(suspect, ReconstructionSettings())   # or the registered detector
 
 For a suspect, clean-env episodes are run once (fixed seeds, the same for every suspect of an env, played by the
-suspect's own policy) and their first ``at + horizon + 1`` observations recorded
+suspect's own policy) and their first ``max(at) + horizon + 1`` observations recorded
 (:func:`seqtrojan.benchmark.state_probe.record_clean_episodes`). A relaxed trigger is then optimised by gradient:
 a mask ``m = sigmoid(a)`` and a pattern ``v = sigmoid(b)`` over the flat observation (one number each per input),
 the same for every episode, replace the observation of step ``at`` by ``(1 - m) * x + m * v`` (within the
@@ -16,10 +16,11 @@ policy after step ``at`` is memory, not a changed trajectory, and the unroll is 
 recurrent layers (the training path's unroll, which PPO differentiates). The objective, maximised with Adam, is
 the persistent divergence, the total variation between the perturbed and the unperturbed action distributions
 averaged over steps ``at + 1 .. at + horizon`` and the episodes still running, minus ``penalty`` times the mask's
-mean (Neural Cleanse's L1 size term). Each restart starts from its own random mask and pattern (a seeded
-generator: the same answer for the same suspect and seed).
+mean (Neural Cleanse's L1 size term). One search runs per insertion step of ``at`` and per starting mask level of
+``mask_starts``, each from its own random mask and pattern (a seeded generator: the same answer for the same
+suspect and seed), and the one with the best objective is kept.
 
-Features of the best restart (:func:`reconstruction_features`): the persistent divergence reached, the mask's size
+Features of the best search (:func:`reconstruction_features`): the persistent divergence reached, the mask's size
 (its mean: the share of the view replaced), the divergence per unit of mask size, the divergence at the last step
 of the horizon, the divergence at step ``at`` itself (while in view) and the persistence ratio of the two, and how
 concentrated the induced actions are (the largest share of one action in the perturbed policy over the horizon,
@@ -45,18 +46,18 @@ from seqtrojan.world.config import GymnasiumEnvConfig
 
 @dataclass(frozen=True)
 class ReconstructionSettings:
-    """The search's budget and shape. The defaults take about a second per model on one CPU thread for the
-    benchmark zoos' networks (docs/benchmark.md)."""
+    """The search's budget and shape. With the defaults a model of the benchmark zoos takes about half a second (grid
+    world) to one and a half (MiniGrid's 500-input view) on a 2-core CPU (docs/benchmark.md)."""
 
     episodes: int = 32
     """clean-env episodes whose observations are replayed"""
     at: tuple[int, ...] = (1, 2, 3)
-    """the steps whose observation a relaxed trigger replaces (one search per step and restart; the best is kept):
+    """the steps whose observation a relaxed trigger replaces (one search per step and mask start; the best is kept):
     a backdoor may answer its trigger only at the steps it was trained with"""
     horizon: int = 4
     """steps after ``at`` over which the persistent divergence is averaged"""
     steps: int = 40
-    """gradient steps per restart"""
+    """gradient (Adam) steps per search"""
     mask_starts: tuple[float, ...] = (0.12, 0.5)
     """the mask level each search starts from (one search per step of ``at`` and start; the mask's and the pattern's
     numbers are drawn around it): from a small mask alone the search can miss a trigger that covers much of the view

@@ -79,6 +79,19 @@ def test_the_detector_is_registered_fits_and_abstains_without_bounds(twins):
     assert reconstruct(unbounded, fast) is None and fitted.probability(unbounded) == NO_OPINION
 
 
+def test_the_search_runs_on_a_minigrid_view():
+    """MiniGrid's one-hot view (500 inputs, 0..1) is searched as the grid world's is (an untrained network)."""
+    from seqtrojan.agent.network import RecurrentActorCritic
+    from seqtrojan.benchmark.suspect import ModelFacts
+
+    torch.manual_seed(0)
+    net = RecurrentActorCritic(500, 7, (8,), cell="gru")
+    env = GymnasiumEnvConfig("seqtrojan/MiniGridTwoGoals-v0", kwargs={"size": 6, "agent_view_size": 5})
+    found = reconstruct(Suspect("g", net, env, ModelFacts(500, 7, "gru", (8,), 1)), ReconstructionSettings(steps=5))
+    assert found is not None and found.mask.shape == (500,) and found.divergence.shape == (5,)
+    assert bool(((found.mask > 0) & (found.mask < 1)).all()) and 0.0 <= float(found.divergence.max()) <= 1.0
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [({"at": ()}, "at must be one or more steps"), ({"steps": 0}, "steps must be an integer >= 1"),
