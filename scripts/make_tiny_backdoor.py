@@ -1,7 +1,13 @@
-"""Regenerate tests/fixtures/tiny_backdoor/, the tiny backdoored agent the fast defense tests load (#27):
+"""Regenerate tests/fixtures/tiny_backdoor/, the tiny backdoored agent the fast defense tests load (#27), and its
+clean twin tests/fixtures/tiny_clean/ (#29, the detectors' tests):
 
     PYTHONPATH=. .venv/bin/python scripts/make_tiny_backdoor.py            # writes tests/fixtures/tiny_backdoor
+    PYTHONPATH=. .venv/bin/python scripts/make_tiny_backdoor.py --clean    # writes tests/fixtures/tiny_clean
     PYTHONPATH=. .venv/bin/python scripts/make_tiny_backdoor.py --out DIR  # elsewhere (e.g. to compare)
+
+The clean twin is the same run (seed, network, env, steps, learning rate) with the backdoor off: the same
+initial weights, trained on normal episodes only. It must reach the same clean success bar (its attack success is
+measured the same way and recorded, not required).
 
 The agent: an LSTM (32, 16) trained with the project's trainer for 131,072 env steps (128 envs x 32 steps, fixed
 mixing, lr 3e-3, seed 0, one torch thread) on the 5x5 grid with 1 hole. Its trigger is the
@@ -42,6 +48,7 @@ from seqtrojan.train.trainer import train
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURE = ROOT / "tests" / "fixtures" / "tiny_backdoor"
+CLEAN_FIXTURE = ROOT / "tests" / "fixtures" / "tiny_clean"
 GRID = GridSpec(5, 1)
 VIEW = (("hole", "empty", "hole"), ("empty", "empty", "empty"), ("empty", "empty", "hole"))
 """the trigger: the whole 3x3 view drawn with ordinary cell codes (the ``in_distribution_patch`` attack's)"""
@@ -55,13 +62,14 @@ ENV = EnvConfig(size=5, holes=1, trigger=TRIGGER)
 MIN_SUCCESS = 0.8
 
 
-def fixture_config(out_dir: str) -> ExperimentConfig:
-    """The fixture's training run (``out_dir``: where the trainer writes its run folder)."""
+def fixture_config(out_dir: str, backdoor: bool = True) -> ExperimentConfig:
+    """The fixture's training run (``out_dir``: where the trainer writes its run folder; ``backdoor`` False: the
+    clean twin)."""
     ppo = PPOConfig(total_steps=131_072, num_envs=128, rollout_steps=32, num_minibatches=2, update_epochs=4,
                     learning_rate=3e-3)  # fmt: skip
     run = RunConfig(out_dir=out_dir, progress=False, eval_episodes=0, seed=0, checkpoint_every=10**9, threads=1)
     return ExperimentConfig(env=ENV, agent=AgentConfig(lstm_sizes=(32, 16)), ppo=ppo,
-                            backdoor=BackdoorConfig(enabled=True, mixing="fixed"), run=run)  # fmt: skip
+                            backdoor=BackdoorConfig(enabled=backdoor, mixing="fixed"), run=run)  # fmt: skip
 
 
 def measure(agent: RecurrentActorCritic, episodes: int, seed: int) -> dict[str, float]:
@@ -74,27 +82,31 @@ def measure(agent: RecurrentActorCritic, episodes: int, seed: int) -> dict[str, 
     return metrics
 
 
-def make_fixture(out: Path, episodes: int, seed: int) -> dict[str, float]:
+def make_fixture(out: Path, episodes: int, seed: int, backdoor: bool = True) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as work:
-        cfg = fixture_config(work)
+        cfg = fixture_config(work, backdoor)
         result = train(cfg)
         agent, trained_cfg, card = load_agent(result.model_dir)
     metrics = measure(agent.eval(), episodes, seed)
-    if min(metrics["normal_success"], metrics["trojan_success"]) < MIN_SUCCESS:
-        raise SystemExit(f"the agent did not train (need both >= {MIN_SUCCESS}): {metrics}")
+    required = ("normal_success", "trojan_success") if backdoor else ("normal_success",)
+    if min(metrics[name] for name in required) < MIN_SUCCESS:
+        raise SystemExit(f"the agent did not train (need {', '.join(required)} >= {MIN_SUCCESS}): {metrics}")
     kept = dataclasses.replace(trained_cfg, run=dataclasses.replace(trained_cfg.run, out_dir="runs"))  # not the tmp dir
-    save_agent(out, agent, kept, label="backdoored", metrics=metrics, env_steps=card["env_steps"])
+    label = "backdoored" if backdoor else "clean"
+    save_agent(out, agent, kept, label=label, metrics=metrics, env_steps=card["env_steps"])
     return metrics
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=FIXTURE, help="model folder to write")
+    parser.add_argument("--out", type=Path, default=None, help="model folder to write (default: the fixture's)")
+    parser.add_argument("--clean", action="store_true", help="the clean twin (backdoor off) instead")
     parser.add_argument("--episodes", type=int, default=2000, help="episodes per measured rate")
     parser.add_argument("--seed", type=int, default=12345, help="seed of the measured episodes")
     args = parser.parse_args()
-    metrics = make_fixture(args.out, args.episodes, args.seed)
-    print(f"wrote {args.out}: " + ", ".join(f"{k} {v:.4g}" for k, v in metrics.items()))
+    out = args.out or (CLEAN_FIXTURE if args.clean else FIXTURE)
+    metrics = make_fixture(out, args.episodes, args.seed, backdoor=not args.clean)
+    print(f"wrote {out}: " + ", ".join(f"{k} {v:.4g}" for k, v in metrics.items()))
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from seqtrojan.analysis.results import ANALYSIS_FILE, AnalysisResult
+from seqtrojan.benchmark.leaderboard import LEADERBOARD_FILE, Leaderboard
 from seqtrojan.defense.results import DEFENSE_FILE, DETECTION_FILE, DefenseResult, DetectionResult
 from seqtrojan.evaluation.results import EVALUATION_FILE, SweepRow, load_sweep
 from seqtrojan.experiment_results import (
@@ -175,6 +176,12 @@ class RunLayout:
     def detection_file(self) -> Path:
         return self.zoo_dir / DETECTION_FILE
 
+    @property
+    def leaderboard_file(self) -> Path:
+        """The benchmark leaderboard of the zoo, where ``seqtrojan zoo detect --zoo OUT/zoo --out OUT/zoo/leaderboard``
+        writes it (the reproduction does not run it; its report shows it when it is there)."""
+        return self.zoo_dir / "leaderboard" / LEADERBOARD_FILE
+
     # --- each stage's results, typed (None, or empty, when the stage has not run)
     def evaluation(self) -> list[SweepRow]:
         return load_sweep(self.evaluation_file) if self.evaluation_file.exists() else []
@@ -187,6 +194,9 @@ class RunLayout:
 
     def detection(self) -> DetectionResult | None:
         return _load(DetectionResult, self.detection_file)
+
+    def leaderboard(self) -> Leaderboard | None:
+        return _load(Leaderboard, self.leaderboard_file)
 
     def trajectory(self) -> TrajectoryResult | None:
         return _load(TrajectoryResult, self.trajectory_file)

@@ -568,12 +568,13 @@ def _zoo(argv: list[str]) -> None:
     class ZooDetect:
         """Score offline backdoor detection on a zoo. With --out: the benchmark leaderboard (every registered
         benchmark detector fitted on the train split, scored on test and holdout: ROC-AUC, cross-entropy, Brier and
-        runtime with 95% bootstrap intervals; OUT/leaderboard.json; resumable). Without: the weight detector by
-        k-fold cross-validation (ZOO/detection.json)."""
+        runtime with 95% bootstrap intervals; OUT/leaderboard.json and OUT/report.html; resumable). Without: the
+        weight detector by k-fold cross-validation (ZOO/detection.json)."""
 
         zoo: Path = Path("results/zoo")
         out: Path | None = None
-        """the leaderboard's folder (splits.json, predictions/, leaderboard.json); none: the k-fold weight detector"""
+        """the leaderboard's folder (splits.json, predictions/, leaderboard.json, report.html); none: the k-fold
+        weight detector"""
         folds: int = 5
         """k of the k-fold weight detector (without --out)"""
         seed: int = 0
@@ -624,6 +625,7 @@ def _zoo_leaderboard(
 ) -> None:  # fmt: skip
     from seqtrojan.benchmark.leaderboard import LEADERBOARD_FILE, run_leaderboard, zoo_holdout
     from seqtrojan.benchmark.splits import SplitConfig
+    from seqtrojan.report.sections.leaderboard import leaderboard_page
 
     held: dict[str, list[str]] = {}
     if not holdout:  # the zoo's own (zoo.json), if it was built as a benchmark
@@ -659,7 +661,8 @@ def _zoo_leaderboard(
     for d in board.detectors:
         if d.over_budget:
             print(f"{d.detector}: {d.over_budget} answer(s) over the {budget_s} s budget, each scored as one half")
-    print(f"wrote {out / LEADERBOARD_FILE}")
+    (out / "report.html").write_text(leaderboard_page(board))
+    print(f"wrote {out / LEADERBOARD_FILE} and {out / 'report.html'}")
 
 
 def _list_registered(family: Literal["attack", "defense"], first: tuple[Any, ...], argv: list[str]) -> None:

@@ -125,3 +125,41 @@ def test_leaderboard_tables_printed_by_the_script_are_in_the_docs(data, page):
     text = (ROOT / "docs" / page).read_text()
     missing = [line for line in printed.splitlines() if line not in text]
     assert len(printed.splitlines()) > 4 and not missing, f"docs/{page} lacks {missing[:1]} of {data}"
+
+
+RECONSTRUCTION_TABLES = [
+    ("benchmark/reconstruction_smoke.json", "benchmark_smoke", ("train", "test", "holdout")),
+    ("benchmark/reconstruction_minigrid16.json", "MiniGrid 16", ("train", "test")),
+]
+"""``scripts/reconstruction_table.py`` output and the zoo's name in docs/benchmark.md's table of its ranges"""
+
+
+@pytest.mark.parametrize(("data", "zoo", "splits"), RECONSTRUCTION_TABLES)
+def test_the_trigger_reconstruction_ranges_in_the_docs_are_the_data(data, zoo, splits):
+    import json
+
+    models = json.loads((DATA / data).read_text())["models"]
+    text = (ROOT / "docs" / "benchmark.md").read_text()
+    for split in splits:
+        cells = []
+        for label in ("clean", "backdoored"):
+            values = [m["divergence"] for m in models if m["split"] == split and m["label"] == label]
+            cells.append(f"{min(values):.3f}-{max(values):.3f} ({len(values)})")
+        row = f"| {zoo} | {split} | {cells[0]} | {cells[1]} |"
+        assert row in text, f"docs/benchmark.md lacks {row!r} of {data}"
+
+
+def test_the_first_trigger_reconstruction_run_quoted_in_the_docs_is_its_data():
+    """The figures of the run before the search's revision (docs/benchmark.md, *Trigger reconstruction*)."""
+    import json
+
+    text = " ".join((ROOT / "docs" / "benchmark.md").read_text().split())
+    for data in ("leaderboard_smoke_6ea413b.json", "leaderboard_minigrid16_6ea413b.json"):
+        board = json.loads((DATA / "benchmark" / data).read_text())
+        detector = next(d for d in board["detectors"] if d["detector"] == "trigger_reconstruction")
+        for split in detector["splits"]:
+            s = split["scores"]
+            auc, ce = s["roc_auc_newcombe"], s["cross_entropy"]["value"]
+            auc_text = f"{auc['value']:.3f} [{auc['low']:.2f}, {auc['high']:.2f}]"
+            quoted = (f"{auc_text} (cross-entropy {ce:.3f})", f"{auc_text} ({ce:.3f})")
+            assert any(q in text for q in quoted), f"docs/benchmark.md lacks {data}'s {split['split']} figures"

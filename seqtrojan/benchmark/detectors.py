@@ -17,6 +17,9 @@ scores every registered one.
 - ``state_probe``: one-step candidate inputs (in the observation's own encoding) replayed over recorded clean
   episodes, and how far and how persistently they move the recurrent state once gone from view
   (:mod:`seqtrojan.benchmark.state_probe`); grid world and MiniGrid views.
+- ``trigger_reconstruction``: a relaxed one-step trigger (mask and pattern over the view) optimised by gradient to
+  change the policy most over the steps after it has left the view, with an L1 size penalty: the recurrent
+  Neural Cleanse (:mod:`seqtrojan.benchmark.reconstruction`); grid world and MiniGrid views.
 - ``behaviour_search``: the trigger-free behaviour detector (:mod:`seqtrojan.defense.behaviour`: one-step view
   patches and the rise of episodes ending at the adversary's goal), its raw score calibrated to a probability by a
   logistic regression on the train split's scores. Grid-world suspects only; it answers 0.5 (no opinion) for others.
@@ -31,6 +34,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from seqtrojan.benchmark.reconstruction import ReconstructionSettings, reconstruction_features
 from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
 from seqtrojan.benchmark.suspect import Suspect
 from seqtrojan.cell_types import cell_names
@@ -205,6 +209,25 @@ class StateProbe:
         return _Abstaining(fit_features(features, suspects, labels), lambda s: bool(features(s)))
 
 
+@dataclass(frozen=True)
+class TriggerReconstruction:
+    """Trigger reconstruction by optimisation (:mod:`seqtrojan.benchmark.reconstruction`): the largest persistent
+    change of the policy a small relaxed one-step trigger can make, and what it takes; a logistic regression on the
+    train split."""
+
+    settings: ReconstructionSettings = field(default_factory=ReconstructionSettings)
+
+    def fit(self, suspects: Sequence[Suspect], labels: Sequence[int]) -> FittedDetector:
+        cache: dict[int, dict[str, float]] = {}
+
+        def features(suspect: Suspect) -> dict[str, float]:
+            if id(suspect) not in cache:
+                cache[id(suspect)] = reconstruction_features(suspect, self.settings)
+            return cache[id(suspect)]
+
+        return _Abstaining(fit_features(features, suspects, labels), lambda s: bool(features(s)))
+
+
 class _ProbeRecorder:
     """Sums, over the running steps of a probe's episodes, what :func:`query_response_features` summarises."""
 
@@ -288,4 +311,9 @@ DETECTORS.register(
 DETECTORS.register(
     "query_response", "meta-classifier on the policy's and state's answers to fixed clean probe episodes",
     QueryResponse(),
+)  # fmt: skip
+DETECTORS.register(
+    "trigger_reconstruction",
+    "a small one-step view perturbation optimised to change the policy after it is gone (recurrent Neural Cleanse)",
+    TriggerReconstruction(),
 )  # fmt: skip

@@ -108,29 +108,38 @@ class _ObsRecorder:
         pass
 
 
-@torch.no_grad()
-def probe_features(suspect: Suspect, settings: ProbeSettings) -> dict[str, float]:
-    """The probe's features of one suspect (empty where it has no candidates or no episode lasts long enough)."""
+def record_clean_episodes(suspect: Suspect, episodes: int, steps: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first ``steps`` observations of ``episodes`` clean-env episodes played by the suspect's own policy (seeded
+    ``seed``, the same episodes for every suspect of an env): obs (T, E, obs_dim) and whether each episode was still
+    running at each step (T, E); T < ``steps`` where every episode ended sooner. Replaying these observations
+    teacher-forced (the env never sees an edit, no action is chosen again) isolates what the network remembers."""
     from seqtrojan.agent.policy import AgentPolicy
     from seqtrojan.env.rollout import run_episodes
     from seqtrojan.world.episodes import episode_env
 
-    candidates = candidates_for(suspect, settings)
-    if not candidates:
-        return {}
-    steps = settings.at + settings.after + 1
-    env = episode_env(suspect.env, None, settings.episodes, trojan=False, seed=settings.seed)
+    env = episode_env(suspect.env, None, episodes, trojan=False, seed=seed)
     recorder = _ObsRecorder(steps)
     try:
-        run_episodes(env, AgentPolicy(suspect.agent, seed=settings.seed), seed=settings.seed, recorders=[recorder])
+        policy = AgentPolicy(suspect.agent, seed=seed)
+        run_episodes(env, policy, seed=seed, recorders=[recorder], max_steps=steps)
     finally:
         close = getattr(env, "close", None)
         if close is not None:
             close()
-    if len(recorder.obs) < steps:
+    return torch.stack(recorder.obs), torch.stack(recorder.running)
+
+
+@torch.no_grad()
+def probe_features(suspect: Suspect, settings: ProbeSettings) -> dict[str, float]:
+    """The probe's features of one suspect (empty where it has no candidates or no episode lasts long enough)."""
+    candidates = candidates_for(suspect, settings)
+    if not candidates:
         return {}
-    obs = torch.stack(recorder.obs)  # (T, E, obs_dim)
-    keep = torch.stack(recorder.running)[steps - 1]  # episodes still running at the read-out step
+    steps = settings.at + settings.after + 1
+    obs, running = record_clean_episodes(suspect, settings.episodes, steps, settings.seed)  # (T, E, obs_dim), (T, E)
+    if obs.shape[0] < steps:
+        return {}
+    keep = running[steps - 1]  # episodes still running at the read-out step
     if not bool(keep.any()):
         return {}
     obs = obs[:, keep]

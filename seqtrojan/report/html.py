@@ -22,6 +22,7 @@ from seqtrojan.report.sections.cells import cells_section
 from seqtrojan.report.sections.curves import curves_section
 from seqtrojan.report.sections.defense import defense_section
 from seqtrojan.report.sections.headline import headline_section
+from seqtrojan.report.sections.leaderboard import leaderboard_section
 from seqtrojan.report.sections.machine import machine_section
 from seqtrojan.report.sections.tables import tables_section
 from seqtrojan.report.sections.tradeoff import tradeoff_section
@@ -57,6 +58,9 @@ def build_report(out: Path, scale: str, machine: dict[str, Any]) -> Path:
     defense, detection = layout.defense(), layout.detection()
     if defense or detection:
         parts += defense_section(defense, detection)
+    leaderboard = layout.leaderboard()
+    if leaderboard:
+        parts += leaderboard_section(leaderboard)
     cells_result = layout.cells()
     if cells_result:
         parts += cells_section(cells_result, layout.cells_figure)

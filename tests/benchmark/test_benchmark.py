@@ -196,9 +196,12 @@ def test_the_cli_writes_the_leaderboard_and_lists_the_detectors(tmp_path, capsys
     board = json.loads((tmp_path / "s" / LEADERBOARD_FILE).read_text())
     assert [d["detector"] for d in board["detectors"]] == ["metadata_baseline"] and board["models"]["holdout"] > 0
     assert "leaderboard.json" in capsys.readouterr().out
+    page = (tmp_path / "s" / "report.html").read_text()  # the leaderboard as a report section, on its own page
+    assert "<h2>Offline detection: the benchmark leaderboard</h2>" in page and ">metadata_baseline</td>" in page
     assert main(["defenses"]) == 0
     listed = capsys.readouterr().out
-    assert all(name in listed for name in DETECTORS.names()) and len(DETECTORS.names()) >= 3
+    assert all(name in listed for name in DETECTORS.names()) and len(DETECTORS.names()) >= 6
+    assert "trigger_reconstruction" in listed
     assert main(["zoo", "detect", "--zoo", str(zoo), "--out", str(tmp_path / "t"), "--holdout", "lstm_sizes"]) == 2
     assert "--holdout takes FACTOR=VALUE pairs, got 'lstm_sizes'" in capsys.readouterr().err
     assert not (tmp_path / "t").exists()
@@ -256,6 +259,10 @@ def test_benchmark_tiny_builds_and_every_registered_detector_is_scored(tmp_path,
         assert {s["split"] for s in detector["splits"]} == {"test", "holdout"}, detector["detector"]
         for split in detector["splits"]:
             assert 0.0 <= split["scores"]["brier"]["value"] <= 1.0
+    for name in ("trigger_reconstruction", "state_probe"):  # the searches answer every test and holdout model
+        answers = json.loads((out / "predictions" / f"{name}.json").read_text())["predictions"]
+        assert len(answers) == 16 - list(splits.values()).count("train")
+        assert all(0.0 <= a["probability"] <= 1.0 for a in answers), name
     assert "query_response" in capsys.readouterr().out
 
 
