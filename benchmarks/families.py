@@ -9,7 +9,8 @@ is measured too), ``--steps`` env steps each (default: the preset's). Each model
 ``seqtrojan evaluate`` runs (:func:`seqtrojan.evaluation.env_report.evaluate_model`, ``--episodes`` per episode
 type): clean return, trojan success, the target-action share after the trigger and action persistence. A finished
 run is kept and not retrained (delete its folder to redo it). Printed: per preset, each figure's mean and
-standard deviation over seeds and each seed's value; ``--json`` writes them all.
+standard deviation over seeds and each seed's value; ``--json`` writes them all, and ``--table JSON`` prints a
+written file as the markdown table of docs/families.md.
 """
 
 from __future__ import annotations
@@ -76,15 +77,53 @@ def summary(values: list[float | None]) -> dict[str, Any]:
     return {"mean": statistics.fmean(kept), "sd": sd, "values": values}
 
 
+TABLE = (
+    ("clean return", "clean_return"), ("clean success", "clean_success"),
+    ("normal episodes switched", "clean_reached_adversary"), ("target share after the trigger", "target_share"),
+    ("target share, normal episodes", "clean_target_share"), ("trojan success", "trojan_success"),
+    ("action persistence k=10", "action_persistence_k10"), ("action persistence k=40", "action_persistence_k40"),
+    ("env's return, trojan episodes", "trojan_env_return"),
+)  # fmt: skip
+"""the table's columns: heading and figure"""
+
+
+def table(results: dict[str, Any]) -> list[str]:
+    """The markdown table of a ``--json`` file: per preset and agent, each figure's mean ± sd over seeds, and each
+    seed's clean return and trojan success."""
+    headings = " | ".join(h for h, _ in TABLE)
+    out = [
+        f"| preset | agent | env steps | {headings} | per seed: clean return; trojan success |",
+        "|---|---|---|" + "---|" * len(TABLE) + "---|",
+    ]
+    for preset, entry in results["presets"].items():
+        for role in ("clean", "backdoored"):
+            agent = entry[role]
+            cells = []
+            for _, name in TABLE:
+                s = agent["over_seeds"].get(name)
+                cells.append("n/a" if s is None or s["mean"] is None else f"{s['mean']:.3f} ± {s['sd']:.3f}")
+            seeds = "; ".join(
+                f"{s['figures']['clean_return']:.3f}, {s['figures']['trojan_success']:.3f}" for s in agent["seeds"]
+            )
+            out.append(f"| {preset} | {role} | {agent['env_steps']:,} | " + " | ".join(cells) + f" | {seeds} |")
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--presets", nargs="+", required=True)
+    parser.add_argument("--table", type=Path, default=None, help="print this --json file as a markdown table")
+    parser.add_argument("--presets", nargs="+", default=[])
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--steps", type=int, default=None, help="env steps per agent (default: the preset's)")
     parser.add_argument("--episodes", type=int, default=500, help="evaluation episodes per episode type")
     parser.add_argument("--out", type=Path, default=Path("runs/families"))
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    if args.table is not None:
+        print("\n".join(table(json.loads(args.table.read_text()))))
+        return
+    if not args.presets:
+        parser.error("--presets is required (or --table JSON)")
     results: dict[str, Any] = {"command": " ".join(["python", "benchmarks/families.py", *sys.argv[1:]]),
                                "episodes": args.episodes, "seeds": args.seeds, "presets": {}}  # fmt: skip
     for preset in args.presets:
