@@ -26,12 +26,14 @@ of the horizon, the divergence at step ``at`` itself (while in view) and the per
 concentrated the induced actions are (the largest share of one action in the perturbed policy over the horizon,
 and the total variation between the perturbed and unperturbed policies averaged over episodes first: a consistent
 push toward the same actions, not per-episode noise). The registered ``trigger_reconstruction`` detector is a
-logistic regression on them, fitted on the train split. Observations other than the grid world's and MiniGrid's
-one-hot views have no known bounds here: the detector abstains on them (a probability of one half).
+logistic regression on them, fitted on the train split. Observations without 0..1 bounds (the grid world's and
+MiniGrid's one-hot views, POPGym's one-hot cards and MinAtar's boolean images have them) have no known range here:
+the detector abstains on them (a probability of one half).
 """
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 
@@ -41,6 +43,7 @@ from seqtrojan.benchmark.state_probe import record_clean_episodes
 from seqtrojan.benchmark.suspect import Suspect
 from seqtrojan.env.config import EnvConfig
 from seqtrojan.errors import ConfigError
+from seqtrojan.serde import to_dict
 from seqtrojan.world.config import GymnasiumEnvConfig
 
 
@@ -85,9 +88,31 @@ class ReconstructionSettings:
 
 
 def has_unit_bounds(suspect: Suspect) -> bool:
-    """Whether the suspect's observations are known to lie in 0..1: the grid world's and MiniGrid's one-hot views."""
+    """Whether the suspect's observations are known to lie in 0..1: the grid world's and MiniGrid's one-hot views,
+    and any Gymnasium env whose flat observation space is bounded by 0 and 1 (POPGym's one-hot cards, MinAtar's
+    boolean images)."""
     env = suspect.env
-    return isinstance(env, EnvConfig) or (isinstance(env, GymnasiumEnvConfig) and env.observation == "minigrid")
+    if isinstance(env, EnvConfig) or (isinstance(env, GymnasiumEnvConfig) and env.observation == "minigrid"):
+        return True
+    return isinstance(env, GymnasiumEnvConfig) and _unit_box(env)
+
+
+_UNIT_BOXES: dict[str, bool] = {}
+
+
+def _unit_box(env: GymnasiumEnvConfig) -> bool:
+    """Whether ``env``'s flat observation space is bounded by 0 and 1 (the env is made once per config)."""
+    from seqtrojan.world.gymnasium import make_gym_env
+
+    key = json.dumps(to_dict(env), sort_keys=True, default=str)
+    if key not in _UNIT_BOXES:
+        made = make_gym_env(env, registered_only=True)
+        try:
+            low, high = getattr(made.observation_space, "low", None), getattr(made.observation_space, "high", None)
+            _UNIT_BOXES[key] = low is not None and high is not None and bool((low == 0).all() and (high == 1).all())
+        finally:
+            made.close()
+    return _UNIT_BOXES[key]
 
 
 @dataclass(frozen=True)

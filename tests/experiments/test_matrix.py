@@ -144,3 +144,37 @@ def test_the_matrix_runs_on_a_minigrid_env_with_the_defenses_that_apply(tmp_path
         ("fine_tuned", "mitigation"), ("state_bounds", "mitigation"),
     }  # fmt: skip
     assert (tmp_path / "report.html").read_text().count("MiniGridTwoGoals") >= 1
+
+
+POPGYM_TRAINING = {
+    "ppo": {"total_steps": 2048, "num_envs": 8, "rollout_steps": 32, "bptt_length": 16, "num_minibatches": 2,
+            "update_epochs": 1},
+    "run": {"eval_episodes": 0, "checkpoint_every": 2048, "progress": False},
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("preset", ["matrix_popgym_smoke", "matrix_minatar_smoke"])
+def test_the_family_matrix_presets_keep_the_gymnasium_attacks_and_defenses(preset):
+    shipped = load_matrix_config(preset)
+    assert "from_clean" in shipped.attack_names and "partial_patch" not in shipped.attack_names
+    assert shipped.online_names == ("state_monitor", "multivariate_monitor", "goal_switch")
+    assert shipped.zoo is not None and shipped.zoo.env_preset == shipped.backdoor.preset
+
+
+def test_the_matrix_runs_on_a_popgym_task(tmp_path):
+    """A tiny matrix on POPGym's RepeatPrevious: the attacks train, every applicable defense is measured, and the
+    target-action switch is what the defenses read (an attack success over the episodes)."""
+    tiny = {
+        "backdoor": {"preset": "popgym_repeat_previous", "set": POPGYM_TRAINING},
+        "clean": {"preset": "popgym_repeat_previous", "set": {**POPGYM_TRAINING, "backdoor": {"enabled": False}}},
+        "attacks": ["delayed"], "seeds": 1, "episodes": 12,
+        "monitor": {"calibration_episodes": 40, "eval_episodes": 12, "false_alarm_target": 0.05},
+        "mitigation": {"finetune_steps": 256, "calibration_episodes": 8, "eval_episodes": 12},
+        "zoo": None, "jobs": {"backend": "serial"},
+    }  # fmt: skip
+    result = run_matrix(from_dict(MatrixConfig, tiny), tmp_path, scale="popgym", log=lambda *_: None)
+    assert result.grid == "popgym-RepeatPreviousEasy-v0" and [a.attack for a in result.attacks] == ["delayed"]
+    for a in result.agents:
+        assert set(a.online) == {"state_monitor", "multivariate_monitor", "goal_switch"}
+        assert a.attack_success.n == 12
+    assert (tmp_path / "report.html").read_text().count("RepeatPrevious") >= 1

@@ -5,7 +5,6 @@ folders and a failing model, and refuses a rerun with another config."""
 from __future__ import annotations
 
 import dataclasses
-
 import hashlib
 import json
 import os
