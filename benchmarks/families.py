@@ -55,6 +55,30 @@ def model_report(cfg: ExperimentConfig, episodes: int) -> EnvEvaluationReport:
     )  # fmt: skip
 
 
+def defend(cfg: ExperimentConfig, episodes: int, finetune_steps: int) -> dict[str, float]:
+    """``seqtrojan defend`` on the run's model: the monitor's and the mitigations' figures."""
+    from seqtrojan.defense.mitigation import MitigationConfig
+    from seqtrojan.defense.online import MonitorConfig
+    from seqtrojan.defense.pipeline import DefenseConfig, run_defense
+
+    run = Path(cfg.run.out_dir) / cfg.run.name
+    config = DefenseConfig(
+        monitor=MonitorConfig(calibration_episodes=episodes, eval_episodes=episodes, false_alarm_target=0.01),
+        mitigation=MitigationConfig(finetune_steps=finetune_steps, calibration_episodes=100, eval_episodes=episodes),
+        oracle_episodes=100,
+    )  # fmt: skip
+    result = run_defense(run / "model", run / "defense", config, log=lambda *_: None)
+    mon = result.monitor
+    out = {
+        "monitor_false_alarm": mon.normal_alarm.false_alarm.value, "monitor_detection": mon.trojan_alarm.detected.value,
+        "attack_success_undefended": mon.attack_success_undefended.value,
+        "attack_success_with_resets": mon.trojan_reset.attack_success.value,
+    }  # fmt: skip
+    for name, arm in result.mitigation.items():
+        out[f"{name}_attack"], out[f"{name}_clean"] = arm.attack_success.value, arm.clean_success.value
+    return out
+
+
 def figures(report: EnvEvaluationReport) -> dict[str, float | None]:
     persistence = {f"action_persistence_k{p.horizon}": p.adversary.value for p in report.action_persistence}
     return {
@@ -109,6 +133,32 @@ def table(results: dict[str, Any]) -> list[str]:
     return out
 
 
+DEFENSE_TABLE = (
+    ("monitor false alarms", "monitor_false_alarm"), ("monitor detection", "monitor_detection"),
+    ("attack success", "attack_success_undefended"), ("with the monitor's resets", "attack_success_with_resets"),
+    ("fine-tuned: attack", "fine_tuned_attack"), ("fine-tuned: clean", "fine_tuned_clean"),
+    ("state bounds: attack", "state_bounds_attack"), ("state bounds: clean", "state_bounds_clean"),
+    ("oracle unit reset: attack", "reset_goal_units_oracle_attack"),
+)  # fmt: skip
+"""the defense table's columns: heading and figure (``--defend``)"""
+
+
+def defense_table(results: dict[str, Any]) -> list[str]:
+    """The markdown table of ``--defend``'s figures: per preset, each one's mean ± sd over the backdoored seeds."""
+    headings = " | ".join(h for h, _ in DEFENSE_TABLE)
+    out = [f"| preset | {headings} |", "|---|" + "---|" * len(DEFENSE_TABLE)]
+    for preset, entry in results["presets"].items():
+        over = entry["backdoored"].get("defense_over_seeds")
+        if over is None:
+            continue
+        cells = []
+        for _, name in DEFENSE_TABLE:
+            s = over.get(name)
+            cells.append("n/a" if s is None or s["mean"] is None else f"{s['mean']:.3f} ± {s['sd']:.3f}")
+        out.append(f"| {preset} | " + " | ".join(cells) + " |")
+    return out if len(out) > 2 else []
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--table", type=Path, default=None, help="print this --json file as a markdown table")
@@ -118,9 +168,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=500, help="evaluation episodes per episode type")
     parser.add_argument("--out", type=Path, default=Path("runs/families"))
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--defend", type=int, default=0, help="monitor episodes of seqtrojan defend (0: none)")
+    parser.add_argument("--finetune-steps", type=int, default=65536, help="clean fine-tuning steps of --defend")
     args = parser.parse_args(argv)
     if args.table is not None:
-        print("\n".join(table(json.loads(args.table.read_text()))))
+        results = json.loads(args.table.read_text())
+        print("\n".join(table(results)))
+        defended = defense_table(results)
+        if defended:
+            print("\n" + "\n".join(defended))
         return
     if not args.presets:
         parser.error("--presets is required (or --table JSON)")
@@ -133,7 +189,11 @@ def main(argv: list[str] | None = None) -> None:
             for seed in range(args.seeds):
                 cfg = experiment(preset, seed, clean, args.steps, args.out)
                 report = model_report(cfg, args.episodes)
-                per_seed.append({"seed": seed, "figures": figures(report), "report": to_dict(report)})
+                measured = {"seed": seed, "figures": figures(report), "report": to_dict(report)}
+                if args.defend and not clean:
+                    measured["defense"] = defend(cfg, args.defend, args.finetune_steps)
+                    print(f"{preset} seed {seed} defended: {measured['defense']}", flush=True)
+                per_seed.append(measured)
                 print(f"{preset} {role} seed {seed}: " + ", ".join(
                     f"{k} {v:.3f}" for k, v in figures(report).items() if v is not None), flush=True)  # fmt: skip
             names = per_seed[0]["figures"].keys()
@@ -142,6 +202,10 @@ def main(argv: list[str] | None = None) -> None:
                 "over_seeds": {n: summary([s["figures"][n] for s in per_seed]) for n in names},
                 "seeds": per_seed,
             }
+            if "defense" in per_seed[0]:
+                entry[role]["defense_over_seeds"] = {
+                    n: summary([s["defense"].get(n) for s in per_seed]) for n in per_seed[0]["defense"]
+                }
         results["presets"][preset] = entry
         for role in ("backdoored", "clean"):
             line = ", ".join(
