@@ -7,16 +7,21 @@ For every preset and seed: the backdoored agent (the preset as shipped) and a cl
 settings (``backdoor.enabled: false``: its env still has the trigger, at probability 0, so its unintended response
 is measured too), ``--steps`` env steps each (default: the preset's). Each model is then measured by the evaluation
 ``seqtrojan evaluate`` runs (:func:`seqtrojan.evaluation.env_report.evaluate_model`, ``--episodes`` per episode
-type): clean return, trojan success, the target-action share after the trigger and action persistence. A finished
-run is kept and not retrained (delete its folder to redo it). Printed: per preset, each figure's mean and
+type): clean return, trojan success, the target-action share after the trigger and action persistence. With
+``--defend N`` every backdoored model also goes through ``seqtrojan defend`` (``run_defense``: the per-unit state
+monitor calibrated on N clean episodes at a 1% false-alarm target and measured on N fresh episodes per type, then
+the mitigations with ``--finetune-steps`` of clean fine-tuning): its false alarms, detection and attack success
+with resets, and each mitigation's attack and clean success. A finished run is kept and not retrained (delete its
+folder to redo it); a stopped one is trained again from its start. Printed: per preset, each figure's mean and
 standard deviation over seeds and each seed's value; ``--json`` writes them all, and ``--table JSON`` prints a
-written file as the markdown table of docs/families.md.
+written file as the markdown tables of docs/families.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import statistics
 import sys
 from pathlib import Path
@@ -47,6 +52,7 @@ def experiment(preset: str, seed: int, clean: bool, steps: int | None, out: Path
 def model_report(cfg: ExperimentConfig, episodes: int) -> EnvEvaluationReport:
     model = Path(cfg.run.out_dir) / cfg.run.name / "model"
     if not (model / "card.json").is_file():
+        shutil.rmtree(model.parent, ignore_errors=True)  # a stopped run (no checkpoints kept) starts again
         train(cfg)
     agent, saved, card = load_agent(model)
     return evaluate_model(
@@ -80,7 +86,10 @@ def defend(cfg: ExperimentConfig, episodes: int, finetune_steps: int) -> dict[st
 
 
 def figures(report: EnvEvaluationReport) -> dict[str, float | None]:
-    persistence = {f"action_persistence_k{p.horizon}": p.adversary.value for p in report.action_persistence}
+    persistence = {  # None where no trojan episode lasted that long (Breakout's ball is soon lost)
+        f"action_persistence_k{p.horizon}": p.adversary.value if p.adversary.n else None
+        for p in report.action_persistence
+    }
     return {
         "clean_return": report.clean_return.mean if report.clean_return else None,
         "clean_success": report.clean_success.value,
