@@ -29,9 +29,9 @@ Three figures, each in env steps per second (one env step = one action of one en
 
 (s) sb3: sb3-contrib RecurrentPPO learning on the same env stack, ``--sb3-steps`` env steps (:func:`sb3_rate`).
 
-Then the ratios (c)/(a) and (c)/(v), for both (c) figures, (c)/(b) and (c)/(s). ``--dense-first-layer`` trains (c) with the
-first layer's dense product on the one-hot view instead of :func:`seqtrojan.agent.fast_lstm.sparse_project` (the
-A/B of that change). With ``--rounds N`` every figure is measured N times, the
+Then the ratios (c)/(a) and (c)/(v), for both (c) figures, (c)/(b) and (c)/(s). ``--dense-first-layer`` trains (c)
+with the first layer's dense product on the one-hot view instead of :func:`seqtrojan.agent.fast_lstm.sparse_project`
+(the A/B of that change). With ``--rounds N`` every figure is measured N times, the
 rounds interleaved (a drift in the machine's other load hits all three alike): the median and the range are printed, and
 every measurement goes to ``--json``. The header gives the versions, the CPU count and the load average; run it alone
 on the machine (a load average above about 1 per core makes the figures meaningless).
