@@ -127,7 +127,7 @@ def make_gym_env(
         raise
     except (gym.error.Error, ModuleNotFoundError, ImportError) as err:
         raise ConfigError(f"env.id={config.id!r} cannot be made: {short_repr(str(err))}") from None
-    except (TypeError, ValueError, AssertionError, MemoryError) as err:
+    except (TypeError, ValueError, AssertionError, MemoryError, RuntimeError) as err:  # ale-py: RuntimeError
         raise ConfigError(
             f"env {config.id!r} refused env.kwargs={short_repr(config.kwargs)}: {short_repr(str(err))}"
         ) from None
