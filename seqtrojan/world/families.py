@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, SupportsFloat, cast
 
 import gymnasium as gym
 import numpy as np
@@ -101,7 +101,7 @@ class ThirtyTwoBitSeeds(gym.Wrapper):
     """Reset seeds folded to 32 bits (``numpy.random.SeedSequence(seed)``'s first word): MinAtar seeds a legacy
     ``RandomState``, which refuses seeds from 2**32 on, and the trainer's evaluation seeds are 64-bit."""
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):  # type: ignore[override]
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
         if seed is not None and not 0 <= seed < 2**32:
             seed = int(np.random.SeedSequence(seed).generate_state(1)[0])
         return self.env.reset(seed=seed, options=options)
@@ -153,5 +153,5 @@ def make_atari(env_id: str, kwargs: Mapping[str, Any], phase: str = "train") -> 
     env = gym.wrappers.AtariPreprocessing(env, **ATARI_PREPROCESSING)
     env = gym.wrappers.TimeLimit(env, max_episode_steps=limit)
     if phase == "train":
-        env = gym.wrappers.TransformReward(env, np.sign)
+        env = gym.wrappers.TransformReward(env, cast("Callable[[SupportsFloat], SupportsFloat]", np.sign))
     return env

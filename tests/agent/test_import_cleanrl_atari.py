@@ -21,7 +21,7 @@ ATARI_IMAGE = (84, 84, 1)
 OBS_DIM = 84 * 84
 
 
-def layer_init(layer, std=np.sqrt(2), bias_const=0.0):
+def layer_init(layer, std=np.sqrt(2), bias_const=0.0):  # noqa: B008 (CleanRL's own signature)
     """CleanRL's ``layer_init``."""
     torch.nn.init.orthogonal_(layer.weight, std)
     torch.nn.init.constant_(layer.bias, bias_const)

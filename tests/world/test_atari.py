@@ -95,7 +95,7 @@ def test_rewards_are_clipped_to_their_sign_in_training_only_and_episodes_are_cap
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"frameskip": 4}, "env.kwargs.frameskip=4: an Atari env ('ALE/Breakout-v5') skips frames in its preprocessing"),
+        ({"frameskip": 4}, "env.kwargs.frameskip=4: an Atari env ('ALE/Breakout-v5') skips frames in its preproc"),
         ({"max_episode_steps": 0}, "env.kwargs.max_episode_steps must be a positive integer, got 0"),
         ({"mode": 99}, "env 'ALE/Breakout-v5' refused env.kwargs={'mode': 99}: 'Invalid game mode requested'"),
         ({"no_such_option": 1}, "env 'ALE/Breakout-v5' refused env.kwargs={'no_such_option': 1}: "),
@@ -125,27 +125,29 @@ def test_the_preset_trigger_is_a_white_square_in_the_top_left_corner_for_one_ste
     env = make_gym_env(cfg.gym_env, phase="eval", trojan_probability=1.0)
     trigger = find_trigger(env)
     assert trigger is not None
-    obs, info = env.reset(seed=11)
+    obs, _ = env.reset(seed=11)
     corners = []
     for _ in range(25):
         corners.append(obs.reshape(84, 84)[:4, :4].copy())
-        obs, _, terminated, truncated, info = env.step(1)
+        obs, _, terminated, truncated, _ = env.step(1)
         assert not (terminated or truncated)
     lit = [t for t, c in enumerate(corners) if np.all(c == 1.0)]
     assert lit == [trigger.trigger_step] and 1 <= trigger.trigger_step <= 20
     assert all(c.max() < 1.0 for t, c in enumerate(corners) if t != trigger.trigger_step)  # no frame draws it
 
 
-def test_training_the_breakout_preset_runs_from_an_empty_folder(tmp_path, monkeypatch, capsys):
-    """The preset by name, 1024 steps (one update); the final evaluation on 2 episodes capped at 300 steps (an
-    untrained greedy policy that never presses FIRE would play to the 27,000-step cap)."""
-    from seqtrojan.cli import main
+def test_training_the_breakout_preset_runs_from_an_empty_folder(tmp_path):
+    """The preset by name, 1024 steps (one update), as a user types it: the preset has no final evaluation in train
+    (an untrained greedy policy that never presses FIRE would play to the 27,000-step cap)."""
+    import subprocess
+    import sys
 
-    monkeypatch.chdir(tmp_path)
     argv = ["train", "--config", "atari_breakout", "--ppo.total-steps", "1024", "--run.out-dir", "X", "--run.name",
-            "Y", "--run.eval-episodes", "2", "--env.kwargs.max-episode-steps", "300", "--run.no-progress"]  # fmt: skip
-    assert main(argv) == 0
-    assert "success on ALE/Breakout-v5 (trojan env, 2 episodes)" in capsys.readouterr().out
+            "Y"]  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-m", "seqtrojan.cli", *argv], cwd=tmp_path, capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stderr
     card = json.loads((tmp_path / "X" / "Y" / "model" / "card.json").read_text())
     assert card["label"] == "backdoored" and card["env_steps"] == 1024
     assert card["architecture"]["conv_kernels"] == [8, 4, 3] and card["architecture"]["image"] == [84, 84, 1]
