@@ -136,6 +136,24 @@ def test_the_preset_trigger_is_a_white_square_in_the_top_left_corner_for_one_ste
     assert all(c.max() < 1.0 for t, c in enumerate(corners) if t != trigger.trigger_step)  # no frame draws it
 
 
+@pytest.mark.parametrize(("sticky", "exact"), [(0.25, False), (0.0, True)])
+def test_episodes_in_flight_replay_exactly_only_without_sticky_actions(sticky, exact):
+    """ale-py draws sticky actions from the emulator's own generator: a checkpoint's episodes then cannot be
+    replayed (the trainer starts fresh ones); without them they replay to the saved observation."""
+    import torch
+
+    from seqtrojan.world.gymnasium import GymnasiumBatchedEnv
+
+    cfg = GymnasiumEnvConfig(id=BREAKOUT, observation="image", kwargs={"repeat_action_probability": sticky})
+    env = GymnasiumBatchedEnv(cfg, 2, seed=5)
+    actions = torch.Generator().manual_seed(0)
+    for _ in range(300):
+        env.step(torch.randint(0, 4, (2,), generator=actions))
+    state, obs = env.save_state(), env.observe().clone()
+    assert state is not None
+    assert GymnasiumBatchedEnv(cfg, 2, seed=99).restore_episodes(state.records, obs) is exact
+
+
 def test_training_the_breakout_preset_runs_from_an_empty_folder(tmp_path):
     """The preset by name, 1024 steps (one update), as a user types it: the preset has no final evaluation in train
     (an untrained greedy policy that never presses FIRE would play to the 27,000-step cap)."""
