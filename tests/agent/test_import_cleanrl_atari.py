@@ -131,7 +131,14 @@ def our_outputs(agent, x: np.ndarray, starts: np.ndarray, unroll: bool = False):
     return torch.stack(logits), torch.stack(values)
 
 
+def needs_atari() -> None:
+    """The import for the Atari presets makes their env once (its spaces): ale-py and OpenCV."""
+    pytest.importorskip("ale_py", reason="the Atari family needs pip install 'seqtrojan[atari]'")
+    pytest.importorskip("cv2", reason="the Atari family needs pip install 'seqtrojan[atari]'")
+
+
 def test_cleanrls_atari_lstm_agent_imports_exactly(tmp_path):
+    needs_atari()
     original = trained_looking(actions=4)
     path = tmp_path / "ppo_atari_lstm.cleanrl_model"
     torch.save(original.state_dict(), path)
@@ -160,6 +167,7 @@ def test_cleanrls_atari_lstm_agent_imports_exactly(tmp_path):
 def test_the_import_command_reads_a_cleanrl_atari_agent_for_the_atari_preset(tmp_path, capsys):
     from seqtrojan.cli import main
 
+    needs_atari()
     path = tmp_path / "agent.pt"
     torch.save(trained_looking(actions=6, seed=2).state_dict(), path)
     argv = ["import", str(path), "--from", "cleanrl", "--obs-dim", str(OBS_DIM), "--actions", "6", "--config",
