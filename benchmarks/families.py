@@ -7,14 +7,22 @@ For every preset and seed: the backdoored agent (the preset as shipped) and a cl
 settings (``backdoor.enabled: false``: its env still has the trigger, at probability 0, so its unintended response
 is measured too), ``--steps`` env steps each (default: the preset's). Each model is then measured by the evaluation
 ``seqtrojan evaluate`` runs (:func:`seqtrojan.evaluation.env_report.evaluate_model`, ``--episodes`` per episode
-type): clean return, trojan success, the target-action share after the trigger and action persistence. With
-``--defend N`` every backdoored model also goes through ``seqtrojan defend`` (``run_defense``: the per-unit state
-monitor calibrated on N clean episodes at a 1% false-alarm target and measured on N fresh episodes per type, then
-the mitigations with ``--finetune-steps`` of clean fine-tuning): its false alarms, detection and attack success
-with resets, and each mitigation's attack and clean success. A finished run is kept and not retrained (delete its
-folder to redo it); a stopped one is trained again from its start. Printed: per preset, each figure's mean and
-standard deviation over seeds and each seed's value; ``--json`` writes them all, and ``--table JSON`` prints a
-written file as the markdown tables of docs/families.md.
+type): clean return, trojan success, the target-action share after the trigger and action persistence
+(``--roles`` picks the agents: both by default). With ``--defend N`` every backdoored model also goes through
+``seqtrojan defend`` (``run_defense``: the per-unit state monitor calibrated on N clean episodes at a 1%
+false-alarm target and measured on N fresh episodes per type, then the mitigations with ``--finetune-steps`` of
+clean fine-tuning): its false alarms, detection and attack success with resets, and each mitigation's attack and
+clean success. A finished run is kept and not retrained (delete its folder to redo it); a stopped one is trained
+again from its start. Printed: per preset, each figure's mean and standard deviation over seeds and each seed's
+value; ``--json`` writes them all, and ``--table JSON`` prints a written file as the markdown tables of
+docs/families.md.
+
+``--random`` also measures, by the same evaluation on the same episodes, the preset's network with a zero policy
+head: every action equally likely, a uniform random policy (the baseline a short run must beat; the table's
+``random`` row, one measurement).
+``--final-eval-episodes N`` sets the training run's own final evaluation (``run.eval_episodes``; 0: none, since
+the evaluation above is the one reported; on Atari an untrained greedy policy that never presses FIRE plays to the
+episode cap).
 """
 
 from __future__ import annotations
@@ -27,21 +35,29 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from seqtrojan.agent.checkpoint import load_agent
+import torch
+
+from seqtrojan.agent.card import Architecture
+from seqtrojan.agent.checkpoint import build_agent, load_agent
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.evaluation.env_report import EnvEvaluationReport, evaluate_model
 from seqtrojan.presets import resolve_preset
 from seqtrojan.serde import from_dict, load_yaml, to_dict
 from seqtrojan.train.trainer import train
+from seqtrojan.world import env_spec
 
 HORIZONS = (0, 10, 20, 40)
 
 
-def experiment(preset: str, seed: int, clean: bool, steps: int | None, out: Path) -> ExperimentConfig:
+def experiment(
+    preset: str, seed: int, clean: bool, steps: int | None, out: Path, final_eval: int | None = None
+) -> ExperimentConfig:
     data = load_yaml(resolve_preset(preset))
     role = "clean" if clean else "backdoor"
     data["run"] = {**data.get("run", {}), "out_dir": str(out), "name": f"{preset}_{role}_s{seed}", "seed": seed,
                    "progress": False, "checkpoint_every": 10**9}  # fmt: skip
+    if final_eval is not None:
+        data["run"]["eval_episodes"] = final_eval
     if steps is not None:
         data["ppo"]["total_steps"] = steps
     if clean:
@@ -83,6 +99,19 @@ def defend(cfg: ExperimentConfig, episodes: int, finetune_steps: int) -> dict[st
     for name, arm in result.mitigation.items():
         out[f"{name}_attack"], out[f"{name}_clean"] = arm.attack_success.value, arm.clean_success.value
     return out
+
+
+def random_report(preset: str, episodes: int) -> EnvEvaluationReport:
+    """The preset's network with a zero policy head (every action equally likely: a uniform random policy),
+    measured as :func:`model_report` measures a trained one."""
+    cfg = from_dict(ExperimentConfig, load_yaml(resolve_preset(preset)), "")
+    spec = env_spec(cfg.env)
+    agent = build_agent(cfg, Architecture.of_config(cfg, spec.obs_dim, spec.num_actions, spec.image))
+    with torch.no_grad():
+        agent.policy_head.weight.zero_()
+        agent.policy_head.bias.zero_()
+    return evaluate_model(agent.eval(), cfg, model="uniform random", label="clean", episodes=episodes, seed=12345,
+                          horizons=HORIZONS)  # fmt: skip
 
 
 def figures(report: EnvEvaluationReport) -> dict[str, float | None]:
@@ -129,12 +158,17 @@ def table(results: dict[str, Any]) -> list[str]:
         "|---|---|---|" + "---|" * len(TABLE) + "---|",
     ]
     for preset, entry in results["presets"].items():
-        for role in ("clean", "backdoored"):
+        for role in ("clean", "backdoored", "random"):
+            if role not in entry:
+                continue
             agent = entry[role]
             cells = []
             for _, name in TABLE:
                 s = agent["over_seeds"].get(name)
-                cells.append("n/a" if s is None or s["mean"] is None else f"{s['mean']:.3f} ± {s['sd']:.3f}")
+                if s is None or s["mean"] is None:
+                    cells.append("n/a")
+                else:  # the random policy is one measurement, not a spread over seeds
+                    cells.append(f"{s['mean']:.3f}" if role == "random" else f"{s['mean']:.3f} ± {s['sd']:.3f}")
             seeds = "; ".join(
                 f"{s['figures']['clean_return']:.3f}, {s['figures']['trojan_success']:.3f}" for s in agent["seeds"]
             )
@@ -179,6 +213,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--defend", type=int, default=0, help="monitor episodes of seqtrojan defend (0: none)")
     parser.add_argument("--finetune-steps", type=int, default=65536, help="clean fine-tuning steps of --defend")
+    parser.add_argument("--roles", nargs="+", choices=("backdoored", "clean"), default=["backdoored", "clean"],
+                        help="which agents to train and measure (default: both)")  # fmt: skip
+    parser.add_argument("--random", action="store_true", help="also measure a uniform random policy")
+    parser.add_argument("--final-eval-episodes", type=int, default=None,
+                        help="run.eval_episodes of each training run (default: the preset's; 0: none)")  # fmt: skip
     args = parser.parse_args(argv)
     if args.table is not None:
         results = json.loads(args.table.read_text())
@@ -194,9 +233,11 @@ def main(argv: list[str] | None = None) -> None:
     for preset in args.presets:
         entry: dict[str, Any] = {}
         for role, clean in (("backdoored", False), ("clean", True)):
+            if role not in args.roles:
+                continue
             per_seed = []
             for seed in range(args.seeds):
-                cfg = experiment(preset, seed, clean, args.steps, args.out)
+                cfg = experiment(preset, seed, clean, args.steps, args.out, args.final_eval_episodes)
                 report = model_report(cfg, args.episodes)
                 measured = {"seed": seed, "figures": figures(report), "report": to_dict(report)}
                 if args.defend and not clean:
@@ -215,8 +256,17 @@ def main(argv: list[str] | None = None) -> None:
                 entry[role]["defense_over_seeds"] = {
                     n: summary([s["defense"].get(n) for s in per_seed]) for n in per_seed[0]["defense"]
                 }
+        if args.random:
+            report = random_report(preset, args.episodes)
+            print(f"{preset} uniform random: " + ", ".join(
+                f"{k} {v:.3f}" for k, v in figures(report).items() if v is not None), flush=True)  # fmt: skip
+            entry["random"] = {
+                "env_steps": 0,
+                "over_seeds": {n: summary([v]) for n, v in figures(report).items()},
+                "seeds": [{"seed": None, "figures": figures(report), "report": to_dict(report)}],
+            }
         results["presets"][preset] = entry
-        for role in ("backdoored", "clean"):
+        for role in args.roles:
             line = ", ".join(
                 f"{n} {s['mean']:.3f} ± {s['sd']:.3f}"
                 for n, s in entry[role]["over_seeds"].items()

@@ -709,7 +709,8 @@ def _import(argv: list[str]) -> None:
     @dataclasses.dataclass
     class ImportArgs:
         """Import a recurrent agent trained elsewhere as a seqtrojan model folder (safetensors + card), without
-        unpickling anything: an sb3-contrib RecurrentPPO zip (MlpLstmPolicy) or a CleanRL LSTM state dict. Every
+        unpickling anything: an sb3-contrib RecurrentPPO zip (MlpLstmPolicy) or a CleanRL LSTM state dict (its
+        Atari CNN agent, or an MLP in the CNN's place). Every
         seqtrojan tool (evaluate, analyze, defend, ...) then runs on it, also for an agent trained on a Gymnasium
         env (MiniGrid, your own: give its preset with --config). See docs/import.md."""
 
@@ -728,6 +729,9 @@ def _import(argv: list[str]) -> None:
         """number of discrete actions (required for cleanrl; checked for sb3)"""
         activation: Literal["relu", "tanh"] = "relu"
         """cleanrl: the activation after each encoder layer (network.*)"""
+        conv_strides: tuple[int, ...] | None = None
+        """cleanrl: the stride of each conv layer of its CNN (a state dict does not record them); default: CleanRL's
+        Atari CNN's 4 2 1 (for its kernels 8 4 3)"""
         config: str | None = None
         """a preset's name or a YAML file whose env the agent acts in (the grid world or a Gymnasium env such as
         minigrid_two_goals; default: the grid world's default env, a 3x3 view and four moves); the agent's
@@ -743,7 +747,7 @@ def _import(argv: list[str]) -> None:
         config = from_dict(ExperimentConfig, load_yaml(resolve_preset(args.config)), "")
     out = import_agent(
         args.from_, args.source, args.out, config=config, label=args.label, obs_dim=args.obs_dim,
-        num_actions=args.actions, activation=args.activation,
+        num_actions=args.actions, activation=args.activation, conv_strides=args.conv_strides,
     )  # fmt: skip
     card = read_card(out)
     provenance = card.provenance or {}

@@ -45,6 +45,10 @@ MAX_LAYERS = 8
 """most stacked recurrent layers a config or a model card may name"""
 MAX_WIDTH = 4096
 """widest recurrent layer a config or a model card may name"""
+MAX_CONV_KERNEL = 32
+"""largest conv kernel side a config or a model card may name (the Nature CNN's largest is 8)"""
+MAX_CONV_STRIDE = 16
+"""largest conv stride a config or a model card may name (the Nature CNN's largest is 4)"""
 
 
 ACTIVATIONS = ("tanh", "relu")
@@ -108,12 +112,18 @@ class AgentConfig:
     heads: int = 1
     """transformer only: attention heads per layer (each layer width must be divisible by it)"""
     conv: tuple[int, ...] = ()
-    """channels of a convolutional encoder over an image observation (2x2 kernels, stride 1, ReLU; e.g. [16, 32])
-    before the MLP encoder and the first layer; needs an env whose observation is an image (a Gymnasium env with
-    ``observation: minigrid``); none by default"""
+    """channels of a convolutional encoder over an image observation (each layer a square kernel, a stride, no
+    padding, then ReLU; e.g. [16, 32]) before the MLP encoder and the first layer; needs an env whose observation is
+    an image (a Gymnasium env with ``observation: minigrid`` or ``image``); none by default"""
+    conv_kernels: tuple[int, ...] = ()
+    """each conv layer's kernel side, one per ``conv`` layer; empty: 2 each (the field's MiniGrid CNN). The Nature
+    CNN of Atari agents (CleanRL's ``ppo_atari_lstm``): [8, 4, 3] with channels [32, 64, 64]"""
+    conv_strides: tuple[int, ...] = ()
+    """each conv layer's stride, one per ``conv`` layer; empty: 1 each. The Nature CNN: [4, 2, 1]"""
 
     OPTIONAL = (
         "encoder", "encoder_activation", "policy_mlp", "value_mlp", "mlp_activation", "cell", "window", "heads", "conv",
+        "conv_kernels", "conv_strides",
     )  # fmt: skip
     """fields left out of the saved form while at their defaults"""
 
@@ -135,6 +145,17 @@ class AgentConfig:
             ):
                 raise ConfigError(
                     f"agent.{name} must be 0 to {MAX_LAYERS} widths in [1, {MAX_WIDTH}], got {short_repr(widths)}"
+                )
+        for name, top in (("conv_kernels", MAX_CONV_KERNEL), ("conv_strides", MAX_CONV_STRIDE)):
+            values = getattr(self, name)
+            if (
+                not isinstance(values, tuple)
+                or len(values) not in (0, len(self.conv))
+                or any(isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= top for v in values)
+            ):
+                raise ConfigError(
+                    f"agent.{name} must be one integer in [1, {top}] per agent.conv layer ({len(self.conv)}), or "
+                    f"empty for the defaults, got {short_repr(values)}"
                 )
         for name in ("encoder_activation", "mlp_activation"):
             if getattr(self, name) not in ACTIVATIONS:

@@ -36,8 +36,18 @@ from pathlib import Path
 from typing import Any
 
 from seqtrojan.agent.cells import layer_shapes
+from seqtrojan.agent.network import DEFAULT_CONV_KERNEL, DEFAULT_CONV_STRIDE, conv_output_side
 from seqtrojan.cell_types import CELL_TYPES, cell_names, is_windowed
-from seqtrojan.config import ACTIVATIONS, MAX_HEADS, MAX_LAYERS, MAX_WIDTH, MAX_WINDOW, ExperimentConfig
+from seqtrojan.config import (
+    ACTIVATIONS,
+    MAX_CONV_KERNEL,
+    MAX_CONV_STRIDE,
+    MAX_HEADS,
+    MAX_LAYERS,
+    MAX_WIDTH,
+    MAX_WINDOW,
+    ExperimentConfig,
+)
 from seqtrojan.env.config import EnvConfig
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.serde import from_dict
@@ -97,7 +107,7 @@ _ARCH_MLPS = ("encoder", "policy_mlp", "value_mlp")
 _ARCH_ACTIVATIONS = {"encoder_activation": "relu", "mlp_activation": "tanh"}
 """the optional activations and their defaults (those of :class:`seqtrojan.config.AgentConfig`)"""
 _ARCH_CELL = ("cell", "window", "heads")
-_ARCH_CONV = ("conv", "image")
+_ARCH_CONV = ("conv", "image", "conv_kernels", "conv_strides")
 """the sequence model (absent: an LSTM); window and heads are written for a transformer only"""
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _STRINGS = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*(?:"|\\?\Z)', re.DOTALL)
@@ -128,9 +138,19 @@ class Architecture:
     window: int = 8
     heads: int = 1
     conv: tuple[int, ...] = ()
-    """channels of the convolutional encoder's 2x2 layers (none by default)"""
+    """channels of the convolutional encoder's layers (none by default)"""
     image: tuple[int, ...] | None = None
     """(rows, cols, channels) the conv encoder reads the observation as (only with ``conv``)"""
+    conv_kernels: tuple[int, ...] = ()
+    """each conv layer's kernel side (empty: 2 each; filled in with the defaults when ``conv`` has layers)"""
+    conv_strides: tuple[int, ...] = ()
+    """each conv layer's stride (empty: 1 each; filled in likewise)"""
+
+    def __post_init__(self) -> None:
+        if self.conv:  # one description per network: the defaults written out
+            n = len(self.conv)
+            object.__setattr__(self, "conv_kernels", tuple(self.conv_kernels) or (DEFAULT_CONV_KERNEL,) * n)
+            object.__setattr__(self, "conv_strides", tuple(self.conv_strides) or (DEFAULT_CONV_STRIDE,) * n)
 
     @classmethod
     def of_config(
@@ -149,6 +169,7 @@ class Architecture:
             obs_dim, num_actions, tuple(a.lstm_sizes), tuple(a.encoder), a.encoder_activation,
             tuple(a.policy_mlp), tuple(a.value_mlp), a.mlp_activation, a.cell, a.window if attention else 8,
             a.heads if attention else 1, tuple(a.conv), tuple(image) if a.conv and image is not None else None,
+            tuple(a.conv_kernels), tuple(a.conv_strides),
         )  # fmt: skip
 
     def optional_parts(self) -> dict[str, Any]:
@@ -166,6 +187,10 @@ class Architecture:
             out["window"], out["heads"] = self.window, self.heads
         if self.conv:
             out["conv"], out["image"] = list(self.conv), list(self.image or ())
+            if any(k != DEFAULT_CONV_KERNEL for k in self.conv_kernels):
+                out["conv_kernels"] = list(self.conv_kernels)
+            if any(s != DEFAULT_CONV_STRIDE for s in self.conv_strides):
+                out["conv_strides"] = list(self.conv_strides)
         return out
 
     def to_card(self) -> dict[str, Any]:
@@ -181,9 +206,10 @@ class Architecture:
         features = self.obs_dim  # what the MLP encoder (or the first layer) reads
         if self.conv:
             rows, cols, chans = self.image or (0, 0, 0)
-            for i, (a, b) in enumerate(zip((chans, *self.conv[:-1]), self.conv)):
-                shapes[f"conv.{i}.weight"], shapes[f"conv.{i}.bias"] = (b, a, 2, 2), (b,)
-            features = (rows - len(self.conv)) * (cols - len(self.conv)) * self.conv[-1]
+            for i, (a, b, k) in enumerate(zip((chans, *self.conv[:-1]), self.conv, self.conv_kernels)):
+                shapes[f"conv.{i}.weight"], shapes[f"conv.{i}.bias"] = (b, a, k, k), (b,)
+            out_rows, out_cols = (conv_output_side(n, self.conv_kernels, self.conv_strides) for n in (rows, cols))
+            features = out_rows * out_cols * self.conv[-1]
         inputs = (self.encoder[-1] if self.encoder else features, *self.lstm_sizes[:-1])
         for i, (n_in, width) in enumerate(zip(inputs, self.lstm_sizes)):
             for name, shape in layer_shapes(self.cell, n_in, width, self.window, self.heads).items():
@@ -419,8 +445,8 @@ def _architecture(value: Any, where: str) -> Architecture:
             )
     elif "window" in value or "heads" in value:
         raise CheckpointError(f"{where}: architecture.window and heads belong to a windowed cell, not to a {cell}")
-    if "conv" in value or "image" in value:
-        mlps["conv"], mlps["image"] = _conv_parts(value, obs_dim, where)
+    if any(name in value for name in _ARCH_CONV):
+        mlps.update(_conv_parts(value, obs_dim, where))
     arch = Architecture(obs_dim, num_actions, widths, **mlps, cell=cell)
     if arch.num_parameters > MAX_PARAMETERS:
         raise CheckpointError(
@@ -430,9 +456,10 @@ def _architecture(value: Any, where: str) -> Architecture:
     return arch
 
 
-def _conv_parts(value: dict[str, Any], obs_dim: int, where: str) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    """A card's ``conv`` channels and ``image`` layout, checked: both present, bounded, the image holding exactly
-    the observation, and each 2x2 layer leaving at least one row and column."""
+def _conv_parts(value: dict[str, Any], obs_dim: int, where: str) -> dict[str, tuple[int, ...]]:
+    """A card's ``conv`` channels and ``image`` layout (and the optional ``conv_kernels`` and ``conv_strides``, one
+    per layer), checked: both present, bounded, the image holding exactly the observation, and each kernel fitting
+    what the layers before it leave."""
     conv, image = value.get("conv"), value.get("image")
     if not isinstance(conv, list) or not 1 <= len(conv) <= MAX_LAYERS or not isinstance(image, list) or len(image) != 3:
         raise CheckpointError(
@@ -441,12 +468,29 @@ def _conv_parts(value: dict[str, Any], obs_dim: int, where: str) -> tuple[tuple[
         )
     channels = tuple(_bounded_int(c, 1, MAX_WIDTH, f"{where}: architecture.conv[{i}]") for i, c in enumerate(conv))
     layout = tuple(_bounded_int(d, 1, MAX_OBS_DIM, f"{where}: architecture.image[{i}]") for i, d in enumerate(image))
-    if math.prod(layout) != obs_dim or len(channels) >= min(layout[0], layout[1]):
+    geometry: dict[str, tuple[int, ...]] = {}
+    for name, default, top in (("conv_kernels", DEFAULT_CONV_KERNEL, MAX_CONV_KERNEL),
+                               ("conv_strides", DEFAULT_CONV_STRIDE, MAX_CONV_STRIDE)):  # fmt: skip
+        given = value.get(name, [default] * len(channels))
+        if not isinstance(given, list) or len(given) != len(channels):
+            raise CheckpointError(
+                f"{where}: architecture.{name} must list one integer per conv layer ({len(channels)}), got "
+                f"{_clip(given)}"
+            )
+        what = f"{where}: architecture.{name}"
+        geometry[name] = tuple(_bounded_int(v, 1, top, f"{what}[{i}]") for i, v in enumerate(given))
+    kernels, strides = geometry["conv_kernels"], geometry["conv_strides"]
+    sides = [conv_output_side(n, kernels, strides) for n in layout[:2]]
+    if math.prod(layout) != obs_dim or not all(sides):
+        default = set(kernels) == {DEFAULT_CONV_KERNEL} and set(strides) == {DEFAULT_CONV_STRIDE}
+        layers = f"{len(channels)} 2x2 conv layers"
+        if not default:
+            layers = f"conv kernels {list(kernels)}, strides {list(strides)}"
         raise CheckpointError(
             f"{where}: architecture.image {list(layout)} must hold the {obs_dim} inputs and leave a row and a column "
-            f"after {len(channels)} 2x2 conv layers"
+            f"after {layers}"
         )
-    return channels, layout
+    return {"conv": channels, "image": layout, **geometry}
 
 
 def _provenance(value: Any, where: str) -> dict[str, Any]:

@@ -76,7 +76,7 @@ def build_agent(config: ExperimentConfig, architecture: Architecture | None = No
         arch.obs_dim, arch.num_actions, a.lstm_sizes, a.forget_bias, a.memory, encoder=a.encoder,
         encoder_activation=a.encoder_activation, policy_mlp=a.policy_mlp, value_mlp=a.value_mlp,
         mlp_activation=a.mlp_activation, cell=a.cell, window=a.window, heads=a.heads, conv=arch.conv,
-        image=arch.image,
+        image=arch.image, conv_kernels=arch.conv_kernels, conv_strides=arch.conv_strides,
     )  # fmt: skip
 
 
@@ -88,7 +88,8 @@ def architecture_of(agent: RecurrentActorCritic) -> Architecture:
         value_mlp=agent.value_mlp_sizes, mlp_activation=agent.mlp_activation, cell=agent.cell,
         window=agent.window if is_windowed(agent.cell) else 8,
         heads=agent.attention_heads if is_windowed(agent.cell) else 1, conv=agent.conv_channels,
-        image=agent.image if agent.conv_channels else None,
+        image=agent.image if agent.conv_channels else None, conv_kernels=agent.conv_kernels,
+        conv_strides=agent.conv_strides,
     )  # fmt: skip
 
 

@@ -7,8 +7,10 @@ Two sources (docs/import.md has the full mapping and every refusal):
   ``data`` entry (``policy_kwargs``, and the non-pickled parts sb3 writes beside each pickled ``:serialized:``
   value: the observation space's ``_shape`` and ``dtype``, the action space's ``n``), checked against the weights.
 - **cleanrl**: a state dict saved with ``torch.save(agent.state_dict())`` from CleanRL's ``ppo_atari_lstm.py``
-  ``Agent`` with an MLP in place of the CNN: ``network.{0,2,...}`` (linear layers, each followed by the activation),
-  ``lstm.*`` (``nn.LSTM``), ``actor`` and ``critic``.
+  ``Agent``: its Atari CNN (``network.{0,2,4}`` Conv2d layers, a Flatten, ``network.7`` Linear, each layer followed
+  by ReLU; the strides, which a state dict does not record, are CleanRL's 4, 2, 1 or given) or an MLP in its place
+  (``network.{0,2,...}`` linear layers, each followed by the activation), ``lstm.*`` (``nn.LSTM``), ``actor`` and
+  ``critic``.
 
 The policy path (observation -> LSTM -> policy MLP -> logits) is imported exactly. sb3-contrib's default critic has a
 separate LSTM (``enable_critic_lstm=True``) or, with ``enable_critic_lstm=False``, a linear layer on the
@@ -45,7 +47,8 @@ import torch
 
 from seqtrojan.agent.card import MAX_DETAIL_CHARS, MAX_PARAMETERS, MAX_RANK, Architecture, load_json
 from seqtrojan.agent.checkpoint import build_agent, save_agent
-from seqtrojan.config import AgentConfig, ExperimentConfig
+from seqtrojan.agent.network import conv_output_side
+from seqtrojan.config import MAX_CONV_KERNEL, MAX_CONV_STRIDE, MAX_LAYERS, AgentConfig, ExperimentConfig
 from seqtrojan.env.codes import ACTION_SETS, CELL_NAMES
 from seqtrojan.env.config import EnvConfig
 from seqtrojan.errors import CheckpointError, ConfigError
@@ -330,8 +333,25 @@ def _sb3_action_count(value: Any, where: str) -> int | None:
 # ---------------------------------------------------------------------- CleanRL
 
 
-def read_cleanrl(path: str | Path, obs_dim: int, num_actions: int, activation: str = "relu") -> Imported:
-    """Read a CleanRL LSTM agent's state dict (``ppo_atari_lstm.py``'s layout with an MLP encoder)."""
+CLEANRL_NATURE_KERNELS = (8, 4, 3)
+"""the kernels of CleanRL's Atari CNN (the Nature CNN of ``ppo_atari_lstm.py``: Conv 32 8x8, 64 4x4, 64 3x3)"""
+CLEANRL_NATURE_STRIDES = (4, 2, 1)
+"""its strides (a state dict does not record strides: these are assumed for those kernels, else given)"""
+
+
+def read_cleanrl(
+    path: str | Path,
+    obs_dim: int,
+    num_actions: int,
+    activation: str = "relu",
+    *,
+    image: tuple[int, int, int] | None = None,
+    conv_strides: tuple[int, ...] | None = None,
+) -> Imported:
+    """Read a CleanRL LSTM agent's state dict (``ppo_atari_lstm.py``'s ``Agent``: its Atari CNN, or an MLP in its
+    place). A CNN reads the observation as the image ``image`` (rows, cols, channels: the env's, see
+    :func:`import_agent`); ``conv_strides`` gives each conv layer's stride (default: CleanRL's 4, 2, 1 for the
+    Nature CNN's kernels 8, 4, 3; required for any other kernels)."""
     path = Path(path)
     where = repr(str(path))
     if not path.is_file():
@@ -346,14 +366,33 @@ def read_cleanrl(path: str | Path, obs_dim: int, num_actions: int, activation: s
         raise CheckpointError(f"{where} has no lstm.weight_ih_l0: not a CleanRL LSTM agent's state dict")
     lstm = _lstm_layers(sd, "lstm", where)
     hidden = lstm[0][1]
-    encoder = _mlp_layers(sd, "network", None, where)
-    first_in = _dim(sd, "network.0.weight", 1, where) if encoder else lstm[0][0]
-    if encoder and lstm[0][0] != encoder[-1]:
-        raise CheckpointError(
-            f"{where}: lstm.weight_ih_l0 reads {lstm[0][0]} inputs but the last network layer gives {encoder[-1]}"
-        )
+    network = _cleanrl_network(sd, where)
+    convs, linear_at = network.convs, network.linear_at
+    encoder: tuple[int, ...] = ()
+    kernels: tuple[int, ...] = ()
+    strides: tuple[int, ...] = ()
+    if convs:
+        kernels = tuple(k for _, _, k in convs)
+        strides = _cleanrl_strides(kernels, conv_strides, where)
+        features = _cleanrl_conv_features(convs, kernels, strides, obs_dim, image, where)
+    elif conv_strides:
+        raise ConfigError(f"--conv-strides {list(conv_strides)}: {where} has no conv layers (network.* are linear)")
+    else:
+        features = obs_dim
+    if linear_at:
+        encoder = _mlp_chain(sd, "network", linear_at, features if convs else None, where)
+    first_in = lstm[0][0]  # what the agent's first layer reads (a CNN's image was checked against obs_dim)
+    if convs:
+        first_in = obs_dim
+    elif linear_at:
+        first_in = _dim(sd, f"network.{linear_at[0]}.weight", 1, where)
     if first_in != obs_dim:
         raise CheckpointError(f"{where}: the agent reads {first_in} observation inputs, not --obs-dim {obs_dim}")
+    lstm_in = encoder[-1] if encoder else features
+    if lstm[0][0] != lstm_in:
+        raise CheckpointError(
+            f"{where}: lstm.weight_ih_l0 reads {lstm[0][0]} inputs but the last network layer gives {lstm_in}"
+        )
     expected = {
         "actor.weight": (num_actions, hidden), "actor.bias": (num_actions,),
         "critic.weight": (1, hidden), "critic.bias": (1,),
@@ -361,17 +400,121 @@ def read_cleanrl(path: str | Path, obs_dim: int, num_actions: int, activation: s
     known = {k for k in sd if k.startswith(("lstm.", "network."))}
     _check_shapes(sd, expected, known, where, hint=f"--actions {num_actions}")
     ours: dict[str, torch.Tensor] = {}
-    for j in range(len(encoder)):
-        ours[f"encoder.{j}.weight"] = sd[f"network.{2 * j}.weight"]
-        ours[f"encoder.{j}.bias"] = sd[f"network.{2 * j}.bias"]
+    for j, index in enumerate(range(0, 2 * len(convs), 2)):
+        ours[f"conv.{j}.weight"], ours[f"conv.{j}.bias"] = sd[f"network.{index}.weight"], sd[f"network.{index}.bias"]
+    for j, index in enumerate(linear_at):
+        ours[f"encoder.{j}.weight"] = sd[f"network.{index}.weight"]
+        ours[f"encoder.{j}.bias"] = sd[f"network.{index}.bias"]
     for k in range(len(lstm)):
         for part in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"):
             ours[f"cells.{k}.{part}"] = sd[f"lstm.{part}_l{k}"]
     ours["policy_head.weight"], ours["policy_head.bias"] = sd["actor.weight"], sd["actor.bias"]
     ours["value_head.weight"], ours["value_head.bias"] = sd["critic.weight"], sd["critic.bias"]
-    agent = AgentConfig(lstm_sizes=(hidden,) * len(lstm), encoder=encoder, encoder_activation=_activation(activation))
-    details = {"format": "CleanRL LSTM state dict (ppo_atari_lstm.py layout, MLP encoder)"}
+    agent = AgentConfig(
+        lstm_sizes=(hidden,) * len(lstm), encoder=encoder, encoder_activation=_activation(activation),
+        conv=tuple(c for c, _, _ in convs), conv_kernels=kernels, conv_strides=strides,
+    )  # fmt: skip
+    layout = "Atari CNN" if convs else "MLP encoder"
+    details: dict[str, Any] = {"format": f"CleanRL LSTM state dict (ppo_atari_lstm.py layout, {layout})"}
+    if convs:
+        details["conv_strides"] = list(strides)
     return Imported("cleanrl", obs_dim, num_actions, agent, _network_tensors(ours, where), "imported", details)
+
+
+@dataclasses.dataclass(frozen=True)
+class _CleanRLNetwork:
+    convs: tuple[tuple[int, int, int], ...]
+    """each Conv2d's (out channels, in channels, kernel side), at network.0, 2, 4, ..."""
+    linear_at: tuple[int, ...]
+    """the indices of the Linear layers (after the Flatten that follows the convs)"""
+
+
+def _cleanrl_network(sd: dict[str, torch.Tensor], where: str) -> _CleanRLNetwork:
+    """The layers of CleanRL's ``network`` ``Sequential``: Conv2d layers at 0, 2, ... (each followed by its ReLU),
+    then, after a ``Flatten``, Linear layers (each followed by the activation): CleanRL's Atari CNN is
+    ``network.{0,2,4}`` (convs), 6 (Flatten), ``network.7`` (Linear 3136 -> 512). Without convs, Linear layers at
+    0, 2, ... (an MLP in the CNN's place)."""
+    indices: dict[int, set[str]] = {}
+    for key in sd:
+        if key.startswith("network."):
+            position, _, part = key[len("network.") :].partition(".")
+            if not position.isdigit() or len(position) > 4 or part not in ("weight", "bias"):
+                raise CheckpointError(f"{where}: {key!r} is not a layer's weight or bias")
+            indices.setdefault(int(position), set()).add(part)
+    for index, parts in sorted(indices.items()):
+        if parts != {"weight", "bias"}:
+            raise CheckpointError(f"{where}: network.{index} lacks its {sorted({'weight', 'bias'} - parts)}")
+    order = sorted(indices)
+    conv_at = [i for i in order if sd[f"network.{i}.weight"].dim() == 4]
+    linear_at = [i for i in order if i not in conv_at]
+    first_linear = 2 * len(conv_at) + 1 if conv_at else 0
+    expected_convs = list(range(0, 2 * len(conv_at), 2))
+    expected_linears = list(range(first_linear, first_linear + 2 * len(linear_at), 2))
+    if conv_at != expected_convs or linear_at != expected_linears or len(conv_at) > MAX_LAYERS:
+        raise CheckpointError(
+            f"{where}: the layers under network sit at {_clip(order)} (convs at {_clip(conv_at)}); expected at most "
+            f"{MAX_LAYERS} Conv2d layers at 0, 2, ..., then after a Flatten Linear layers at 2k + 1, 2k + 3, ... "
+            "(CleanRL's Sequential: each layer followed by its activation)"
+        )
+    convs: list[tuple[int, int, int]] = []
+    for j, index in enumerate(conv_at):
+        w, b = list(sd[f"network.{index}.weight"].shape), list(sd[f"network.{index}.bias"].shape)
+        reads = convs[-1][0] if convs else w[1]
+        if b != [w[0]] or w[1] != reads or w[2] != w[3] or not 1 <= w[2] <= MAX_CONV_KERNEL or min(w) < 1:
+            raise CheckpointError(
+                f"{where}: network.{index} has weight {w} and bias {b}: not a Conv2d with a square kernel of at "
+                f"most {MAX_CONV_KERNEL}" + (f" reading the {reads} channels before it" if j else "")
+            )
+        convs.append((w[0], w[1], w[2]))
+    return _CleanRLNetwork(tuple(convs), tuple(linear_at))
+
+
+def _cleanrl_strides(kernels: tuple[int, ...], given: tuple[int, ...] | None, where: str) -> tuple[int, ...]:
+    """The conv strides: ``given`` (one per layer), or CleanRL's Nature CNN's for its kernels."""
+    if given is None or not len(given):
+        if kernels == CLEANRL_NATURE_KERNELS:
+            return CLEANRL_NATURE_STRIDES
+        raise ConfigError(
+            f"{where} has conv kernels {list(kernels)}, not CleanRL's Nature CNN ({list(CLEANRL_NATURE_KERNELS)}): "
+            "a state dict does not record strides, pass --conv-strides (one per conv layer)"
+        )
+    strides = tuple(given)
+    if len(strides) != len(kernels) or any(
+        isinstance(s, bool) or not isinstance(s, int) or not 1 <= s <= MAX_CONV_STRIDE for s in strides
+    ):
+        raise ConfigError(
+            f"--conv-strides {_clip(list(strides))}: one integer in [1, {MAX_CONV_STRIDE}] per conv layer "
+            f"({len(kernels)})"
+        )
+    return strides
+
+
+def _cleanrl_conv_features(
+    convs: tuple[tuple[int, int, int], ...],
+    kernels: tuple[int, ...],
+    strides: tuple[int, ...],
+    obs_dim: int,
+    image: tuple[int, int, int] | None,
+    where: str,
+) -> int:
+    """The features the convs give for the env's image (checked against the observation and the first conv)."""
+    if image is None:
+        raise CheckpointError(
+            f"{where}: a CNN agent reads an image; pass --config with an env whose observation is one "
+            "(env.observation: image, e.g. the atari_breakout preset)"
+        )
+    rows, cols, chans = image
+    if rows * cols * chans != obs_dim or chans != convs[0][1]:
+        raise CheckpointError(
+            f"{where}: network.0 reads {convs[0][1]} channels, but the env's image is {rows}x{cols}x{chans} "
+            f"({rows * cols * chans} inputs; --obs-dim {obs_dim})"
+        )
+    out_rows, out_cols = (conv_output_side(n, kernels, strides) for n in (rows, cols))
+    if not out_rows or not out_cols:
+        raise CheckpointError(
+            f"{where}: conv kernels {list(kernels)} with strides {list(strides)} do not fit the {rows}x{cols} image"
+        )
+    return out_rows * out_cols * convs[-1][0]
 
 
 # ---------------------------------------------------------------------- shared checks
@@ -543,10 +686,19 @@ def _mlp_layers(sd: dict[str, torch.Tensor], prefix: str, n_in: int | None, wher
             f"{where}: the layers under {prefix} sit at {sorted(indices)}; expected linear layers at "
             f"{expected_indices} (Linear, activation, Linear, activation, ...)"
         )
-    widths: list[int] = []
-    for j, index in enumerate(expected_indices):
+    for index in expected_indices:
         if indices[index] != {"weight", "bias"}:
             raise CheckpointError(f"{where}: {prefix}.{index} lacks its {sorted({'weight', 'bias'} - indices[index])}")
+    return _mlp_chain(sd, prefix, tuple(expected_indices), n_in, where)
+
+
+def _mlp_chain(
+    sd: dict[str, torch.Tensor], prefix: str, at: tuple[int, ...], n_in: int | None, where: str
+) -> tuple[int, ...]:
+    """The widths of the linear layers ``prefix.{i}`` for ``i`` in ``at``, each reading the previous one's output
+    (the first ``n_in``, if given)."""
+    widths: list[int] = []
+    for j, index in enumerate(at):
         w, b = sd[f"{prefix}.{index}.weight"].shape, sd[f"{prefix}.{index}.bias"].shape
         reads = n_in if j == 0 else widths[-1]
         if len(w) != 2 or tuple(b) != (w[0],) or (reads is not None and w[1] != reads) or w[0] < 1:
@@ -601,6 +753,7 @@ def import_agent(
     obs_dim: int | None = None,
     num_actions: int | None = None,
     activation: str = "relu",
+    conv_strides: tuple[int, ...] | None = None,
 ) -> Path:
     """Import ``path`` (``source`` 'sb3' or 'cleanrl') into the model folder ``out``; returns ``out``.
 
@@ -608,13 +761,14 @@ def import_agent(
     count; default: the default config, the 3x3 view and four moves). ``label`` is what the caller states; None
     writes 'unknown' with ``provenance.label_stated = false`` (evaluated in both envs, never ground truth).
     ``obs_dim`` and ``num_actions`` are required for
-    'cleanrl' and checked against the weights; ``activation`` is CleanRL's encoder activation. Nothing is written
-    unless everything is accepted, and ``out`` must not already hold files.
+    'cleanrl' and checked against the weights; ``activation`` is CleanRL's encoder activation and ``conv_strides``
+    its CNN's strides (default: CleanRL's 4, 2, 1 for the Nature CNN's kernels; the CNN reads the config's env's
+    image). Nothing is written unless everything is accepted, and ``out`` must not already hold files.
     """
-    imported = read_foreign(source, path, out, label=label, obs_dim=obs_dim, num_actions=num_actions,
-                            activation=activation)  # fmt: skip
     base = config if config is not None else ExperimentConfig()
     spec = env_spec(base.env)
+    imported = read_foreign(source, path, out, label=label, obs_dim=obs_dim, num_actions=num_actions,
+                            activation=activation, image=spec.image, conv_strides=conv_strides)  # fmt: skip
     _check_env(imported, base, spec, repr(str(path)))
     stated = label is not None
     label = label if label is not None else "unknown"
@@ -646,9 +800,12 @@ def read_foreign(
     obs_dim: int | None = None,
     num_actions: int | None = None,
     activation: str = "relu",
+    image: tuple[int, int, int] | None = None,
+    conv_strides: tuple[int, ...] | None = None,
 ) -> Imported:
     """What :func:`import_agent` does before writing: check the options and that ``out`` is new or empty, read
-    ``path`` and check ``obs_dim`` and ``num_actions`` (where given) against it."""
+    ``path`` and check ``obs_dim`` and ``num_actions`` (where given) against it. ``image`` is the env's image layout
+    (a CleanRL CNN reads it) and ``conv_strides`` the CNN's strides (:func:`read_cleanrl`)."""
     if source not in SOURCES:
         raise ConfigError(f"--from must be one of {SOURCES}, got {source!r}")
     if label is not None and label not in ("clean", "backdoored"):
@@ -661,7 +818,7 @@ def read_foreign(
     else:
         if obs_dim is None or num_actions is None:
             raise ConfigError("--from cleanrl needs --obs-dim and --actions (a state dict does not record them)")
-        imported = read_cleanrl(path, obs_dim, num_actions, activation)
+        imported = read_cleanrl(path, obs_dim, num_actions, activation, image=image, conv_strides=conv_strides)
     where = repr(str(path))
     checks = ((obs_dim, imported.obs_dim, "--obs-dim"), (num_actions, imported.num_actions, "--actions"))
     for given, actual, flag in checks:

@@ -25,6 +25,7 @@ from seqtrojan.agent import fast_lstm
 from seqtrojan.agent.cells import CellLayer, make_cell
 from seqtrojan.agent.state import Intervention, LSTMState, RecurrentState
 from seqtrojan.cell_types import cell_type
+from seqtrojan.config import MAX_CONV_KERNEL, MAX_CONV_STRIDE
 from seqtrojan.errors import ConfigError
 
 BACKENDS = ("auto", "torch", "cpp")
@@ -72,14 +73,19 @@ class RecurrentActorCritic(nn.Module):
         heads: int = 1,
         conv: Sequence[int] = (),
         image: Sequence[int] | None = None,
+        conv_kernels: Sequence[int] = (),
+        conv_strides: Sequence[int] = (),
     ):
         super().__init__()
         self.conv_channels = tuple(int(c) for c in conv)
-        """channels of the optional convolutional encoder's layers (2x2 kernels, stride 1, ReLU), before the MLP
-        encoder: for image observations such as MiniGrid's view (the field's usual MiniGrid CNN)"""
+        """channels of the optional convolutional encoder's layers (each a square kernel, a stride, no padding, then
+        ReLU), before the MLP encoder: for image observations (MiniGrid's view, MinAtar's and Atari's frames)"""
+        self.conv_kernels, self.conv_strides = conv_geometry(self.conv_channels, conv_kernels, conv_strides)
+        """each conv layer's kernel size and stride (by default 2 and 1: the field's usual MiniGrid CNN; the Nature
+        CNN of Atari agents: 8, 4, 3 and 4, 2, 1)"""
         self.image = tuple(int(d) for d in image) if image is not None else None
         """(rows, cols, channels): how a flat observation is laid out as an image, for the conv encoder"""
-        conv_out = _conv_output(obs_dim, self.conv_channels, self.image)
+        conv_out = _conv_output(obs_dim, self.conv_channels, self.image, self.conv_kernels, self.conv_strides)
         if cell_type(cell).windowed:
             if not (isinstance(window, int) and window >= 1):
                 raise ConfigError(f"a {cell}'s window must be an integer >= 1, got {window!r}")
@@ -115,7 +121,10 @@ class RecurrentActorCritic(nn.Module):
         if self.conv_channels:
             assert self.image is not None  # _conv_output checked it
             chans = (self.image[2], *self.conv_channels)
-            convs = [nn.Conv2d(a, b, 2) for a, b in itertools.pairwise(chans)]
+            convs = [
+                nn.Conv2d(a, b, k, stride=s)
+                for (a, b), k, s in zip(itertools.pairwise(chans), self.conv_kernels, self.conv_strides)
+            ]
             for conv_layer in convs:
                 nn.init.orthogonal_(conv_layer.weight, gain=2**0.5)
                 nn.init.zeros_(cast(torch.Tensor, conv_layer.bias))
@@ -304,8 +313,53 @@ class RecurrentActorCritic(nn.Module):
         return UnrollOutput(torch.stack(logits), torch.stack(values), state, states)
 
 
-def _conv_output(obs_dim: int, channels: Sequence[int], image: Sequence[int] | None) -> int:
-    """Features out of the conv encoder (each 2x2 layer takes one row and one column off); checks the layout."""
+DEFAULT_CONV_KERNEL = 2
+"""a conv layer's kernel size when none is given (what every earlier version built)"""
+DEFAULT_CONV_STRIDE = 1
+
+
+def conv_geometry(
+    channels: Sequence[int], kernels: Sequence[int] = (), strides: Sequence[int] = ()
+) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Each conv layer's (kernel, stride): ``kernels`` and ``strides`` one per layer, or empty for the defaults
+    (2 and 1); anything else is refused in one line."""
+    out = []
+    for name, given, default, top in (("kernels", kernels, DEFAULT_CONV_KERNEL, MAX_CONV_KERNEL),
+                                      ("strides", strides, DEFAULT_CONV_STRIDE, MAX_CONV_STRIDE)):  # fmt: skip
+        values = tuple(given)
+        if not values:
+            out.append((default,) * len(channels))
+            continue
+        if len(values) != len(channels) or any(isinstance(v, bool) or not isinstance(v, int) for v in values):
+            raise ConfigError(
+                f"conv {name} {list(values)}: one integer per conv layer ({len(channels)} layers), or none for "
+                f"{default} each"
+            )
+        if any(not 1 <= v <= top for v in values):
+            raise ConfigError(f"conv {name} {list(values)} must each lie in [1, {top}]")
+        out.append(values)
+    return out[0], out[1]
+
+
+def conv_output_side(side: int, kernels: Sequence[int], strides: Sequence[int]) -> int:
+    """An image side after the conv layers (no padding: each gives ``(side - kernel) // stride + 1``); 0 when a
+    kernel no longer fits."""
+    for k, s in zip(kernels, strides):
+        if side < k:
+            return 0
+        side = (side - k) // s + 1
+    return side
+
+
+def _conv_output(
+    obs_dim: int,
+    channels: Sequence[int],
+    image: Sequence[int] | None,
+    kernels: Sequence[int] = (),
+    strides: Sequence[int] = (),
+) -> int:
+    """Features out of the conv encoder; checks the layout (each kernel must fit the image left by the layers
+    before it)."""
     if not channels:
         return obs_dim
     if image is None or len(image) != 3 or any(d < 1 for d in image):
@@ -313,9 +367,17 @@ def _conv_output(obs_dim: int, channels: Sequence[int], image: Sequence[int] | N
     rows, cols, chans = image
     if rows * cols * chans != obs_dim:
         raise ConfigError(f"image {list(image)} holds {rows * cols * chans} numbers, but observations have {obs_dim}")
-    if any(c < 1 for c in channels) or len(channels) >= min(rows, cols):
+    kernels, strides = conv_geometry(channels, kernels, strides)
+    out_rows, out_cols = (conv_output_side(n, kernels, strides) for n in (rows, cols))
+    fits = bool(out_rows and out_cols) and all(c >= 1 for c in channels)
+    if not fits and set(kernels) == {DEFAULT_CONV_KERNEL} and set(strides) == {DEFAULT_CONV_STRIDE}:
         raise ConfigError(
             f"conv channels {list(channels)}: each 2x2 layer shrinks the {rows}x{cols} image by one, so at most "
             f"{min(rows, cols) - 1} layers of >= 1 channel"
         )
-    return (rows - len(channels)) * (cols - len(channels)) * channels[-1]
+    if not fits:
+        raise ConfigError(
+            f"conv layers of channels {list(channels)}, kernels {list(kernels)} and strides {list(strides)} do not "
+            f"fit the {rows}x{cols} image (each kernel must fit what the layers before it leave; channels >= 1)"
+        )
+    return out_rows * out_cols * channels[-1]

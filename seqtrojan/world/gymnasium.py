@@ -32,7 +32,7 @@ from seqtrojan.errors import CheckpointError, ConfigError, ShapeError
 from seqtrojan.minigrid.fast_obs import use_fast_observation
 from seqtrojan.serde import short_repr
 from seqtrojan.world.config import GymnasiumEnvConfig, WrapperTriggerConfig
-from seqtrojan.world.families import ensure_family, family_wrappers
+from seqtrojan.world.families import ensure_family, family_wrappers, make_family_env
 from seqtrojan.wrappers import (
     BoxPatch,
     FirstActions,
@@ -109,7 +109,8 @@ def check_registered(env_id: str) -> None:
 def make_gym_env(
     config: GymnasiumEnvConfig, phase: str = "train", trojan_probability: float = 0.0, registered_only: bool = False
 ) -> gym.Env:
-    """One env: ``gymnasium.make(env.id, **env.kwargs)`` (a MiniGrid env with the fast view unless
+    """One env: ``gymnasium.make(env.id, **env.kwargs)`` (an Atari id under its family's preprocessing:
+    :func:`~seqtrojan.world.families.make_atari`; a MiniGrid env with the fast view unless
     ``env.fast_view`` is false; only its first ``env.num_actions`` actions when set), MiniGrid's info
     (``reached``) for a MiniGrid env, the trigger wrapper (with a trigger section), then the flat float observation.
     ``registered_only`` (a config read from a model card) refuses an id that is not registered."""
@@ -121,10 +122,12 @@ def make_gym_env(
     if registered_only:
         check_registered(config.id)
     try:
-        env = gym.make(config.id, **config.kwargs)
+        env = make_family_env(config.id, config.kwargs, phase)
+    except ConfigError:
+        raise
     except (gym.error.Error, ModuleNotFoundError, ImportError) as err:
         raise ConfigError(f"env.id={config.id!r} cannot be made: {short_repr(str(err))}") from None
-    except (TypeError, ValueError, AssertionError, MemoryError) as err:
+    except (TypeError, ValueError, AssertionError, MemoryError, RuntimeError) as err:  # ale-py: RuntimeError
         raise ConfigError(
             f"env {config.id!r} refused env.kwargs={short_repr(config.kwargs)}: {short_repr(str(err))}"
         ) from None
