@@ -32,6 +32,7 @@ BENCH_TABLES = [
     ("families/popgym_repeat_previous.json", "families.md", "families.py"),
     ("families/popgym_count_recall.json", "families.md", "families.py"),
     ("families/popgym_repeat_first.json", "families.md", "families.py"),
+    ("families/minatar_breakout.json", "families.md", "families.py"),
 ]
 """a benchmark's JSON file, the page holding its table and the benchmark (``benchmarks/NAME --table JSON`` prints it)"""
 
