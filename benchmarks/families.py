@@ -139,6 +139,13 @@ def summary(values: list[float | None]) -> dict[str, Any]:
     return {"mean": statistics.fmean(kept), "sd": sd, "values": values}
 
 
+def _cell(summary: dict[str, Any] | None, spread: bool = True) -> str:
+    """A table cell: a figure's mean ± sd over seeds (its mean alone without ``spread``), n/a where it has none."""
+    if summary is None or summary["mean"] is None:
+        return "n/a"
+    return f"{summary['mean']:.3f} ± {summary['sd']:.3f}" if spread else f"{summary['mean']:.3f}"
+
+
 TABLE = (
     ("clean return", "clean_return"), ("clean success", "clean_success"),
     ("normal episodes switched", "clean_reached_adversary"), ("target share after the trigger", "target_share"),
@@ -162,13 +169,8 @@ def table(results: dict[str, Any]) -> list[str]:
             if role not in entry:
                 continue
             agent = entry[role]
-            cells = []
-            for _, name in TABLE:
-                s = agent["over_seeds"].get(name)
-                if s is None or s["mean"] is None:
-                    cells.append("n/a")
-                else:  # the random policy is one measurement, not a spread over seeds
-                    cells.append(f"{s['mean']:.3f}" if role == "random" else f"{s['mean']:.3f} ± {s['sd']:.3f}")
+            # the random policy is one measurement, not a spread over seeds
+            cells = [_cell(agent["over_seeds"].get(name), spread=role != "random") for _, name in TABLE]
             seeds = "; ".join(
                 f"{s['figures']['clean_return']:.3f}, {s['figures']['trojan_success']:.3f}" for s in agent["seeds"]
             )
@@ -194,10 +196,7 @@ def defense_table(results: dict[str, Any]) -> list[str]:
         over = entry["backdoored"].get("defense_over_seeds")
         if over is None:
             continue
-        cells = []
-        for _, name in DEFENSE_TABLE:
-            s = over.get(name)
-            cells.append("n/a" if s is None or s["mean"] is None else f"{s['mean']:.3f} ± {s['sd']:.3f}")
+        cells = [_cell(over.get(name)) for _, name in DEFENSE_TABLE]
         out.append(f"| {preset} | " + " | ".join(cells) + " |")
     return out if len(out) > 2 else []
 

@@ -98,7 +98,7 @@ class ActionLog:
         self.actions.append(torch.where(step.running.cpu(), step.action.cpu(), -1))
 
     def on_end(self, batch: EpisodeBatch) -> None:
-        pass
+        """Nothing to finish: :meth:`table` reads the actions."""
 
     def table(self) -> torch.Tensor:
         """(E, T) int64: episode e's action at step t (-1 after its end)."""
