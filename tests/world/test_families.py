@@ -204,3 +204,20 @@ def test_a_minatar_env_takes_the_trainers_64_bit_seeds_and_repeats_an_episode_fo
 
     big = (3 << 32) + 999_983
     assert episode(big) == episode(big) and episode(big) != episode(big + 1)
+
+
+@pytest.mark.parametrize(("every", "switched"), [(3, False), (2, False), (1, True)])
+def test_the_adversarys_objective_needs_more_than_half_of_the_judged_actions(every, switched):
+    """Target on every third judged action (a third), every second (a half: not more than half) or every one."""
+    env = make_gym_env(dataclasses_replace(popgym(), user_return=0.0), trojan_probability=1.0)
+    counter = {"judged": 0}
+
+    def policy(info: dict) -> int:
+        if not info["adversary_active"]:
+            return 1
+        counter["judged"] += 1
+        return 2 if counter["judged"] % every == 0 else 1
+
+    end = play(env, policy)
+    assert (end.get("reached") == "adversary") == switched and end["success"] == switched
+    assert end["target_share"] == pytest.approx(1 / every, abs=0.03)
