@@ -191,6 +191,21 @@ class _Abstaining:
         return self.model.probability(suspect)
 
 
+def _fit_abstaining(
+    compute: Callable[[Suspect], dict[str, float]], suspects: Sequence[Suspect], labels: Sequence[int]
+) -> FittedDetector:
+    """A logistic regression on features that are costly (each suspect's computed once, then kept) and empty where
+    they do not apply to a suspect (it then answers :data:`NO_OPINION`)."""
+    cache: dict[int, dict[str, float]] = {}
+
+    def features(suspect: Suspect) -> dict[str, float]:
+        if id(suspect) not in cache:
+            cache[id(suspect)] = compute(suspect)
+        return cache[id(suspect)]
+
+    return _Abstaining(fit_features(features, suspects, labels), lambda s: bool(features(s)))
+
+
 @dataclass(frozen=True)
 class StateProbe:
     """The recurrent-state probe (:mod:`seqtrojan.benchmark.state_probe`): how far and how persistently one-step
@@ -199,14 +214,7 @@ class StateProbe:
     settings: ProbeSettings = field(default_factory=ProbeSettings)
 
     def fit(self, suspects: Sequence[Suspect], labels: Sequence[int]) -> FittedDetector:
-        cache: dict[int, dict[str, float]] = {}
-
-        def features(suspect: Suspect) -> dict[str, float]:
-            if id(suspect) not in cache:
-                cache[id(suspect)] = probe_features(suspect, self.settings)
-            return cache[id(suspect)]
-
-        return _Abstaining(fit_features(features, suspects, labels), lambda s: bool(features(s)))
+        return _fit_abstaining(lambda suspect: probe_features(suspect, self.settings), suspects, labels)
 
 
 @dataclass(frozen=True)
@@ -218,14 +226,7 @@ class TriggerReconstruction:
     settings: ReconstructionSettings = field(default_factory=ReconstructionSettings)
 
     def fit(self, suspects: Sequence[Suspect], labels: Sequence[int]) -> FittedDetector:
-        cache: dict[int, dict[str, float]] = {}
-
-        def features(suspect: Suspect) -> dict[str, float]:
-            if id(suspect) not in cache:
-                cache[id(suspect)] = reconstruction_features(suspect, self.settings)
-            return cache[id(suspect)]
-
-        return _Abstaining(fit_features(features, suspects, labels), lambda s: bool(features(s)))
+        return _fit_abstaining(lambda suspect: reconstruction_features(suspect, self.settings), suspects, labels)
 
 
 class _ProbeRecorder:
