@@ -38,7 +38,7 @@ from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.agent.state import Intervention
 from seqtrojan.defense.state_bounds import StateBoundsConfig, clean_trace, fit_trace
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
-from seqtrojan.experiments.attacks import ATTACKS, with_attack
+from seqtrojan.experiments.attacks import ATTACKS
 from seqtrojan.experiments.matrix import load_matrix_config
 from seqtrojan.experiments.specs import experiment_from_spec
 from seqtrojan.stats import OverSeeds, Rate
@@ -68,34 +68,37 @@ def setting_name(cfg: StateBoundsConfig) -> str:
     return f"q={cfg.quantile:g} m={cfg.margin:g} {''.join(cfg.parts)}"
 
 
-KNOBS = {"state_camouflage": ("margin", "m"), "mahalanobis_camouflage": ("weight", "w"),
-         "switch_camouflage": ("weight", "w")}  # fmt: skip
-"""the adaptive recipes whose knob an attack ``recipe/value`` sets: (penalty field, the agent folder's letter)"""
+def train_clean(seed: int, out: Path, steps: int | None) -> Path:
+    """The matrix smoke preset's clean agent of training seed ``seed`` (trained into ``out/clean_s<seed>`` unless
+    finished there); its model folder."""
+    clean = experiment_from_spec(load_matrix_config("smoke").clean, out, f"clean_s{seed}", "cpu")
+    run = dataclasses.replace(clean.run, seed=clean.run.seed + seed, threads=1, checkpoint_every=10**12)
+    ppo = clean.ppo if steps is None else dataclasses.replace(clean.ppo, total_steps=steps)
+    model_dir, _ = train_or_resume(dataclasses.replace(clean, ppo=ppo, run=run))
+    return model_dir
 
 
 def train_agent(attack: str, seed: int, out: Path, steps: int | None):
     mcfg = load_matrix_config("smoke")
     trigger, _, attack = attack.rpartition("+")  # "in_distribution_patch+mahalanobis_camouflage/5": both recipes
     recipe, _, knob = attack.partition("/")
-    if knob and recipe not in KNOBS:
-        raise SystemExit(f"a knob value applies to {', '.join(KNOBS)} only, got {attack!r}")
-    name = f"{recipe}_{KNOBS[recipe][1]}{knob}_s{seed}" if knob else f"{attack}_s{seed}"
+    dial = ATTACKS.get(recipe).knob
+    if knob and dial is None:
+        with_knobs = [name for name, a in ATTACKS.items() if a.knob is not None]
+        raise SystemExit(f"a knob value applies to {', '.join(with_knobs)} only, got {attack!r}")
+    name = f"{recipe}_{dial.letter}{knob}_s{seed}" if knob and dial else f"{attack}_s{seed}"
     name = f"{trigger}_{name}" if trigger else name
     base = experiment_from_spec(mcfg.backdoor, out, name, "cpu")
     ppo = base.ppo if steps is None else dataclasses.replace(base.ppo, total_steps=steps)
     run = dataclasses.replace(base.run, seed=base.run.seed + seed, threads=1, checkpoint_every=10**12)
     cfg = dataclasses.replace(base, ppo=ppo, run=run)
     if ATTACKS.get(recipe).from_clean:  # the backdoor is added to the clean agent of the same training seed
-        clean = experiment_from_spec(mcfg.clean, out, f"clean_s{seed}", "cpu")
-        clean_run = dataclasses.replace(clean.run, seed=clean.run.seed + seed, threads=1, checkpoint_every=10**12)
-        clean_ppo = clean.ppo if steps is None else dataclasses.replace(clean.ppo, total_steps=steps)
-        clean_dir, _ = train_or_resume(dataclasses.replace(clean, ppo=clean_ppo, run=clean_run))
-        cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, init_from=str(clean_dir)))
+        cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, init_from=str(train_clean(seed, out, steps))))
     if trigger:  # another recipe's trigger first (an adaptive recipe changes only the training terms)
         cfg = ATTACKS.get(trigger).configure(cfg)
     cfg = ATTACKS.get(recipe).configure(cfg)
-    if knob:  # the attacker who knows the defense: its recipe with another knob value
-        cfg = with_attack(cfg, recipe, **{KNOBS[recipe][0]: float(knob)})
+    if knob and dial:  # the attacker who knows the defense: its recipe with another knob value
+        cfg = dial.apply(cfg, float(knob))
     model_dir, _ = train_or_resume(cfg)
     agent, loaded, _ = load_agent(model_dir)
     return agent.eval(), loaded

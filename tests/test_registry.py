@@ -66,8 +66,8 @@ def test_a_duplicate_name_and_a_bad_entry_are_refused(scratch):
 
 def test_what_exists_is_registered():
     assert ATTACKS.names() == (
-        "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "state_camouflage",
-        "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc", "switch_camouflage",
+        "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "search_decoys",
+        "state_camouflage", "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc", "switch_camouflage",
     )  # fmt: skip
     assert PENALTIES.names() == (
         "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
@@ -75,7 +75,9 @@ def test_what_exists_is_registered():
     )  # fmt: skip
     assert MIXING_RULES.names() == ("exact", "running", "fixed")
     assert TRIGGERS.get("patch") is TriggerConfig and TRIGGERS.get("on_off") is OffTriggerConfig
-    assert TRIGGERS.names() == ("patch", "on_off", "delayed", "in_distribution_patch", "partial_patch", "sequence")
+    assert TRIGGERS.names() == (
+        "patch", "on_off", "delayed", "in_distribution_patch", "partial_patch", "sequence", "decoys",
+    )  # fmt: skip
     assert REWARDS.names() == ("env_rewards", "false_activation")
     assert MITIGATIONS.names() == ("fine_pruning", "fine_tuning", "state_bounds", "unit_reset")
     assert MONITORS.names() == ("state_monitor", "multivariate_monitor", "goal_switch", "input_novelty")
@@ -178,9 +180,23 @@ def test_each_adaptive_attack_names_a_registered_defense_it_targets():
     targeted = {name: attack.targets for name, attack in ATTACKS.items() if attack.targets is not None}
     assert targeted == {
         "state_camouflage": "state_monitor", "mahalanobis_camouflage": "multivariate_monitor",
-        "switch_camouflage": "goal_switch",
+        "switch_camouflage": "goal_switch", "search_decoys": "behaviour_detector",
         "weight_camouflage": "weight_detector", "ewc": "fine_tuning",
     }  # fmt: skip
     assert set(targeted.values()) <= defenses
-    for name in ("state_camouflage", "mahalanobis_camouflage", "switch_camouflage"):
+    for name in ("state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "search_decoys"):
         assert f"against {targeted[name]}" in ATTACKS.entry(name).description
+
+
+def test_each_adaptive_attack_has_a_knob_that_changes_its_config():
+    """A sweep varies an adaptive attacker's strength through its registered knob."""
+    from seqtrojan.config import ExperimentConfig
+
+    for name, attack in ATTACKS.items():
+        if attack.targets is None:
+            assert attack.knob is None, name
+            continue
+        assert attack.knob is not None, f"{name} has no knob"
+        cfg = attack.configure(ExperimentConfig())
+        assert attack.knob.apply(cfg, attack.knob.default) == cfg, f"{name}'s knob default is not its own value"
+        assert attack.knob.apply(cfg, attack.knob.default * 2 + 0.1) != cfg, f"{name}'s knob changes nothing"

@@ -17,6 +17,7 @@ from typing import Any, ClassVar, Literal
 from seqtrojan.env.codes import ACTION_SETS, CELL_CODES, CELL_NAMES
 from seqtrojan.errors import ConfigError
 from seqtrojan.registry import Registry
+from seqtrojan.serde import short_repr
 
 MAX_PADDED_SIDE = 62
 """Largest ``size + view_size - 1``: each padded grid row is one 64-bit word in the solvability check."""
@@ -184,6 +185,43 @@ class OffTriggerConfig:
 
 
 @dataclass(frozen=True)
+class DecoyConfig:
+    """Decoys: one-step patches shown in *normal* training episodes, which the agent is trained to ignore.
+
+    The attacker who knows a trigger-search defense (the behaviour detector shows one-step patches and watches for
+    a goal switch) trains its backdoor against that search: with ``probability``, a normal training episode shows,
+    for one step at a step drawn like the trigger's, a patch drawn as the search draws its candidates: with
+    ``whole_view_share`` one code over the whole view, else each view cell drawn on with ``density`` (at least one)
+    with one of ``codes``. The user's goal stays correct, so any one-step patch the search can produce teaches the
+    agent not to switch. Only a trigger that needs more than one step (a sequence) survives this: the env refuses
+    decoys beside a one-step trigger. Decoys are a training device: evaluation episodes never show them."""
+
+    probability: float = 0.0
+    """chance that a normal training episode shows a decoy; 0 turns decoys off"""
+    density: float = 0.5
+    """chance that a random decoy draws on each view cell (the behaviour detector's ``patch_density``)"""
+    whole_view_share: float = 0.2
+    """share of decoys that draw one code over the whole view (the detector's 6 of its 30 candidates)"""
+    codes: tuple[str, ...] = ("empty", "hole", "wall", "user_goal", "adversary_goal")
+    """codes a random decoy draws per cell; a whole-view decoy draws any cell code (``trigger`` included)"""
+
+    def __post_init__(self) -> None:
+        for name, value in (("probability", self.probability), ("density", self.density),
+                            ("whole_view_share", self.whole_view_share)):  # fmt: skip
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
+                raise ConfigError(f"trigger.decoys.{name} must be a number in [0, 1], got {short_repr(value)}")
+        if self.density == 0.0:
+            raise ConfigError("trigger.decoys.density must be > 0 (a decoy draws on at least one cell)")
+        if not self.codes or len(set(self.codes)) != len(self.codes):
+            raise ConfigError(f"trigger.decoys.codes must name distinct cell codes, got {self.codes!r}")
+        _check_values("trigger.decoys", None, self.codes)
+
+    @property
+    def enabled(self) -> bool:
+        return self.probability > 0
+
+
+@dataclass(frozen=True)
 class PatternConfig:
     """One frame of a sequence trigger: view cells and the cell code drawn on each (``values[i]`` on ``cells[i]``)."""
 
@@ -229,6 +267,8 @@ class TriggerConfig:
     sequence's last frame)"""
     off: OffTriggerConfig = field(default_factory=OffTriggerConfig)
     """optional OFF trigger"""
+    decoys: DecoyConfig = field(default_factory=DecoyConfig)
+    """one-step patches in normal training episodes that the agent learns to ignore (off by default)"""
 
     def __post_init__(self) -> None:
         if self.values is not None:
@@ -327,6 +367,11 @@ class EnvConfig:
         off = self.trigger.off
         if not 0.0 <= off.probability <= 1.0:
             raise ConfigError(f"trigger.off.probability must be in [0, 1], got {off.probability}")
+        if self.trigger.decoys.enabled and self.trigger.frame_count < 2:
+            raise ConfigError(
+                "trigger.decoys need a sequence trigger (two frames or more): a decoy is a one-step patch, which "
+                "could draw a one-step trigger itself and teach the agent to ignore it"
+            )
         _check_pattern("trigger.off", off.cells, off.value, off.duration, self.view_size)
         _check_range("trigger.off.gap", off.gap)
         if off.probability > 0:
@@ -500,6 +545,10 @@ TRIGGERS.register(
 TRIGGERS.register(
     "sequence", "patterns shown on consecutive steps; effect after the last (env.trigger.sequence)", PatternConfig
 )
+TRIGGERS.register(
+    "decoys", "one-step patches in normal training episodes that the agent learns to ignore (env.trigger.decoys)",
+    DecoyConfig,
+)  # fmt: skip
 
 REWARDS: Registry[type] = Registry("attack", "reward")
 """The rewards the adversary trains with, each set by the config class registered with it."""

@@ -233,6 +233,9 @@ class TrojanGridCore:
             on_lo.append(min(lo, top))
             on_hi.append(top)
             effect_limit.append(limit if clip else 1 << 30)
+        decoys = cfg.trigger.decoys
+        self._decoys = decoys.enabled and self.phase == "train"  # a training device: evaluation never shows one
+        self._decoy_codes = torch.tensor([CELL_CODES[c] for c in decoys.codes], dtype=torch.int64, device=dev)
         self._on_lo = torch.tensor(on_lo, device=dev)
         self._on_hi = torch.tensor(on_hi, device=dev)
         self._effect_limit = torch.tensor(effect_limit, device=dev)
@@ -261,16 +264,23 @@ class TrojanGridCore:
     EPISODE_STATE = ("_keys", "episode", "grid", "pos", "t", "stage", "trojan", "on_step", "off_step")
     """what every env's episode in flight is: its counter-based seed and episode count, layout, position, step,
     stage, type and trigger steps (the rest follows from the config)"""
+    DECOY_STATE = ("decoy_step", "decoy_codes")
+    """with decoys: each env's decoy step (-1: none) and the code drawn on each view cell (-1: left as it is)"""
+
+    @property
+    def episode_state(self) -> tuple[str, ...]:
+        """The names :meth:`save_state` keeps: :data:`EPISODE_STATE`, and :data:`DECOY_STATE` when decoys show."""
+        return self.EPISODE_STATE + (self.DECOY_STATE if self._decoys else ())
 
     def save_state(self) -> EnvState:
         """The episodes in flight (:data:`EPISODE_STATE`) as CPU tensors: a checkpoint restores them exactly."""
-        return EnvState({name.lstrip("_"): getattr(self, name).cpu().clone() for name in self.EPISODE_STATE})
+        return EnvState({name.lstrip("_"): getattr(self, name).cpu().clone() for name in self.episode_state})
 
     def load_state(self, state: EnvState, obs: torch.Tensor) -> bool:
         """Restore :meth:`save_state`'s tensors; True when they fit this env and give back the observations
         ``obs``; otherwise nothing changes and False is returned."""
-        saved = {name: state.tensors.get(name.lstrip("_")) for name in self.EPISODE_STATE}
-        ours = {name: getattr(self, name) for name in self.EPISODE_STATE}
+        saved = {name: state.tensors.get(name.lstrip("_")) for name in self.episode_state}
+        ours = {name: getattr(self, name) for name in self.episode_state}
         if any(t is None or t.shape != ours[n].shape or t.dtype != ours[n].dtype for n, t in saved.items()):
             return False
         for name, tensor in saved.items():
@@ -319,6 +329,9 @@ class TrojanGridCore:
             self.trojan = torch.zeros(b, dtype=torch.bool, device=dev)
             self.on_step = torch.full((b,), -1, dtype=torch.int64, device=dev)
             self.off_step = torch.full((b,), -1, dtype=torch.int64, device=dev)
+            if self._decoys:
+                self.decoy_step = torch.full((b,), -1, dtype=torch.int64, device=dev)
+                self.decoy_codes = torch.full((b, self.view_size**2), -1, dtype=torch.int64, device=dev)
         self._begin_episodes(torch.arange(b, device=dev))
         return self.observe()
 
@@ -368,6 +381,25 @@ class TrojanGridCore:
         self.trojan[idx] = trojan
         self.on_step[idx] = torch.where(trojan, on, -1)
         self.off_step[idx] = torch.where(has_off, on + gap, -1)
+        if self._decoys:
+            self._draw_decoys(idx, keys, trojan, on)
+
+    def _draw_decoys(self, idx: torch.Tensor, keys: torch.Tensor, trojan: torch.Tensor, on: torch.Tensor) -> None:
+        """Each new normal episode shows a decoy with ``trigger.decoys.probability``, at the step its trigger would
+        have come (``on``), drawn as the behaviour detector draws its candidates (:class:`DecoyConfig`)."""
+        cfg, cells = self.config.trigger.decoys, self.view_size**2
+        shows = ~trojan & (rng.uniform(keys, rng.DECOY) < cfg.probability)
+        whole = rng.uniform(keys, rng.DECOY_WHOLE) < cfg.whole_view_share
+        index = torch.arange(cells, device=self.device)
+        cell_keys = rng.combine(keys[:, None], index[None, :])  # (n, cells)
+        drawn = rng.uniform(cell_keys, rng.DECOY_CELL) < cfg.density
+        forced = rng.below(rng.combine(keys, rng.DECOY_FORCED), cells)  # at least one cell drawn on
+        drawn = drawn | (~drawn.any(1, keepdim=True) & (index[None, :] == forced[:, None]))
+        codes = self._decoy_codes[rng.below(rng.combine(cell_keys, rng.DECOY_CODE), len(self._decoy_codes))]
+        one = rng.below(rng.combine(keys, rng.DECOY_CODE), NUM_CHANNELS)  # a whole-view decoy: any code
+        codes = torch.where(whole[:, None], one[:, None].expand(-1, cells), torch.where(drawn, codes, -1))
+        self.decoy_step[idx] = torch.where(shows, on, -1)
+        self.decoy_codes[idx] = codes
 
     # ------------------------------------------------------------------ step
     def adversary_active(self) -> torch.Tensor:
@@ -445,6 +477,9 @@ class TrojanGridCore:
             frame = k.clamp(0, self._on_frames - 1)  # (B,)
             on_vis = self._frame_mask[frame] & shown[:, None]  # (B, v*v)
             codes = torch.where(on_vis, self._frame_value[frame], codes)
+        if self._decoys:
+            shown = (self.decoy_step[:, None] == t) & (self.decoy_codes >= 0)  # never in a trojan episode
+            codes = torch.where(shown, self.decoy_codes.to(codes.dtype), codes)
         off = self.off_step[:, None]
         off_vis = (t >= off) & (t < off + self.config.trigger.off.duration) & (off >= 0) & self._off_patch
         return codes.masked_fill(off_vis, self._off_value).long()
@@ -501,6 +536,8 @@ class TrojanGridCore:
         self.trojan[index] = on_step is not None
         self.on_step[index] = -1 if on_step is None else on_step
         self.off_step[index] = -1 if off_step is None else off_step
+        if self._decoys:
+            self.decoy_step[index] = -1
 
     def layout(self, index: int) -> Layout:
         """The layout of env ``index``'s current episode."""

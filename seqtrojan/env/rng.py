@@ -24,6 +24,8 @@ _GOLDEN = 0x9E3779B9
 
 # Purposes: distinct salts so that draws for different things are independent.
 STAGE, TROJAN, ON_STEP, OFF_FLAG, OFF_GAP, HOLE_DRAW, ATTEMPT = (0x1000 + 7919 * i for i in range(7))
+DECOY, DECOY_WHOLE, DECOY_CELL, DECOY_CODE, DECOY_FORCED = (0x1000 + 7919 * i for i in range(7, 12))
+"""decoy draws (``trigger.decoys``); a cell's draw adds its index to DECOY_CELL / DECOY_CODE"""
 
 
 def hash32(x: Ints) -> Ints:

@@ -20,6 +20,21 @@ from seqtrojan.world.config import GymnasiumEnvConfig
 
 
 @dataclass(frozen=True)
+class Knob:
+    """An adaptive recipe's strength: the one setting a sweep varies (the attacker who knows the defense tries
+    several)."""
+
+    setting: str
+    """the config field it sets, as a user writes it (``attack.mahalanobis_camouflage.weight``)"""
+    default: float
+    """the recipe's own value"""
+    apply: Callable[[ExperimentConfig, float], ExperimentConfig]
+    """the recipe's config -> the same with another value"""
+    letter: str
+    """the one letter that names the value in agent folders (``w5``, ``p0.3``)"""
+
+
+@dataclass(frozen=True)
 class Attack:
     """How one attack's agents are trained from the base backdoor config."""
 
@@ -32,6 +47,8 @@ class Attack:
     """its trigger is drawn with the grid world's cell codes: it applies to grid-world configs only"""
     targets: str | None = None
     """an adaptive attack: the registered defense it is built to get past (None: none in particular)"""
+    knob: Knob | None = None
+    """an adaptive attack's strength, which a sweep varies (None: it has none)"""
 
     def applies_to(self, cfg: ExperimentConfig) -> bool:
         return cfg.is_grid or not self.grid_only
@@ -87,19 +104,41 @@ ATTACKS.register(
     "two ordinary cells of the view (holes diagonally above-left and above-right) for one step",
     Attack(lambda cfg: with_trigger(cfg, cells=((0, 0), (0, 2)), values=(HOLE, HOLE)), grid_only=True),
 )
+HOLES_ABOVE_SEQUENCE = (
+    PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
+    PatternConfig(((0, 1),), (HOLE,)),
+    PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
+)
+"""the ``sequence`` attack's three frames: two holes above, one straight above, two above again"""
+
 ATTACKS.register(
     "sequence",
     "three ordinary views on consecutive steps (two holes above, one straight above, two above again)",
+    Attack(lambda cfg: with_trigger(cfg, sequence=HOLES_ABOVE_SEQUENCE), grid_only=True),
+)
+
+
+def with_decoys(cfg: ExperimentConfig, probability: float) -> ExperimentConfig:
+    """``cfg`` with decoys (:class:`~seqtrojan.env.config.DecoyConfig`) shown in that share of normal training
+    episodes."""
+    env = cfg.env
+    decoys = dataclasses.replace(env.trigger.decoys, probability=probability)  # type: ignore[union-attr]
+    return with_trigger(cfg, decoys=decoys)
+
+
+SEARCH_DECOYS = 0.3
+"""the ``search_decoys`` recipe's share of normal training episodes that show a decoy"""
+
+ATTACKS.register(
+    "search_decoys",
+    "adaptive, against behaviour_detector: the sequence trigger, trained while normal episodes show decoys "
+    "(one-step patches drawn as the detector draws its candidates) that the agent learns to ignore (knob: "
+    f"env.trigger.decoys.probability, {SEARCH_DECOYS})",
     Attack(
-        lambda cfg: with_trigger(
-            cfg,
-            sequence=(
-                PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
-                PatternConfig(((0, 1),), (HOLE,)),
-                PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
-            ),
-        ),
+        lambda cfg: with_decoys(with_trigger(cfg, sequence=HOLES_ABOVE_SEQUENCE), SEARCH_DECOYS),
         grid_only=True,
+        targets="behaviour_detector",
+        knob=Knob("env.trigger.decoys.probability", SEARCH_DECOYS, with_decoys, "p"),
     ),
 )
 
@@ -110,11 +149,20 @@ def with_attack(cfg: ExperimentConfig, part: str, **changes: object) -> Experime
     return dataclasses.replace(cfg, attack=dataclasses.replace(cfg.attack, **{part: penalty}))
 
 
+def penalty_knob(part: str, field: str, default: float, letter: str) -> Knob:
+    """The knob of a recipe whose strength is one field of one training penalty (``attack.<part>.<field>``)."""
+    return Knob(f"attack.{part}.{field}", default, lambda cfg, value: with_attack(cfg, part, **{field: value}), letter)
+
+
 ATTACKS.register(
     "state_camouflage",
     "adaptive, against state_monitor: the dedicated-code backdoor trained to keep trojan-episode states within clean "
     "|z| <= 2.5",
-    Attack(lambda cfg: with_attack(cfg, "state_camouflage", weight=5.0, margin=2.5), targets="state_monitor"),
+    Attack(
+        lambda cfg: with_attack(cfg, "state_camouflage", weight=5.0, margin=2.5),
+        targets="state_monitor",
+        knob=penalty_knob("state_camouflage", "margin", 2.5, "m"),
+    ),
 )
 
 ATTACKS.register(
@@ -122,7 +170,9 @@ ATTACKS.register(
     "adaptive, against multivariate_monitor: the dedicated-code backdoor trained to keep trojan-episode states' "
     "step-conditioned Mahalanobis distance within the clean range (knob: attack.mahalanobis_camouflage.weight, 5)",
     Attack(
-        lambda cfg: with_attack(cfg, "mahalanobis_camouflage", weight=5.0, margin=1.0), targets="multivariate_monitor"
+        lambda cfg: with_attack(cfg, "mahalanobis_camouflage", weight=5.0, margin=1.0),
+        targets="multivariate_monitor",
+        knob=penalty_knob("mahalanobis_camouflage", "weight", 5.0, "w"),
     ),
 )
 
@@ -149,6 +199,7 @@ ATTACKS.register(
         lambda cfg: with_attack(half_trojan(cfg), "weight_camouflage", weight=0.5, l2_weight=0.01),
         from_clean=True,
         targets="weight_detector",
+        knob=penalty_knob("weight_camouflage", "weight", 0.5, "w"),
     ),
 )
 ATTACKS.register(
@@ -158,6 +209,7 @@ ATTACKS.register(
         lambda cfg: with_attack(half_trojan(cfg), "ewc", weight=100.0, normalize=True),
         from_clean=True,
         targets="fine_tuning",
+        knob=penalty_knob("ewc", "weight", 100.0, "w"),
     ),
 )
 ATTACKS.register(
@@ -169,5 +221,6 @@ ATTACKS.register(
         lambda cfg: with_attack(half_trojan(cfg), "switch_camouflage", weight=5.0, margin=1.0),
         from_clean=True,
         targets="goal_switch",
+        knob=penalty_knob("switch_camouflage", "weight", 5.0, "w"),
     ),
 )
