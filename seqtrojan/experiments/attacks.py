@@ -46,9 +46,15 @@ class Attack:
     grid_only: bool = False
     """its trigger is drawn with the grid world's cell codes: it applies to grid-world configs only"""
     targets: str | None = None
-    """an adaptive attack: the registered defense it is built to get past (None: none in particular)"""
+    """an adaptive attack: the registered defense it is built to get past, or several joined by ``+`` (None: none
+    in particular)"""
     knob: Knob | None = None
     """an adaptive attack's strength, which a sweep varies (None: it has none)"""
+
+    @property
+    def target_defenses(self) -> tuple[str, ...]:
+        """The registered defenses it is built to get past (none: empty)."""
+        return tuple(self.targets.split("+")) if self.targets else ()
 
     def applies_to(self, cfg: ExperimentConfig) -> bool:
         return cfg.is_grid or not self.grid_only
@@ -222,5 +228,31 @@ ATTACKS.register(
         from_clean=True,
         targets="goal_switch",
         knob=penalty_knob("switch_camouflage", "weight", 5.0, "w"),
+    ),
+)
+
+
+COMBINED_DEFENSES = ("state_monitor", "multivariate_monitor", "behaviour_detector")
+"""what the ``combined`` attacker is built against: the two state monitors (with their alarm-driven reset, the
+online defenses that stopped the sequence trigger) and the trigger search"""
+
+
+def combined(cfg: ExperimentConfig, weight: float) -> ExperimentConfig:
+    """``search_decoys`` with both state camouflages at ``weight``: every defense of :data:`COMBINED_DEFENSES` known
+    at once."""
+    cfg = with_decoys(with_trigger(cfg, sequence=HOLES_ABOVE_SEQUENCE), SEARCH_DECOYS)
+    cfg = with_attack(cfg, "state_camouflage", weight=weight, margin=2.5)
+    return with_attack(cfg, "mahalanobis_camouflage", weight=weight, margin=1.0)
+
+
+ATTACKS.register(
+    "combined",
+    "adaptive, against state_monitor, multivariate_monitor and behaviour_detector at once: the sequence trigger "
+    "with decoys, trained with both state camouflages (knob: their weight, 5)",
+    Attack(
+        lambda cfg: combined(cfg, 5.0),
+        grid_only=True,
+        targets="+".join(COMBINED_DEFENSES),
+        knob=Knob("attack.state_camouflage.weight and attack.mahalanobis_camouflage.weight", 5.0, combined, "w"),
     ),
 )
