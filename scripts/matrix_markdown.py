@@ -12,6 +12,9 @@ from seqtrojan.experiment_results import MatrixResult
 from seqtrojan.serde import load_json
 from seqtrojan.stats import OverSeeds, Rate
 
+sys.path.insert(0, str(Path(__file__).parent))
+from arms_race import attack_table, defense_table  # the benchmarks' answer tables, in the same format
+
 
 def spread(x: OverSeeds | None, pooled: Rate | None = None, digits: int = 3) -> str:
     if x is None:
@@ -65,9 +68,18 @@ def main(path: str) -> None:
         print(f"| {a.attack} | {spread(a.clean_success)} | " + " | ".join(row) + " |")
     offline = [c for c in result.cells if c.kind == "offline"]
     detectors = list(dict.fromkeys(c.defense for c in offline))
-    if not detectors:
+    if detectors:
+        offline_table(result, offline, detectors)
+    else:
         print("\nOffline detectors: none applied to this matrix.")
-        return
+    alone = {a.attack: (a.attack_success, a.attack_success_pooled) for a in result.attacks}
+    print("\nEvery defense against the worst working attack tried on it (attack success >= 0.5 undefended):\n")
+    print(defense_table(list(result.cells), alone))
+    print("\nEvery working attack against the acting defense that stops it best:\n")
+    print(attack_table(list(result.cells), alone))
+
+
+def offline_table(result: MatrixResult, offline: list, detectors: list[str]) -> None:
     print("\nOffline detectors, ROC-AUC of the attack's models against the clean models [95% interval]:\n")
     print("| attack | " + " | ".join(detectors) + " |")
     print("|---|" + "---|" * len(detectors))

@@ -1,0 +1,178 @@
+"""Print the arms race's answer tables from benchmark JSON files: every defense against the worst attack tried on it,
+and every attack against the best defense tried on it.
+
+    python scripts/arms_race.py docs/data/defenses/*.json
+
+Reads what ``benchmarks/goal_switch.py`` (online monitors: alarms and the alarm-driven state reset),
+``benchmarks/behaviour_evasion.py`` (the behaviour detector's ROC-AUC against clean agents) and
+``benchmarks/finetune.py`` (fine-tuning and fine-pruning) write; other JSON files are skipped with a line on stderr.
+An attack is named as its benchmark named it (``recipe/knob`` for an adaptive recipe at another strength) and, where
+two files measured the same attack on the same defense (other agents), by its file as well.
+
+The worst case and the best defense are chosen as ``seqtrojan.experiments.arms_race`` says (the matrix's rule):
+among the attacks whose backdoor works undefended (mean attack success >= 0.5 over seeds). Cells: mean ± sd over
+seeds [95% Wilson interval, seeds pooled]; an AUC with its 95% interval.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+from seqtrojan.defense.behaviour import scores_auc
+from seqtrojan.experiment_results import MatrixCell
+from seqtrojan.experiments.arms_race import best_defenses, worst_cases
+from seqtrojan.stats import OverSeeds, Rate
+
+
+def _rate(d: dict) -> Rate:
+    return Rate(int(d["k"]), int(d["n"]))
+
+
+def _seeds(rates: list[Rate]) -> tuple[OverSeeds, Rate]:
+    """Rates of the same figure over seeds: their values and their pooled rate."""
+    return OverSeeds(tuple(r.value for r in rates)), Rate(sum(r.k for r in rates), sum(r.n for r in rates))
+
+
+def _grouped(rows: list[dict], *keys: str) -> dict[tuple, list[dict]]:
+    out: dict[tuple, list[dict]] = {}
+    for row in rows:
+        out.setdefault(tuple(row[k] for k in keys), []).append(row)
+    return out
+
+
+Undefended = dict[str, tuple[OverSeeds, Rate]]
+
+
+def _cell(attack: str, defense: str, kind: str, success: list[Rate] | None, clean: list[Rate],
+          detected: list[Rate] | None = None, alarms: list[Rate] | None = None,
+          auc: tuple[float, tuple[float, float]] | None = None) -> MatrixCell:  # fmt: skip
+    s = _seeds(success) if success else (None, None)
+    d = _seeds(detected) if detected else (None, None)
+    f = _seeds(alarms) if alarms else (None, None)
+    return MatrixCell(attack, defense, kind, s[0], s[1], _seeds(clean)[0], d[0], d[1], f[0], f[1],
+                      auc[0] if auc else None, auc[1] if auc else None)  # fmt: skip
+
+
+def monitor_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
+    """``benchmarks/goal_switch.py``: each (attack, monitor) over seeds, the reset acting."""
+    cells, alone = [], {}
+    for (attack, monitor), mine in _grouped(bench["rows"], "attack", "monitor").items():
+        alone[attack] = _seeds([_rate(r["attack_success"]) for r in mine])
+        cells.append(_cell(attack, monitor, "online", [_rate(r["attack_success_reset"]) for r in mine],
+                           [_rate(r["clean_success_reset"]) for r in mine], [_rate(r["detected"]) for r in mine],
+                           [_rate(r["false_alarm"]) for r in mine]))  # fmt: skip
+    return cells, alone
+
+
+def behaviour_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
+    """``benchmarks/behaviour_evasion.py``: each attack's agents' scores against the clean agents'."""
+    clean = [r for r in bench["rows"] if r["attack"] == "clean"]
+    cells, alone = [], {}
+    for (attack,), mine in _grouped(bench["rows"], "attack").items():
+        if attack == "clean":
+            continue
+        a = scores_auc([r["score"] for r in mine + clean], [1] * len(mine) + [0] * len(clean))
+        alone[attack] = _seeds([_rate(r["attack_success"]) for r in mine])
+        cells.append(_cell(attack, "behaviour_detector", "offline", None, [_rate(r["clean_success"]) for r in mine],
+                           auc=(a.auc, a.interval)))  # fmt: skip
+    return cells, alone
+
+
+def mitigation_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
+    """``benchmarks/finetune.py``: each (attack, mitigation) over seeds, beside the same agents undefended."""
+    rows = bench["rows"]
+    cells, alone = [], {}
+    for (attack, arm), mine in _grouped(rows, "attack", "arm").items():
+        if arm == "none":
+            alone[attack] = _seeds([_rate(r["attack_success"]) for r in mine])
+            continue
+        cells.append(_cell(attack, arm, "mitigation", [_rate(r["attack_success"]) for r in mine],
+                           [_rate(r["clean_success"]) for r in mine]))  # fmt: skip
+    return cells, alone
+
+
+READERS = (("monitor", monitor_cells), ("best", behaviour_cells), ("arm", mitigation_cells))
+"""a row key that marks a benchmark's JSON -> how its rows become cells"""
+
+
+def read_cells(paths: list[str]) -> tuple[list[MatrixCell], Undefended]:
+    """Every cell of every file. An attack measured by two files (other agents) is named with its file's stem
+    wherever a second file measures it again."""
+    cells: list[MatrixCell] = []
+    alone: Undefended = {}
+    for path in paths:
+        bench = json.loads(Path(path).read_text())
+        rows = bench.get("rows") if isinstance(bench, dict) else None
+        reader = next((read for key, read in READERS if rows and key in rows[0]), None)
+        if reader is None:
+            print(f"skipped {path}: not a benchmark this script reads", file=sys.stderr)
+            continue
+        found, undefended = reader(bench)
+        taken = {(c.attack, c.defense) for c in cells}
+        stem = Path(path).stem
+        rename = {a for a in undefended if a in alone and any((a, c.defense) in taken for c in found)}
+        for c in found:
+            cells.append(dataclasses.replace(c, attack=f"{c.attack} ({stem})") if c.attack in rename else c)
+        alone.update({(f"{a} ({stem})" if a in rename else a): v for a, v in undefended.items()})
+    return cells, alone
+
+
+def text(x: OverSeeds | None, pooled: Rate | None = None) -> str:
+    if x is None:
+        return "—"
+    return x.text() + (f" [{pooled.interval[0]:.3f}, {pooled.interval[1]:.3f}]" if pooled is not None else "")
+
+
+def defense_table(cells: list[MatrixCell], alone: Undefended) -> str:
+    lines = [
+        "| defense | attacks tried (working) | worst case | attack success, defense acting | clean success, "
+        "defense acting | false alarms | detection |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for w in worst_cases(cells, {a: v[0] for a, v in alone.items()}):
+        tried = f"{w.tried} ({w.working})"
+        c = w.worst
+        if c is None:
+            lines.append(f"| {w.defense} | {tried} | no working backdoor tried | | | | |")
+            continue
+        if c.auc is not None and c.auc_interval is not None:
+            success = text(*alone[c.attack]) + " (offline: undefended)"
+            detection = f"ROC-AUC {c.auc:.3f} [{c.auc_interval[0]:.3f}, {c.auc_interval[1]:.3f}]"
+        else:
+            success, detection = text(c.attack_success, c.attack_success_pooled), text(c.detection, c.detection_pooled)
+        lines.append(f"| {w.defense} | {tried} | {c.attack} | {success} | {text(c.clean_success)} | "
+                     f"{text(c.false_alarm, c.false_alarm_pooled)} | {detection} |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def attack_table(cells: list[MatrixCell], alone: Undefended) -> str:
+    lines = [
+        "| attack | undefended attack success | best defense | attack success, defense acting | clean success, "
+        "defense acting |",
+        "|---|---|---|---|---|",
+    ]
+    for b in best_defenses(cells, alone):
+        c = b.best
+        if c is None:
+            lines.append(f"| {b.attack} | {text(b.undefended, b.undefended_pooled)} | none acting tried | | |")
+            continue
+        lines.append(f"| {b.attack} | {text(b.undefended, b.undefended_pooled)} | {c.defense} | "
+                     f"{text(c.attack_success, c.attack_success_pooled)} | {text(c.clean_success)} |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("files", nargs="+", help="benchmark JSON files")
+    cells, alone = read_cells(parser.parse_args().files)
+    print(defense_table(cells, alone))
+    print()
+    print(attack_table(cells, alone))
+
+
+if __name__ == "__main__":
+    main()
