@@ -20,7 +20,7 @@ from typing import Any, Protocol
 
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.config import TriggerConfig
-from seqtrojan.errors import ConfigError, SeqTrojanError
+from seqtrojan.errors import ConfigError
 from seqtrojan.world.config import GymnasiumEnvConfig
 
 GRID_PATTERN = ("cells", "value", "values", "sequence")
@@ -82,19 +82,15 @@ def check_recipes(names: tuple[str, ...], recipes: RecipeBook | None, reference:
 def apply_recipe(config: ExperimentConfig, recipe: Recipe, reference: Any) -> tuple[ExperimentConfig, bool]:
     """The model's config with ``recipe`` applied, and whether the recipe's own trigger replaced the drawn one
     (``reference``: the trigger the recipes are written against; see the module docstring). A combination the
-    config refuses is one line naming it."""
+    config refuses raises its :class:`~seqtrojan.errors.ConfigError`."""
     drawn = config.env.trigger
     assert drawn is not None  # a backdoored config's trigger
     pattern = GYM_PATTERN if isinstance(config.env, GymnasiumEnvConfig) else GRID_PATTERN
     probe = recipe.configure(_with_trigger(config, reference)).env.trigger
     if all(getattr(probe, f) == getattr(reference, f) for f in pattern):
-        return _configure(recipe, config), False
-    own = {f: getattr(probe, f) for f in (*pattern, SHOWN_FOR)}
-    try:
-        start = dataclasses.replace(drawn, **own)
-    except SeqTrojanError as err:
-        raise ConfigError(f"the recipe's trigger does not fit the drawn trigger settings: {err}") from None
-    return _configure(recipe, _with_trigger(config, start)), True
+        return recipe.configure(config), False
+    start = dataclasses.replace(drawn, **{f: getattr(probe, f) for f in (*pattern, SHOWN_FOR)})
+    return recipe.configure(_with_trigger(config, start)), True
 
 
 def grid_trigger_variation(trigger: TriggerConfig) -> dict[str, Any]:
@@ -110,13 +106,6 @@ def grid_trigger_variation(trigger: TriggerConfig) -> dict[str, Any]:
         "trigger_cells": None if cells is None else [list(c) for c in cells],
         "trigger_duration": trigger.shown_steps,
     }
-
-
-def _configure(recipe: Recipe, config: ExperimentConfig) -> ExperimentConfig:
-    try:
-        return recipe.configure(config)
-    except SeqTrojanError as err:
-        raise ConfigError(f"the recipe does not combine with the drawn model: {err}") from None
 
 
 def _with_trigger(config: ExperimentConfig, trigger: Any) -> ExperimentConfig:
