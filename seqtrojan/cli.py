@@ -583,7 +583,7 @@ def _zoo(argv: list[str]) -> None:
         """share of each label's non-holdout models in the test split (--out)"""
         holdout: tuple[str, ...] = ()
         """FACTOR=VALUE pairs whose models only the holdout split holds (--out), e.g. 'lstm_sizes=[64, 32]' or
-        trigger_value=wall; factors: env, cell, lstm_sizes, trigger_value"""
+        trigger_value=wall or attack=sequence; factors: env, cell, lstm_sizes, trigger_value, attack"""
         detectors: tuple[str, ...] = ()
         """the benchmark detectors to score (--out; default: every registered one)"""
         budget_s: float | None = None
@@ -593,9 +593,11 @@ def _zoo(argv: list[str]) -> None:
         print("usage: seqtrojan zoo {build,detect} [options]   (seqtrojan zoo build --help)", file=sys.stderr)
         raise SystemExit(2)
     if argv[0] == "build":
+        from seqtrojan.experiments.attacks import ATTACKS
+
         args = _cli_with_config_file(ZooBuild, ZooConfig, argv[1:], "seqtrojan zoo build")
         manifest = build_zoo(args.config, args.out, workers=args.workers, backend=args.backend,
-                             ray_address=args.ray_address, threads=args.threads)  # fmt: skip
+                             ray_address=args.ray_address, threads=args.threads, recipes=ATTACKS)  # fmt: skip
         print(f"wrote {manifest}")
         return
     args = _cli(ZooDetect, argv[1:], "seqtrojan zoo detect")

@@ -1,9 +1,10 @@
 """A zoo as a benchmark: its models read with their truth and factors, and split into train, test and holdout.
 
 Holdout holds every model with a held-out factor value (an architecture, an env, a cell kind the train split never
-shows; poisoned models by a held-out attack value together with a random share of the clean models, so that the
-split has both classes); the other models are split into train and test by label, ``test_share`` of each label to
-test. The assignment is a pure function of the model ids, their truth and the seed, written to ``splits.json``.
+shows; poisoned models by a held-out attack value, a trigger value or a recipe, together with a random share of the
+clean models, so that the split has both classes); the other models are split into train and test by label,
+``test_share`` of each label to test. The assignment is a pure function of the model ids, their truth and the seed,
+written to ``splits.json``.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 from seqtrojan.errors import ConfigError, SeqTrojanError
 
 SPLITS = ("train", "test", "holdout")
-ATTACK_FACTORS = frozenset({"trigger_value"})
+ATTACK_FACTORS = frozenset({"trigger_value", "attack"})
 """factors that describe a poisoned model's attack: a clean model has the value ``none`` and belongs, when scores
 are broken down, to every attack value's group (an attack's AUC is its poisoned models against all clean ones)"""
 
@@ -53,15 +54,20 @@ class SplitConfig:
 
 def model_factors(truth: Mapping) -> dict[str, str]:
     """A zoo model's factors from its ``label.json``: env, cell, widths and, for a poisoned model, the trigger's
-    cell value (``none`` for a clean one)."""
+    cell value (``none`` for a clean one); in a zoo that draws attack recipes (its models record ``attack``), the
+    recipe too (``none`` for a clean one). A zoo without recipes has no ``attack`` factor, so its breakdowns stay
+    as they were."""
     variation = truth.get("variation", {})
     poisoned = truth.get("label") == "backdoored"
-    return {
+    factors = {
         "env": str(variation.get("env", "grid")),
         "cell": str(variation.get("cell", "lstm")),
         "lstm_sizes": json.dumps(variation.get("lstm_sizes")),
         "trigger_value": str(variation.get("trigger_value")) if poisoned else "none",
     }
+    if "attack" in variation:
+        factors["attack"] = str(variation["attack"]) if poisoned else "none"
+    return factors
 
 
 def assign_splits(entries: Sequence[ZooEntry], cfg: SplitConfig) -> dict[str, str]:

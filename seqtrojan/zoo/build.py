@@ -54,6 +54,7 @@ from seqtrojan.env.config import EnvConfig, GridSpec, TriggerConfig
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.jobs import JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 from seqtrojan.serde import dump_omitting_defaults, to_dict
+from seqtrojan.zoo.recipes import RecipeBook, apply_recipe, check_recipes, grid_trigger_variation
 
 if TYPE_CHECKING:
     from seqtrojan.world.config import WrapperTriggerConfig
@@ -132,10 +133,16 @@ class ZooConfig:
     cells: tuple[str, ...] = ()
     """draw each model's sequence model from these (a detection benchmark's cell factor); empty: every model is
     ``cell``"""
+    attacks: tuple[str, ...] = ()
+    """registered attack recipes (``seqtrojan attacks``) each backdoored model's recipe is drawn from, uniformly,
+    after every other draw (as ``cells``); its name is the model's ``attack`` (clean models: ``none``). A recipe with
+    a trigger of its own replaces the drawn patch; any other is applied on top of it (:mod:`seqtrojan.zoo.recipes`).
+    Recipes that start from a trained clean agent are refused. Empty: the drawn patch, plain Algorithm 1"""
     holdout: dict[str, tuple[str, ...]] = field(default_factory=dict)
     """as a detection benchmark (``seqtrojan zoo detect --out``): factor -> the values whose models only the holdout
-    split holds, e.g. ``lstm_sizes: ["[48, 24]"]`` (factors: env, cell, lstm_sizes, trigger_value; see
-    :mod:`seqtrojan.benchmark.splits`); a ``--holdout`` given to ``zoo detect`` replaces it"""
+    split holds, e.g. ``lstm_sizes: ["[48, 24]"]`` or ``attack: [sequence]`` (factors: env, cell, lstm_sizes,
+    trigger_value, attack; see :mod:`seqtrojan.benchmark.splits`); a ``--holdout`` given to ``zoo detect`` replaces
+    it"""
 
     def __post_init__(self) -> None:
         if self.clean < 0 or self.backdoored < 0 or self.clean + self.backdoored == 0:
@@ -155,9 +162,16 @@ class ZooConfig:
         lo, hi = self.trigger_cells
         if not 1 <= lo <= hi <= 9:
             raise ConfigError(f"trigger_cells={self.trigger_cells} must be a range within 1..9")
-        factors = ("env", "cell", "lstm_sizes", "trigger_value")
+        if not all(isinstance(a, str) and a.isidentifier() for a in self.attacks):
+            raise ConfigError(f"zoo attacks must be recipe names, got {self.attacks!r}")
+        if len(set(self.attacks)) != len(self.attacks):
+            raise ConfigError(f"zoo attacks name a recipe twice (each is drawn as often as the others): {self.attacks}")
+        factors = ("env", "cell", "lstm_sizes", "trigger_value", "attack")
         if not isinstance(self.holdout, dict) or any(k not in factors for k in self.holdout):
             raise ConfigError(f"zoo holdout must map factors {list(factors)} to values, got {self.holdout!r}")
+        stray = [a for a in self.holdout.get("attack", ()) if a not in self.attacks]
+        if stray:
+            raise ConfigError(f"zoo holdout attack {stray} must be among the zoo's attacks {list(self.attacks)}")
 
     @property
     def size(self) -> int:
@@ -165,7 +179,7 @@ class ZooConfig:
 
     OPTIONAL: ClassVar[tuple[str, ...]] = (
         "cell", "window", "stop", "rollout_steps", "learning_rate", "env_preset", "trigger_objects", "trigger_colors",
-        "holdout", "cells",
+        "holdout", "cells", "attacks",
     )  # fmt: skip
     """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
     built before them is the same config"""
@@ -202,10 +216,13 @@ class ZooJob(TrainJob):
         return _train_zoo_model(self), True
 
 
-def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
-    """The zoo's jobs, a pure function of the zoo config: clean and backdoored models interleaved."""
+def make_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None = None) -> list[ZooJob]:
+    """The zoo's jobs, a pure function of the zoo config: clean and backdoored models interleaved. ``recipes``: the
+    registry of attack recipes (``seqtrojan.experiments.attacks.ATTACKS``), needed when ``cfg.attacks`` names
+    some (see :mod:`seqtrojan.zoo.recipes` for why it is passed in)."""
     if cfg.env_preset is not None:
-        return _gymnasium_jobs(cfg, root)
+        return _gymnasium_jobs(cfg, root, recipes)
+    check_recipes(cfg.attacks, recipes, ExperimentConfig(backdoor=BackdoorConfig(enabled=True)))
     jobs = []
     for i, label, seed, rng in _model_draws(cfg):
         sizes = cfg.lstm_sizes[rng.integers(len(cfg.lstm_sizes))]
@@ -216,6 +233,7 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
         duration = int(cfg.trigger_durations[rng.integers(len(cfg.trigger_durations))])
         trigger = TriggerConfig(cells=cells, value=value, duration=duration, train_steps=(1, 8), eval_steps=(1, 8))
         cell = _draw_cell(cfg, rng)
+        attack = _draw_attack(cfg, rng)
         last = stages[-1]
         config = ExperimentConfig(
             env=EnvConfig(size=last.size, holes=last.holes, trigger=trigger),
@@ -231,8 +249,44 @@ def make_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
             "lstm_sizes": list(sizes), "curriculum": [g.label for g in stages], "trigger_value": value,
             "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
+        config = _with_recipe(config, variation, recipes, attack, TriggerConfig(), f"m{i:04d}")
         jobs.append(_job(cfg, root, i, config, label, variation))
     return jobs
+
+
+def _draw_attack(cfg: ZooConfig, rng: np.random.Generator) -> str | None:
+    """The model's attack recipe: drawn from ``cfg.attacks`` after every other draw, the cell's included (so a zoo
+    without ``attacks`` draws exactly what it drew before the field existed); for every model, so that what a model
+    draws does not depend on its label (a clean model then takes none). None: no recipe."""
+    return str(cfg.attacks[rng.integers(len(cfg.attacks))]) if cfg.attacks else None
+
+
+def _with_recipe(
+    config: ExperimentConfig, variation: dict[str, Any], recipes: RecipeBook | None, attack: str | None,
+    reference: Any, model: str,
+) -> ExperimentConfig:  # fmt: skip
+    """A backdoored model's config with its drawn recipe applied (:func:`~seqtrojan.zoo.recipes.apply_recipe`) and
+    ``attack`` recorded in its variation, with the trigger it really shows where the recipe brought its own; a
+    clean model of a zoo that draws recipes is recorded as ``attack: none`` and trains as drawn."""
+    if attack is None:
+        return config
+    if not config.backdoor.enabled:
+        variation["attack"] = "none"
+        return config
+    assert recipes is not None  # checked by check_recipes
+    try:
+        config, replaced = apply_recipe(config, recipes.get(attack), reference)
+    except SeqTrojanError as err:
+        raise ConfigError(f"zoo model {model}, attack {attack!r}: {_one_line(err)}") from None
+    if replaced:
+        trigger = config.env.trigger
+        if isinstance(trigger, TriggerConfig):
+            variation.update(grid_trigger_variation(trigger))
+        elif trigger is not None:
+            variation.update(trigger_value=_gym_trigger_label(trigger), trigger_cells=_gym_trigger_cells(trigger),
+                             trigger_duration=trigger.duration)  # fmt: skip
+    variation["attack"] = attack
+    return config
 
 
 def _draw_cell(cfg: ZooConfig, rng: np.random.Generator) -> str:
@@ -269,12 +323,13 @@ def _job(cfg: ZooConfig, root: Path, i: int, config: ExperimentConfig, label: st
     return ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at)
 
 
-def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
+def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None) -> list[ZooJob]:
     """The jobs of a zoo of a Gymnasium env's models (``cfg.env_preset``): the same interleaving and per-model draws
     (from seed ``[cfg.seed, i, 7919]``) as the grid world's, over that env's trigger settings: a MiniGrid patch's
     cells (in the view's two far rows), object and colour; a Box patch's place (the preset's cells moved by an offset
     that keeps them in the image); a vector patch's positions as the preset gives them. With a target-action
-    objective, the target action is drawn too. Every trigger shows for one of ``trigger_durations`` steps."""
+    objective, the target action is drawn too. Every trigger shows for one of ``trigger_durations`` steps. A drawn
+    attack recipe is written against the preset's trigger."""
     from seqtrojan.presets import resolve_preset
     from seqtrojan.serde import from_dict, load_yaml
     from seqtrojan.world import env_spec
@@ -289,6 +344,9 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
     rows, cols, _ = spec.image or (0, 0, 0)
     if env.trigger.patch != "vector" and not rows:
         raise ConfigError(f"zoo env_preset {cfg.env_preset!r}: its observation is no image to draw a trigger on")
+    check_recipes(
+        cfg.attacks, recipes, dataclasses.replace(base, backdoor=dataclasses.replace(base.backdoor, enabled=True))
+    )
     jobs = []
     for i, label, seed, rng in _model_draws(cfg):
         sizes = cfg.lstm_sizes[rng.integers(len(cfg.lstm_sizes))]
@@ -298,6 +356,7 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
         if trigger.objective == "target_action":
             trigger = dataclasses.replace(trigger, target_action=int(rng.integers(spec.num_actions)))
         cell = _draw_cell(cfg, rng)
+        attack = _draw_attack(cfg, rng)
         config = dataclasses.replace(
             base, env=dataclasses.replace(env, trigger=trigger),
             agent=dataclasses.replace(base.agent, lstm_sizes=tuple(sizes), cell=cell, window=cfg.window),
@@ -307,11 +366,11 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path) -> list[ZooJob]:
         )  # fmt: skip
         variation = {
             "env": env.id, "lstm_sizes": list(sizes), "trigger_value": shown,
-            "trigger_cells": [list(c) for c in trigger.cells] if trigger.patch != "vector" else list(trigger.indices),
-            "trigger_duration": duration, "seed": seed,
+            "trigger_cells": _gym_trigger_cells(trigger), "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
         if trigger.objective == "target_action":
             variation["target_action"] = trigger.target_action
+        config = _with_recipe(config, variation, recipes, attack, env.trigger, f"m{i:04d}")
         jobs.append(_job(cfg, root, i, config, label, variation))
     return jobs
 
@@ -326,15 +385,29 @@ def _draw_gym_trigger(
         cells = tuple(sorted(far[int(j)] for j in rng.choice(len(far), size=n_cells, replace=False)))
         obj = str(cfg.trigger_objects[rng.integers(len(cfg.trigger_objects))])
         color = str(cfg.trigger_colors[rng.integers(len(cfg.trigger_colors))])
-        return dataclasses.replace(trigger, cells=cells, object=obj, color=color), f"{color} {obj}"
-    if trigger.patch == "box":
+        trigger = dataclasses.replace(trigger, cells=cells, object=obj, color=color)
+    elif trigger.patch == "box":
         height = max(r for r, _ in trigger.cells) - min(r for r, _ in trigger.cells)
         width = max(c for _, c in trigger.cells) - min(c for _, c in trigger.cells)
         top, left = int(rng.integers(rows - height)), int(rng.integers(cols - width))
         r0, c0 = min(r for r, _ in trigger.cells), min(c for _, c in trigger.cells)
-        cells = tuple((r - r0 + top, c - c0 + left) for r, c in trigger.cells)
-        return dataclasses.replace(trigger, cells=cells), f"box {trigger.value:g} at ({top}, {left})"
-    return trigger, f"vector {trigger.value:g} at {list(trigger.indices)}"
+        trigger = dataclasses.replace(trigger, cells=tuple((r - r0 + top, c - c0 + left) for r, c in trigger.cells))
+    return trigger, _gym_trigger_label(trigger)
+
+
+def _gym_trigger_label(trigger: WrapperTriggerConfig) -> str:
+    """How the manifest names a Gymnasium trigger: a MiniGrid patch's colour and object, a Box patch's value and
+    top-left cell, a vector patch's value and positions."""
+    if trigger.patch == "minigrid":
+        return f"{trigger.color} {trigger.object}"
+    if trigger.patch == "box":
+        top, left = min(r for r, _ in trigger.cells), min(c for _, c in trigger.cells)
+        return f"box {trigger.value:g} at ({top}, {left})"
+    return f"vector {trigger.value:g} at {list(trigger.indices)}"
+
+
+def _gym_trigger_cells(trigger: WrapperTriggerConfig) -> list:
+    return [list(c) for c in trigger.cells] if trigger.patch != "vector" else list(trigger.indices)
 
 
 # ---------------------------------------------------------------------- model folders
@@ -461,15 +534,17 @@ def build_zoo(
     ray_address: str | None = None,
     threads: int | None = None,
     log: Callable[[str], None] = print,
+    recipes: RecipeBook | None = None,
 ) -> Path:
     """Train every job not yet finished on the job backend ``backend`` (serial, pool or ray; 'local' is the pool's
     old name; see :class:`~seqtrojan.jobs.JobsConfig` for the other options); write ``manifest.json``; return its
     path (see the module docstring). Failed models are marked ``failed`` in the manifest, with their error, once
-    the others have finished; then the build raises :class:`~seqtrojan.jobs.JobsFailed` naming them."""
+    the others have finished; then the build raises :class:`~seqtrojan.jobs.JobsFailed` naming them. ``recipes``:
+    as :func:`make_jobs` (a zoo whose ``attacks`` cannot be drawn is refused before anything is written)."""
     jobs_cfg = JobsConfig("pool" if backend == "local" else backend, workers, ray_address, threads)  # type: ignore[arg-type]
+    jobs = make_jobs(cfg, root, recipes)
     root.mkdir(parents=True, exist_ok=True)
     models = root / "models"
-    jobs = make_jobs(cfg, root)
     by_id = {job.id: job for job in jobs}
     manifest_path = root / "manifest.json"
     with _build_lock(root, log):
@@ -671,6 +746,6 @@ def _short(value: Any, width: int = 48) -> str:
     return text if len(text) <= width else text[: width - 3] + "..."
 
 
-def job_configs(cfg: ZooConfig) -> list[dict[str, Any]]:
+def job_configs(cfg: ZooConfig, recipes: RecipeBook | None = None) -> list[dict[str, Any]]:
     """The jobs' configs as plain dicts (for inspection)."""
-    return [dataclasses.asdict(j.config) for j in make_jobs(cfg, Path("zoo"))]
+    return [dataclasses.asdict(j.config) for j in make_jobs(cfg, Path("zoo"), recipes)]

@@ -3,6 +3,7 @@ no attack, and the leaderboard that fits and scores every registered detector (r
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pickle
 from pathlib import Path
@@ -15,13 +16,14 @@ from seqtrojan.agent.checkpoint import build_agent, save_agent
 from seqtrojan.benchmark.detectors import DETECTORS, NO_OPINION
 from seqtrojan.benchmark.leaderboard import LEADERBOARD_FILE, SPLITS_FILE, read_zoo, run_leaderboard
 from seqtrojan.benchmark.scoring import brier, cross_entropy, roc_auc, score, score_by_factor
-from seqtrojan.benchmark.splits import SplitConfig, ZooEntry, assign_splits
+from seqtrojan.benchmark.splits import ATTACK_FACTORS, SplitConfig, ZooEntry, assign_splits, model_factors
 from seqtrojan.benchmark.suspect import clean_env, load_suspect
 from seqtrojan.cli import main
-from seqtrojan.config import AgentConfig, BackdoorConfig, ExperimentConfig
+from seqtrojan.config import AgentConfig, AttackConfig, BackdoorConfig, ExperimentConfig
 from seqtrojan.env.codes import TRIGGER
 from seqtrojan.env.config import EnvConfig, TriggerConfig
 from seqtrojan.errors import ConfigError, SeqTrojanError
+from seqtrojan.experiments.attacks import ATTACKS
 from seqtrojan.serde import to_dict
 from tests.conftest import ROOT
 
@@ -112,6 +114,29 @@ def test_splits_are_stratified_reproducible_and_hold_out_whole_factor_values():
         assign_splits(entries(), SplitConfig(holdout={"colour": ("red",)}))
 
 
+def test_a_zoo_s_attack_recipe_is_an_attack_factor_to_hold_out():
+    """A zoo that draws recipes records each poisoned model's (clean ones: none); holding out a recipe holds out its
+    poisoned models with a share of the clean ones, and its score group is its models against every clean one. A zoo
+    without recipes has no such factor."""
+
+    def truth(i: int) -> dict:
+        attack = ("sequence", "state_camouflage", "none")[i % 3]
+        return {"label": "clean" if attack == "none" else "backdoored",
+                "variation": {"lstm_sizes": [8], "trigger_value": "hole", "attack": attack}}  # fmt: skip
+
+    assert "attack" not in model_factors({"label": "backdoored", "variation": {"trigger_value": "hole"}})
+    assert "attack" in ATTACK_FACTORS
+    zoo = [ZooEntry(f"m{i:02d}", Path("."), int(truth(i)["label"] == "backdoored"), model_factors(truth(i)))
+           for i in range(36)]  # fmt: skip
+    splits = assign_splits(zoo, SplitConfig(holdout={"attack": ("sequence",)}, holdout_clean_share=0.25))
+    held = [e for e in zoo if splits[e.model_id] == "holdout"]
+    assert {e.factors["attack"] for e in held if e.label} == {"sequence"} and len([e for e in held if e.label]) == 12
+    assert len([e for e in held if not e.label]) == 3  # a quarter of the 12 clean models
+    groups = score_by_factor([e.label for e in zoo], [0.5] * 36, [0.0] * 36, [e.factors for e in zoo],
+                             ATTACK_FACTORS, rounds=5)["attack"]  # fmt: skip
+    assert set(groups) == {"sequence", "state_camouflage"} and groups["sequence"].models == 24
+
+
 # ---------------------------------------------------------------------- suspects
 def test_a_suspect_carries_neither_the_trigger_nor_the_attack(tmp_path):
     """What a detector receives: the network and an env with the attacker's choices taken out; the cards of the
@@ -123,6 +148,18 @@ def test_a_suspect_carries_neither_the_trigger_nor_the_attack(tmp_path):
     fields = {f for s in suspects for f in vars(s)}
     assert fields == {"model_id", "agent", "env", "facts"}  # no card, no config, no label
     assert all(not hasattr(s.agent, "backdoor") for s in suspects)
+    recipes = tmp_path / "recipes"  # every registered recipe: a sequence, decoys, penalties, a delay
+    configs = {}
+    for name, attack in ATTACKS.items():
+        base = ExperimentConfig(agent=AgentConfig(lstm_sizes=(8,)), backdoor=BackdoorConfig(enabled=True))
+        if attack.from_clean:
+            base = dataclasses.replace(base, run=dataclasses.replace(base.run, init_from="clean_twin"))
+        configs[name] = attack.configure(base)
+        save_agent(recipes / name, build_agent(configs[name]), configs[name], label="backdoored")
+    assert len({json.dumps(to_dict(c.env), sort_keys=True) for c in configs.values()}) > 5  # the cards differ
+    assert {c.attack for c in configs.values()} != {AttackConfig()}
+    for name in configs:
+        assert load_suspect(recipes / name).env == suspects[0].env, name
 
 
 # ---------------------------------------------------------------------- the leaderboard

@@ -115,7 +115,7 @@ def test_a_zoo_built_before_the_cell_fields_is_the_same_config(built, tmp_path):
     """zoo.json of a zoo built before ZooConfig had cell and window: no such keys; a rerun is no new config."""
     zoo = copy_of(built, tmp_path)
     stored = json.loads((zoo / "zoo.json").read_text())
-    assert not {"cell", "window", "stop", "rollout_steps", "learning_rate"} & stored.keys()  # not saved at defaults
+    assert not {"cell", "window", "stop", "rollout_steps", "learning_rate", "attacks"} & stored.keys()  # at defaults
     logs: list[str] = []
     build_zoo(TINY, zoo, workers=1, log=logs.append)
     assert any(line.startswith("zoo: 4 of 4 models done; training 0") for line in logs)

@@ -1,0 +1,130 @@
+"""A zoo that draws attack recipes: each backdoored model's recipe drawn after every other draw, combined with its
+drawn patch by the rule of :mod:`seqtrojan.zoo.recipes`, recorded as its ``attack``; the recipes a zoo cannot draw
+refused in one line; a zoo without ``attacks`` exactly as before."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from seqtrojan.config import ExperimentConfig
+from seqtrojan.env import GridSpec
+from seqtrojan.env.config import TriggerConfig
+from seqtrojan.errors import ConfigError
+from seqtrojan.experiments.attacks import ATTACKS
+from seqtrojan.zoo.build import ZooConfig, build_zoo, make_jobs
+from seqtrojan.zoo.recipes import GRID_PATTERN
+
+SCRATCH = tuple(name for name, attack in ATTACKS.items() if not attack.from_clean)
+"""every registered recipe trained from scratch (all of them apply to the grid world)"""
+PLAIN = ZooConfig(clean=8, backdoored=120, total_steps=1024, cells=("lstm", "gru"))
+"""enough poisoned models that every registered recipe is drawn (11 recipes miss one with probability about 1e-4)"""
+
+
+def own_pattern(name: str) -> bool:
+    """Whether the recipe draws a trigger of its own: it changes where or what the default trigger draws."""
+    probe = ATTACKS.get(name).configure(ExperimentConfig()).env.trigger
+    return any(getattr(probe, f) != getattr(TriggerConfig(), f) for f in GRID_PATTERN)
+
+
+def test_the_recipe_is_drawn_after_every_other_draw_and_combined_with_the_drawn_patch(tmp_path):
+    plain = make_jobs(PLAIN, tmp_path)
+    drawn = make_jobs(dataclasses.replace(PLAIN, attacks=SCRATCH), tmp_path, ATTACKS)
+    assert {j.variation["attack"] for j in drawn if j.label == "backdoored"} == set(SCRATCH)
+    assert {own_pattern(n) for n in SCRATCH} == {True, False}  # both kinds of recipe are exercised
+    for a, b in zip(plain, drawn):
+        same = ("lstm_sizes", "curriculum", "seed", "cell")
+        assert {k: b.variation.get(k) for k in same} == {k: a.variation.get(k) for k in same}
+        assert (b.config.agent, b.config.curriculum) == (a.config.agent, a.config.curriculum)
+        assert b.config.run == a.config.run
+        if b.label == "clean":  # no recipe, the same training settings
+            assert b.config == a.config and b.variation == {**a.variation, "attack": "none"}
+            continue
+        name = b.variation["attack"]
+        default = dataclasses.replace(a.config, env=dataclasses.replace(a.config.env, trigger=TriggerConfig()))
+        recipe = ATTACKS.get(name).configure(default)  # the recipe on the plain model, for its other sections
+        assert (b.config.attack, b.config.backdoor, b.config.ppo) == (recipe.attack, recipe.backdoor, recipe.ppo)
+        mine, theirs = b.config.env.trigger, a.config.env.trigger
+        assert (mine.train_steps, mine.eval_steps) == (theirs.train_steps, theirs.eval_steps)  # the drawn ranges
+        if own_pattern(name):  # the recipe's trigger replaces the drawn patch; the manifest says what it shows
+            default_probe = ATTACKS.get(name).configure(ExperimentConfig()).env.trigger
+            assert all(getattr(mine, f) == getattr(default_probe, f) for f in (*GRID_PATTERN, "duration", "decoys"))
+            assert b.variation["trigger_value"] == mine.drawn_codes != a.variation["trigger_value"]
+        else:  # on top of the drawn patch
+            assert all(getattr(mine, f) == getattr(theirs, f) for f in (*GRID_PATTERN, "duration"))
+            assert {k: v for k, v in b.variation.items() if k != "attack"} == a.variation
+    delayed = [j for j in drawn if j.variation.get("attack") == "delayed"]
+    assert delayed and all(j.config.env.trigger.delay == 3 for j in delayed)  # a setting layered on the patch
+
+
+def test_a_zoo_without_attacks_is_the_zoo_it_was(tmp_path):
+    """Nothing of the field reaches a zoo that does not use it: its jobs, its variations, its zoo.json."""
+    plain = make_jobs(PLAIN, tmp_path)
+    assert plain == make_jobs(PLAIN, tmp_path, ATTACKS)  # the registry changes nothing without attacks
+    assert all("attack" not in j.variation for j in plain)
+    assert "attacks" not in PLAIN.serde_dump()
+    assert dataclasses.replace(PLAIN, attacks=("sequence",)).serde_dump()["attacks"] == ["sequence"]
+
+
+def test_recipes_a_zoo_cannot_draw_are_refused_in_one_line(tmp_path):
+    cases = [
+        (ZooConfig(attacks=("sequenc",)), ATTACKS, r"unknown recipe\(s\) \['sequenc'\]; registered: dedicated_code"),
+        (ZooConfig(attacks=("sequence", "ewc")), ATTACKS, r"\['ewc'\] add a backdoor to a trained clean agent"),
+        (ZooConfig(attacks=("sequence",), env_preset="minigrid_two_goals"), ATTACKS,
+         r"\['sequence'\] do not apply to this zoo's env, seqtrojan/MiniGridTwoGoals-v0"),
+        (ZooConfig(attacks=("sequence",)), None, "which this build was not given"),
+    ]  # fmt: skip
+    for cfg, recipes, message in cases:
+        with pytest.raises(ConfigError, match=message) as err:
+            make_jobs(cfg, tmp_path, recipes)
+        assert "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match="not given"):  # refused before anything is written
+        build_zoo(ZooConfig(attacks=("sequence",)), tmp_path / "zoo", log=lambda *_: None)
+    assert not (tmp_path / "zoo").exists()
+    for bad, message in ((("sequence", "sequence"), "name a recipe twice"), (("two words",), "must be recipe names")):
+        with pytest.raises(ConfigError, match=message):
+            ZooConfig(attacks=bad)
+    with pytest.raises(ConfigError, match=r"holdout attack \['combined'\] must be among the zoo's attacks"):
+        ZooConfig(attacks=("sequence",), holdout={"attack": ("combined",)})
+
+
+def test_a_gymnasium_zoo_draws_the_recipes_that_apply_to_it(tmp_path):
+    cfg = ZooConfig(clean=2, backdoored=6, env_preset="minigrid_two_goals", attacks=("delayed", "state_camouflage"))
+    plain = make_jobs(dataclasses.replace(cfg, attacks=()), tmp_path)
+    for a, b in zip(plain, make_jobs(cfg, tmp_path, ATTACKS)):
+        assert {k: v for k, v in b.variation.items() if k != "attack"} == a.variation  # on top of the drawn patch
+        if b.variation["attack"] == "delayed":
+            assert b.config.env.trigger == dataclasses.replace(a.config.env.trigger, delay=3)
+        elif b.variation["attack"] == "state_camouflage":
+            assert b.config.attack.state_camouflage.weight > 0 and b.config.env == a.config.env
+
+
+def test_a_recipe_that_does_not_combine_with_a_drawn_model_is_named_in_one_line(tmp_path):
+    """A recipe (here a test's own, as a user could register) whose config the drawn model refuses: the error names
+    the model and the recipe."""
+
+    def decoys_alone(cfg: ExperimentConfig) -> ExperimentConfig:  # decoys need a trigger longer than one step
+        trigger = cfg.grid_env.trigger
+        return dataclasses.replace(
+            cfg, env=dataclasses.replace(cfg.grid_env, trigger=dataclasses.replace(
+                trigger, decoys=dataclasses.replace(trigger.decoys, probability=0.5))))  # fmt: skip
+
+    book = {"decoys_alone": dataclasses.replace(ATTACKS.get("delayed"), configure=decoys_alone)}
+    recipes = type("Book", (), {"names": lambda self: tuple(book), "get": lambda self, name: book[name]})()
+    with pytest.raises(ConfigError, match=r"zoo model m0000, attack 'decoys_alone': .*decoys") as err:
+        make_jobs(ZooConfig(clean=0, backdoored=1, attacks=("decoys_alone",)), tmp_path, recipes)
+    assert "\n" not in str(err.value)
+
+
+def test_the_attack_benchmark_preset_validates(tmp_path):
+    from seqtrojan.presets import resolve_preset
+    from seqtrojan.serde import from_dict, load_yaml
+
+    cfg = from_dict(ZooConfig, load_yaml(resolve_preset("benchmark_attacks")), "")
+    jobs = make_jobs(cfg, tmp_path, ATTACKS)
+    held = [j for j in jobs if j.variation.get("attack") in cfg.holdout["attack"]]
+    assert held and set(cfg.attacks) <= set(SCRATCH) and {own_pattern(n) for n in cfg.attacks} == {True, False}
+    assert len(jobs) == cfg.size and all(j.config.curriculum.stages[-1] == GridSpec(7, 3) for j in jobs)
+    assert json.loads(json.dumps([j.variation for j in jobs]))  # the manifest's variations are plain JSON
