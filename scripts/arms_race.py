@@ -9,7 +9,7 @@ Reads what ``benchmarks/goal_switch.py`` (online monitors: alarms and the alarm-
 An attack is named as its benchmark named it (``recipe/knob`` for an adaptive recipe at another strength) and, where
 two files measured the same attack on the same defense (other agents), by its file as well.
 
-The worst case and the best defense are chosen as ``seqtrojan.experiments.arms_race`` says (the matrix's rule):
+The worst case and the best defense are chosen as ``seqtrojan.arms_race`` says (the matrix's rule):
 among the attacks whose backdoor works undefended (mean attack success >= 0.5 over seeds). Cells: mean ± sd over
 seeds [95% Wilson interval, seeds pooled]; an AUC with its 95% interval.
 """
@@ -22,9 +22,9 @@ import json
 import sys
 from pathlib import Path
 
+from seqtrojan.arms_race import best_defenses, worst_cases
 from seqtrojan.defense.behaviour import scores_auc
 from seqtrojan.experiment_results import MatrixCell
-from seqtrojan.experiments.arms_race import best_defenses, worst_cases
 from seqtrojan.stats import OverSeeds, Rate
 
 

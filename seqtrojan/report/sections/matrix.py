@@ -5,8 +5,8 @@ from __future__ import annotations
 import html
 from pathlib import Path
 
+from seqtrojan.arms_race import WORKS_AT, BestDefense, WorstCase, matrix_answer
 from seqtrojan.experiment_results import MatrixCell, MatrixResult
-from seqtrojan.experiments.arms_race import WORKS_AT, BestDefense, WorstCase, matrix_answer
 from seqtrojan.report.markup import CSS, ci, img, rate
 from seqtrojan.stats import OverSeeds, Rate
 
@@ -95,7 +95,7 @@ def _best_row(b: BestDefense) -> str:
 
 
 def _answer(result: MatrixResult) -> list[str]:
-    """The answer tables (:mod:`seqtrojan.experiments.arms_race`): each defense by its worst case, each attack by
+    """The answer tables (:mod:`seqtrojan.arms_race`): each defense by its worst case, each attack by
     its best defense."""
     worst, best = matrix_answer(result)
     return [

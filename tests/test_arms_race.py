@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from seqtrojan.arms_race import best_defenses, worst_cases
 from seqtrojan.experiment_results import MatrixCell
-from seqtrojan.experiments.arms_race import best_defenses, worst_cases
 from seqtrojan.stats import OverSeeds, Rate
 
 
