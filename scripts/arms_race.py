@@ -100,10 +100,9 @@ READERS = (("monitor", monitor_cells), ("best", behaviour_cells), ("arm", mitiga
 
 
 def read_cells(paths: list[str]) -> tuple[list[MatrixCell], Undefended]:
-    """Every cell of every file. An attack measured by two files (other agents) is named with its file's stem
-    wherever a second file measures it again."""
-    cells: list[MatrixCell] = []
-    alone: Undefended = {}
+    """Every cell of every file. An attack name that more than one file measured (other agents, or other runs) is
+    qualified by each file's stem, so that no two runs are pooled or mixed."""
+    read: list[tuple[str, list[MatrixCell], Undefended]] = []
     for path in paths:
         bench = json.loads(Path(path).read_text())
         rows = bench.get("rows") if isinstance(bench, dict) else None
@@ -111,13 +110,17 @@ def read_cells(paths: list[str]) -> tuple[list[MatrixCell], Undefended]:
         if reader is None:
             print(f"skipped {path}: not a benchmark this script reads", file=sys.stderr)
             continue
-        found, undefended = reader(bench)
-        taken = {(c.attack, c.defense) for c in cells}
-        stem = Path(path).stem
-        rename = {a for a in undefended if a in alone and any((a, c.defense) in taken for c in found)}
-        for c in found:
-            cells.append(dataclasses.replace(c, attack=f"{c.attack} ({stem})") if c.attack in rename else c)
-        alone.update({(f"{a} ({stem})" if a in rename else a): v for a, v in undefended.items()})
+        read.append((Path(path).stem, *reader(bench)))
+    files_of: dict[str, int] = {}
+    for _, _, undefended in read:
+        for attack in undefended:
+            files_of[attack] = files_of.get(attack, 0) + 1
+    cells: list[MatrixCell] = []
+    alone: Undefended = {}
+    for stem, found, undefended in read:
+        name = {a: f"{a} ({stem})" if files_of[a] > 1 else a for a in undefended}
+        cells += [dataclasses.replace(c, attack=name[c.attack]) for c in found]
+        alone.update({name[a]: v for a, v in undefended.items()})
     return cells, alone
 
 
@@ -158,8 +161,7 @@ def attack_table(cells: list[MatrixCell], alone: Undefended) -> str:
     for b in best_defenses(cells, alone):
         c = b.best
         if c is None:
-            lines.append(f"| {b.attack} | {text(b.undefended, b.undefended_pooled)} | none acting tried | | |")
-            continue
+            continue  # measured by offline detectors only: nothing acted on it
         lines.append(f"| {b.attack} | {text(b.undefended, b.undefended_pooled)} | {c.defense} | "
                      f"{text(c.attack_success, c.attack_success_pooled)} | {text(c.clean_success)} |")  # fmt: skip
     return "\n".join(lines)

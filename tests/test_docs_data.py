@@ -30,6 +30,8 @@ BENCH_TABLES = [
     ("defenses/mahalanobis_camouflage_in_distribution_2026-12-03.json", "defenses.md", "goal_switch.py"),
     ("defenses/switch_camouflage_2026-12-03.json", "defenses.md", "goal_switch.py"),
     ("defenses/behaviour_evasion_2026-12-03.json", "defenses.md", "behaviour_evasion.py"),
+    ("defenses/behaviour_evasion_combined_2026-12-03.json", "defenses.md", "behaviour_evasion.py"),
+    ("defenses/monitors_evasion_2026-12-03.json", "defenses.md", "goal_switch.py"),
     ("families/popgym_repeat_previous.json", "families.md", "families.py"),
     ("families/popgym_count_recall.json", "families.md", "families.py"),
     ("families/popgym_repeat_first.json", "families.md", "families.py"),
