@@ -65,7 +65,7 @@ def test_benchmark_tables_in_the_docs_are_the_data_printed(data, page, bench):
     printed = _printed(f"benchmarks/{bench}", "--table", str(DATA / data))
     text = (ROOT / "docs" / page).read_text()
     rows = [line for line in printed.splitlines() if line.startswith("| ")]
-    assert len(rows) > 3
+    assert len(rows) >= 3  # the header and two rows at least
     missing = [line for line in rows if line not in text]
     assert not missing, f"docs/{page} lacks {len(missing)} row(s) of {data}, e.g. {missing[0]}"
 
@@ -170,3 +170,15 @@ def test_the_first_trigger_reconstruction_run_quoted_in_the_docs_is_its_data():
             auc_text = f"{auc['value']:.3f} [{auc['low']:.2f}, {auc['high']:.2f}]"
             quoted = (f"{auc_text} (cross-entropy {ce:.3f})", f"{auc_text} ({ce:.3f})")
             assert any(q in text for q in quoted), f"docs/benchmark.md lacks {data}'s {split['split']} figures"
+
+
+def test_the_arms_race_tables_in_the_docs_are_every_defense_benchmark_read_together():
+    """docs/results.md's answer tables are ``scripts/arms_race.py`` over every committed defense benchmark: a new or
+    replaced benchmark file without the tables regenerated fails here."""
+    files = sorted(str(p) for p in (DATA / "defenses").glob("*.json"))
+    printed = _printed("scripts/arms_race.py", *files)
+    text = (ROOT / "docs" / "results.md").read_text()
+    rows = [line for line in printed.splitlines() if line.startswith("| ")]
+    assert len(rows) > 10
+    missing = [line for line in rows if line not in text]
+    assert not missing, f"docs/results.md lacks {len(missing)} arms-race row(s), e.g. {missing[0]}"
