@@ -15,9 +15,10 @@ is ``quantile[/margin[/parts]]`` (parts: ``hc``, ``h`` or ``c``). An attack ``st
 registered monitor-aware recipe (weight 5) with the |z| margin ``M`` instead of 2.5: the attacker who knows the
 bounds keeps the trojan states within M clean sd of the clean mean (about the central 68% of a unit's clean range
 at M = 1, where ``state_bounds`` keeps the central 90% at its default q = 0.05). ``mahalanobis_camouflage/W`` is that
-recipe with weight ``W``; ``in_distribution_patch+mahalanobis_camouflage/W`` the same with the first recipe's
+recipe with weight ``W`` (likewise ``switch_camouflage/W``, ``finetune_resistant/W`` (``attack.finetune_resistance``)
+and ``ewc/W``: ``KNOBS``); ``in_distribution_patch+mahalanobis_camouflage/W`` the same with the first recipe's
 trigger (an adaptive recipe changes only the training terms). A recipe that starts from a clean agent
-(``from_clean``, ``switch_camouflage``) starts from the smoke preset's clean agent of the same training seed,
+(``from_clean``, ``switch_camouflage``, ``ewc``) starts from the smoke preset's clean agent of the same training seed,
 trained first into ``--out`` (``clean_s<seed>``), as the matrix does. Printed: each seed's rates, then
 per attack and arm the mean +- sd over seeds and the pooled rate with its 95% Wilson interval.
 """
@@ -68,9 +69,13 @@ def setting_name(cfg: StateBoundsConfig) -> str:
     return f"q={cfg.quantile:g} m={cfg.margin:g} {''.join(cfg.parts)}"
 
 
-KNOBS = {"state_camouflage": ("margin", "m"), "mahalanobis_camouflage": ("weight", "w"),
-         "switch_camouflage": ("weight", "w")}  # fmt: skip
-"""the adaptive recipes whose knob an attack ``recipe/value`` sets: (penalty field, the agent folder's letter)"""
+KNOBS = {"state_camouflage": ("state_camouflage", "margin", "m"),
+         "mahalanobis_camouflage": ("mahalanobis_camouflage", "weight", "w"),
+         "switch_camouflage": ("switch_camouflage", "weight", "w"),
+         "finetune_resistant": ("finetune_resistance", "weight", "w"),
+         "ewc": ("ewc", "weight", "w")}  # fmt: skip
+"""the recipes whose knob an attack ``recipe/value`` sets: (its ``attack`` section, the penalty field, the agent
+folder's letter)"""
 
 
 def train_agent(attack: str, seed: int, out: Path, steps: int | None):
@@ -79,7 +84,7 @@ def train_agent(attack: str, seed: int, out: Path, steps: int | None):
     recipe, _, knob = attack.partition("/")
     if knob and recipe not in KNOBS:
         raise SystemExit(f"a knob value applies to {', '.join(KNOBS)} only, got {attack!r}")
-    name = f"{recipe}_{KNOBS[recipe][1]}{knob}_s{seed}" if knob else f"{attack}_s{seed}"
+    name = f"{recipe}_{KNOBS[recipe][2]}{knob}_s{seed}" if knob else f"{attack}_s{seed}"
     name = f"{trigger}_{name}" if trigger else name
     base = experiment_from_spec(mcfg.backdoor, out, name, "cpu")
     ppo = base.ppo if steps is None else dataclasses.replace(base.ppo, total_steps=steps)
@@ -95,7 +100,8 @@ def train_agent(attack: str, seed: int, out: Path, steps: int | None):
         cfg = ATTACKS.get(trigger).configure(cfg)
     cfg = ATTACKS.get(recipe).configure(cfg)
     if knob:  # the attacker who knows the defense: its recipe with another knob value
-        cfg = with_attack(cfg, recipe, **{KNOBS[recipe][0]: float(knob)})
+        part, field, _ = KNOBS[recipe]
+        cfg = with_attack(cfg, part, **{field: float(knob)})
     model_dir, _ = train_or_resume(cfg)
     agent, loaded, _ = load_agent(model_dir)
     return agent.eval(), loaded

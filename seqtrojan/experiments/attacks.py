@@ -87,20 +87,23 @@ ATTACKS.register(
     "two ordinary cells of the view (holes diagonally above-left and above-right) for one step",
     Attack(lambda cfg: with_trigger(cfg, cells=((0, 0), (0, 2)), values=(HOLE, HOLE)), grid_only=True),
 )
+TRIGGER_SEQUENCE = (
+    PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
+    PatternConfig(((0, 1),), (HOLE,)),
+    PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
+)
+"""the ``sequence`` trigger: two holes above, one straight above, two above again, on consecutive steps"""
+
+
+def sequence_trigger(cfg: ExperimentConfig) -> ExperimentConfig:
+    """``cfg`` with the grid world's trigger replaced by :data:`TRIGGER_SEQUENCE`."""
+    return with_trigger(cfg, sequence=TRIGGER_SEQUENCE)
+
+
 ATTACKS.register(
     "sequence",
     "three ordinary views on consecutive steps (two holes above, one straight above, two above again)",
-    Attack(
-        lambda cfg: with_trigger(
-            cfg,
-            sequence=(
-                PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
-                PatternConfig(((0, 1),), (HOLE,)),
-                PatternConfig(((0, 0), (0, 2)), (HOLE, HOLE)),
-            ),
-        ),
-        grid_only=True,
-    ),
+    Attack(sequence_trigger, grid_only=True),
 )
 
 
@@ -170,4 +173,35 @@ ATTACKS.register(
         from_clean=True,
         targets="goal_switch",
     ),
+)
+
+FINETUNE_RESISTANCE = {"weight": 1.0, "inner_lr": 0.01}
+"""the ``finetune_resistant`` recipe's penalty settings (two simulated sign steps per minibatch, the config's
+default). Set from the smoke-scale sweep of ``benchmarks/finetune.py`` (docs/defenses.md, "The attacker who knows
+fine-tuning")."""
+
+ATTACKS.register(
+    "finetune_resistant",
+    "adaptive, against fine_tuning: the sequence trigger's backdoor trained to hold after simulated clean "
+    "fine-tuning (first order; knob: attack.finetune_resistance.weight, 1)",
+    Attack(
+        lambda cfg: with_attack(sequence_trigger(cfg), "finetune_resistance", **FINETUNE_RESISTANCE),
+        grid_only=True,
+        targets="fine_tuning",
+    ),
+)
+
+
+def trained_longer(cfg: ExperimentConfig) -> ExperimentConfig:
+    """The sequence trigger's backdoor with twice the base config's env steps: on MiniGrid the backdoors trained
+    longer were the ones that clean fine-tuning left in place (docs/own_env.md)."""
+    cfg = sequence_trigger(cfg)
+    return dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, total_steps=2 * cfg.ppo.total_steps))
+
+
+ATTACKS.register(
+    "trained_longer",
+    "adaptive, against fine_tuning: the sequence trigger's backdoor trained for twice the base config's env steps "
+    "(knob: the factor on ppo.total_steps, 2)",
+    Attack(trained_longer, grid_only=True, targets="fine_tuning"),
 )
