@@ -67,7 +67,8 @@ def test_a_duplicate_name_and_a_bad_entry_are_refused(scratch):
 def test_what_exists_is_registered():
     assert ATTACKS.names() == (
         "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "state_camouflage",
-        "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc", "switch_camouflage",
+        "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc", "switch_camouflage", "finetune_resistant",
+        "trained_longer",
     )  # fmt: skip
     assert PENALTIES.names() == (
         "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
@@ -179,8 +180,10 @@ def test_each_adaptive_attack_names_a_registered_defense_it_targets():
     assert targeted == {
         "state_camouflage": "state_monitor", "mahalanobis_camouflage": "multivariate_monitor",
         "switch_camouflage": "goal_switch",
-        "weight_camouflage": "weight_detector", "ewc": "fine_tuning",
+        "weight_camouflage": "weight_detector", "ewc": "fine_tuning", "finetune_resistant": "fine_tuning",
+        "trained_longer": "fine_tuning",
     }  # fmt: skip
     assert set(targeted.values()) <= defenses
-    for name in ("state_camouflage", "mahalanobis_camouflage", "switch_camouflage"):
+    for name in ("state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "finetune_resistant",
+                 "trained_longer"):  # fmt: skip
         assert f"against {targeted[name]}" in ATTACKS.entry(name).description
