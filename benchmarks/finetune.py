@@ -69,7 +69,9 @@ class Bench:
 
 def measure(attack: str, seed: int, args: argparse.Namespace, mcfg: MitigationConfig) -> list[Row]:
     agent, cfg = train_agent(attack, seed, Path(args.out), args.steps)
-    ctx = MitigationContext(agent, cfg, cfg.grids[-1], mcfg, Path(args.out) / "mitigation" / cfg.run.name)
+    # a finished fine-tune is reused by its folder alone (train_or_resume): the folder names its length
+    work = Path(args.out) / "mitigation" / f"ft{mcfg.finetune_steps}" / cfg.run.name
+    ctx = MitigationContext(agent, cfg, cfg.grids[-1], mcfg, work)
     before = ctx.measure(agent, "no mitigation")
     rows = [Row(attack, seed, "none", before.attack_success, before.clean_success)]
     for name in ARMS[1:]:

@@ -29,6 +29,8 @@ BENCH_TABLES = [
     ("defenses/mahalanobis_camouflage_2026-12-03.json", "defenses.md", "goal_switch.py"),
     ("defenses/mahalanobis_camouflage_in_distribution_2026-12-03.json", "defenses.md", "goal_switch.py"),
     ("defenses/switch_camouflage_2026-12-03.json", "defenses.md", "goal_switch.py"),
+    ("defenses/finetune_2026-12-03.json", "defenses.md", "finetune.py"),
+    ("defenses/finetune_500k_2026-12-03.json", "defenses.md", "finetune.py"),
     ("families/popgym_repeat_previous.json", "families.md", "families.py"),
     ("families/popgym_count_recall.json", "families.md", "families.py"),
     ("families/popgym_repeat_first.json", "families.md", "families.py"),

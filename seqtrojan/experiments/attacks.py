@@ -175,15 +175,16 @@ ATTACKS.register(
     ),
 )
 
-FINETUNE_RESISTANCE = {"weight": 1.0, "inner_lr": 0.01}
+FINETUNE_RESISTANCE = {"weight": 0.03, "inner_lr": 0.01}
 """the ``finetune_resistant`` recipe's penalty settings (two simulated sign steps per minibatch, the config's
-default). Set from the smoke-scale sweep of ``benchmarks/finetune.py`` (docs/defenses.md, "The attacker who knows
-fine-tuning")."""
+default). The weight is the smoke-scale sweep's choice (``benchmarks/finetune.py``, docs/defenses.md, "The attacker
+who knows fine-tuning"): trained from scratch, weights 0.3 and 1 kept agents from learning the task, and 0.03 kept
+as much of the backdoor through the matrix's fine-tuning as 0.1 at less cost to clean success."""
 
 ATTACKS.register(
     "finetune_resistant",
     "adaptive, against fine_tuning: the sequence trigger's backdoor trained to hold after simulated clean "
-    "fine-tuning (first order; knob: attack.finetune_resistance.weight, 1)",
+    "fine-tuning (first order; knob: attack.finetune_resistance.weight, 0.03)",
     Attack(
         lambda cfg: with_attack(sequence_trigger(cfg), "finetune_resistance", **FINETUNE_RESISTANCE),
         grid_only=True,
