@@ -15,9 +15,11 @@ is ``quantile[/margin[/parts]]`` (parts: ``hc``, ``h`` or ``c``). An attack ``st
 registered monitor-aware recipe (weight 5) with the |z| margin ``M`` instead of 2.5: the attacker who knows the
 bounds keeps the trojan states within M clean sd of the clean mean (about the central 68% of a unit's clean range
 at M = 1, where ``state_bounds`` keeps the central 90% at its default q = 0.05). ``mahalanobis_camouflage/W`` is that
-recipe with weight ``W``; ``in_distribution_patch+mahalanobis_camouflage/W`` the same with the first recipe's
+recipe with weight ``W``: any adaptive recipe written ``recipe/value`` is trained with its registered knob
+(``Attack.knob``, ``seqtrojan attacks``) at that value (``finetune_resistant/W``, ``ewc/W``, ``search_decoys/P``);
+``in_distribution_patch+mahalanobis_camouflage/W`` the same with the first recipe's
 trigger (an adaptive recipe changes only the training terms). A recipe that starts from a clean agent
-(``from_clean``, ``switch_camouflage``) starts from the smoke preset's clean agent of the same training seed,
+(``from_clean``, ``switch_camouflage``, ``ewc``) starts from the smoke preset's clean agent of the same training seed,
 trained first into ``--out`` (``clean_s<seed>``), as the matrix does. Printed: each seed's rates, then
 per attack and arm the mean +- sd over seeds and the pooled rate with its 95% Wilson interval.
 """

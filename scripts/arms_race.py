@@ -83,14 +83,16 @@ def behaviour_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
 
 
 def mitigation_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
-    """``benchmarks/finetune.py``: each (attack, mitigation) over seeds, beside the same agents undefended."""
+    """``benchmarks/finetune.py``: each (attack, mitigation) over seeds, beside the same agents undefended; a
+    mitigation named with its fine-tuning length (another length is another defense setting)."""
     rows = bench["rows"]
     cells, alone = [], {}
     for (attack, arm), mine in _grouped(rows, "attack", "arm").items():
         if arm == "none":
             alone[attack] = _seeds([_rate(r["attack_success"]) for r in mine])
             continue
-        cells.append(_cell(attack, arm, "mitigation", [_rate(r["attack_success"]) for r in mine],
+        defense = f"{arm} ({bench['finetune_steps'] // 1000}k steps)" if "finetune_steps" in bench else arm
+        cells.append(_cell(attack, defense, "mitigation", [_rate(r["attack_success"]) for r in mine],
                            [_rate(r["clean_success"]) for r in mine]))  # fmt: skip
     return cells, alone
 

@@ -32,6 +32,8 @@ BENCH_TABLES = [
     ("defenses/behaviour_evasion_2026-12-03.json", "defenses.md", "behaviour_evasion.py"),
     ("defenses/behaviour_evasion_combined_2026-12-03.json", "defenses.md", "behaviour_evasion.py"),
     ("defenses/monitors_evasion_2026-12-03.json", "defenses.md", "goal_switch.py"),
+    ("defenses/finetune_2026-12-03.json", "defenses.md", "finetune.py"),
+    ("defenses/finetune_500k_2026-12-03.json", "defenses.md", "finetune.py"),
     ("families/popgym_repeat_previous.json", "families.md", "families.py"),
     ("families/popgym_count_recall.json", "families.md", "families.py"),
     ("families/popgym_repeat_first.json", "families.md", "families.py"),
