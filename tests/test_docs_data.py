@@ -184,3 +184,23 @@ def test_the_arms_race_tables_in_the_docs_are_every_defense_benchmark_read_toget
     assert len(rows) > 10
     missing = [line for line in rows if line not in text]
     assert not missing, f"docs/results.md lacks {len(missing)} arms-race row(s), e.g. {missing[0]}"
+
+
+def test_the_paper_scale_tables_are_the_committed_rerun_printed():
+    """docs/results.md's rerun section is ``scripts/paper_data.py print docs/data/paper``, and the README's headline
+    is its training table's mean ± sd."""
+    printed = _printed("scripts/paper_data.py", "print", str(DATA / "paper"))
+    rows = [line for line in printed.splitlines() if line.startswith("| ")]
+    assert len(rows) > 25
+    text = (ROOT / "docs" / "results.md").read_text()
+    missing = [line for line in rows if line not in text]
+    assert not missing, f"docs/results.md lacks {len(missing)} row(s) of docs/data/paper, e.g. {missing[0]}"
+    readme = (ROOT / "README.md").read_text()
+    checked = 0
+    for row in rows:
+        for title in ("clean, normal env", "backdoored, normal env", "backdoored, trojan env"):
+            if row.startswith(f"| {title} | ") and row.count("|") == 8:  # the training table's rows
+                mean_sd = row.rstrip(" |").rsplit("| ", 1)[1]
+                assert f"| {title} | {mean_sd} |" in readme, f"README's headline lacks {title}: {mean_sd}"
+                checked += 1
+    assert checked == 3
