@@ -3,11 +3,11 @@
     python scripts/paper_data.py save results/paper_v4 docs/data/paper     # after `seqtrojan reproduce --scale paper`
     python scripts/paper_data.py print docs/data/paper                      # the tables of docs/results.md
 
-``save`` copies what the tables read (a few hundred KB): ``evaluation/summary.json`` (Tables 1 and 2 over seeds), ``zoo/detection.json``,
-``tradeoff/tradeoff.json``, ``defense/defense.json`` and ``timings.json``, and writes ``training.json``: each
-headline agent's end-of-training success (its model card's metrics). ``print`` prints the training table, Tables 1
-and 2 (``scripts/tables_markdown.py``'s format), the trade-off table and the monitor table; ``tests/test_docs_data.py``
-checks that docs/results.md holds them as printed.
+``save`` copies what the tables read (a few hundred KB): ``evaluation/summary.json`` (Tables 1 and 2 over seeds),
+``zoo/detection.json``, ``tradeoff/tradeoff.json``, ``defense/defense.json`` and ``timings.json``, and writes
+``training.json``: each headline agent's end-of-training success (its model card's metrics). ``print`` prints the
+training table, Tables 1 and 2 (``scripts/tables_markdown.py``'s format), the trade-off table and the monitor table;
+``tests/test_docs_data.py`` checks that docs/results.md holds them as printed.
 """
 
 from __future__ import annotations
@@ -22,7 +22,9 @@ from pathlib import Path
 
 from seqtrojan.stats import OverSeeds
 
-KEPT = ("evaluation/summary.json", "tradeoff/tradeoff.json", "defense/defense.json", "zoo/detection.json", "timings.json")
+KEPT = (
+    "evaluation/summary.json", "tradeoff/tradeoff.json", "defense/defense.json", "zoo/detection.json", "timings.json",
+)  # fmt: skip
 """a reproduction's files the docs' tables read, copied under the same relative paths"""
 
 AGENT = re.compile(r"^(clean|backdoor)(?:_seed(\d+))?$")
@@ -58,14 +60,17 @@ def training_table(data: Path) -> str:
     lines = ["| agent | " + " | ".join(f"seed {s}" for s in seeds) + " | mean ± sd |", "|---" * (len(seeds) + 2) + "|"]
     for title, kind, key in rows:
         values = [next(a[key] for a in agents if a["agent"] == kind and a["seed"] == s) for s in seeds]
-        lines.append(f"| {title} | " + " | ".join(f"{v:.3f}" for v in values) + f" | {OverSeeds(tuple(values)).text()} |")
+        per_seed = " | ".join(f"{v:.3f}" for v in values)
+        lines.append(f"| {title} | {per_seed} | {OverSeeds(tuple(values)).text()} |")
     return "\n".join(lines)
 
 
 def tradeoff_table(data: Path) -> str:
     agents = json.loads((data / "tradeoff" / "tradeoff.json").read_text())["agents"]
-    lines = ["| false-activation reward | seeds | normal success | trojan success | unintentional activation | recall |",
-             "|---|---|---|---|---|---|"]  # fmt: skip
+    lines = [
+        "| false-activation reward | seeds | normal success | trojan success | unintentional activation | recall |",
+        "|---|---|---|---|---|---|",
+    ]
     for penalty in dict.fromkeys(a["penalty"] for a in agents):
         mine = [a for a in agents if a["penalty"] == penalty]
 
@@ -92,8 +97,9 @@ def monitor_table(data: Path) -> str:
 
 
 def print_tables(data: Path) -> None:
-    tables = subprocess.run([sys.executable, str(Path(__file__).parent / "tables_markdown.py"),
-                             str(data / "evaluation" / "summary.json")], capture_output=True, text=True, check=True)  # fmt: skip
+    script = str(Path(__file__).parent / "tables_markdown.py")
+    summary = str(data / "evaluation" / "summary.json")
+    tables = subprocess.run([sys.executable, script, summary], capture_output=True, text=True, check=True)
     for title, text in (("Training", training_table(data)), ("Tables 1 and 2", tables.stdout.rstrip("\n")),
                         ("Trade-off", tradeoff_table(data)), ("Monitor", monitor_table(data))):  # fmt: skip
         print(f"{title}:\n\n{text}\n")
