@@ -30,6 +30,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from goal_switch import cell
 from state_bounds import rates, train_agent, train_clean
 
 from seqtrojan.agent.checkpoint import load_agent
@@ -74,15 +75,6 @@ def measure(attack: str, seed: int, args: argparse.Namespace) -> Row:
     print(f"  {attack} s{seed}: score {result.score:+.3f} ({result.best})  clean {clean.text()}  attack "
           f"{attacked.text()}", flush=True)  # fmt: skip
     return Row(attack, seed, result.score, result.best, clean, attacked)
-
-
-def pooled(rs: list[Rate]) -> Rate:
-    return Rate(sum(r.k for r in rs), sum(r.n for r in rs))
-
-
-def cell(rates: list[Rate]) -> str:
-    low, high = pooled(rates).interval
-    return f"{OverSeeds(tuple(r.value for r in rates)).text()} [{low:.3f}, {high:.3f}]"
 
 
 def table(bench: Bench) -> str:

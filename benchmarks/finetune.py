@@ -34,12 +34,13 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from goal_switch import cell
 from state_bounds import train_agent
 
 from seqtrojan.defense.mitigation import MITIGATIONS, MitigationConfig, MitigationContext
 from seqtrojan.experiments.matrix import load_matrix_config
 from seqtrojan.serde import load_json, save_json
-from seqtrojan.stats import OverSeeds, Rate
+from seqtrojan.stats import Rate
 
 ARMS = ("none", "fine_tuning", "fine_pruning")
 """no mitigation, then each registered mitigation measured (its last row: fine-pruning's pruned and fine-tuned agent)"""
@@ -82,16 +83,6 @@ def measure(attack: str, seed: int, args: argparse.Namespace, mcfg: MitigationCo
         print(f"  {attack} s{seed} {r.arm:<13} attack {r.attack_success.text()}  clean {r.clean_success.text()}",
               flush=True)  # fmt: skip
     return rows
-
-
-def pooled(rates: list[Rate]) -> Rate:
-    return Rate(sum(r.k for r in rates), sum(r.n for r in rates))
-
-
-def cell(rates: list[Rate]) -> str:
-    """``mean ± sd [pooled 95% interval]`` over seeds."""
-    low, high = pooled(rates).interval
-    return f"{OverSeeds(tuple(r.value for r in rates)).text()} [{low:.3f}, {high:.3f}]"
 
 
 def table(bench: Bench) -> str:

@@ -35,7 +35,7 @@ from seqtrojan.defense.monitor import MONITORS, measure_monitor
 from seqtrojan.defense.online import MonitorConfig, monitor_applies
 from seqtrojan.defense.results import MonitorResult
 from seqtrojan.serde import load_json, save_json
-from seqtrojan.stats import OverSeeds, Rate
+from seqtrojan.stats import OverSeeds, Rate, pooled
 
 
 @dataclass(frozen=True)
@@ -98,10 +98,6 @@ def measure(attack: str, seed: int, args: argparse.Namespace, monitors: list[str
               f"{r.clean_success.value:.3f} -> {r.clean_success_reset.text()}", flush=True)  # fmt: skip
         rows.append(r)
     return rows
-
-
-def pooled(rs: list[Rate]) -> Rate:
-    return Rate(sum(r.k for r in rs), sum(r.n for r in rs))
 
 
 def cell(rates: list[Rate]) -> str:

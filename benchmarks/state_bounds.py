@@ -43,7 +43,7 @@ from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
 from seqtrojan.experiments.attacks import ATTACKS
 from seqtrojan.experiments.matrix import load_matrix_config
 from seqtrojan.experiments.specs import experiment_from_spec
-from seqtrojan.stats import OverSeeds, Rate
+from seqtrojan.stats import OverSeeds, Rate, pooled
 from seqtrojan.train.trainer import train_or_resume
 
 EVAL_SEED = 1_000_003
@@ -127,10 +127,6 @@ def measure(attack: str, seed: int, args: argparse.Namespace, settings: list[Sta
         print(f"  {attack} s{seed} {a.arm:<16} clean {a.clean_success.text()}  attack {a.attack_success.text()}",
               flush=True)  # fmt: skip
     return arms
-
-
-def pooled(rs: list[Rate]) -> Rate:
-    return Rate(sum(r.k for r in rs), sum(r.n for r in rs))
 
 
 def summary(arms: list[Arm]) -> None:

@@ -25,16 +25,11 @@ from pathlib import Path
 from seqtrojan.arms_race import best_defenses, worst_cases
 from seqtrojan.defense.behaviour import scores_auc
 from seqtrojan.experiment_results import MatrixCell
-from seqtrojan.stats import OverSeeds, Rate
+from seqtrojan.stats import OverSeeds, Rate, over_seeds
 
 
 def _rate(d: dict) -> Rate:
     return Rate(int(d["k"]), int(d["n"]))
-
-
-def _seeds(rates: list[Rate]) -> tuple[OverSeeds, Rate]:
-    """Rates of the same figure over seeds: their values and their pooled rate."""
-    return OverSeeds(tuple(r.value for r in rates)), Rate(sum(r.k for r in rates), sum(r.n for r in rates))
 
 
 def _grouped(rows: list[dict], *keys: str) -> dict[tuple, list[dict]]:
@@ -50,10 +45,10 @@ Undefended = dict[str, tuple[OverSeeds, Rate]]
 def _cell(attack: str, defense: str, kind: str, success: list[Rate] | None, clean: list[Rate],
           detected: list[Rate] | None = None, alarms: list[Rate] | None = None,
           auc: tuple[float, tuple[float, float]] | None = None) -> MatrixCell:  # fmt: skip
-    s = _seeds(success) if success else (None, None)
-    d = _seeds(detected) if detected else (None, None)
-    f = _seeds(alarms) if alarms else (None, None)
-    return MatrixCell(attack, defense, kind, s[0], s[1], _seeds(clean)[0], d[0], d[1], f[0], f[1],
+    s = over_seeds(success) if success else (None, None)
+    d = over_seeds(detected) if detected else (None, None)
+    f = over_seeds(alarms) if alarms else (None, None)
+    return MatrixCell(attack, defense, kind, s[0], s[1], over_seeds(clean)[0], d[0], d[1], f[0], f[1],
                       auc[0] if auc else None, auc[1] if auc else None)  # fmt: skip
 
 
@@ -61,7 +56,7 @@ def monitor_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
     """``benchmarks/goal_switch.py``: each (attack, monitor) over seeds, the reset acting."""
     cells, alone = [], {}
     for (attack, monitor), mine in _grouped(bench["rows"], "attack", "monitor").items():
-        alone[attack] = _seeds([_rate(r["attack_success"]) for r in mine])
+        alone[attack] = over_seeds([_rate(r["attack_success"]) for r in mine])
         cells.append(_cell(attack, monitor, "online", [_rate(r["attack_success_reset"]) for r in mine],
                            [_rate(r["clean_success_reset"]) for r in mine], [_rate(r["detected"]) for r in mine],
                            [_rate(r["false_alarm"]) for r in mine]))  # fmt: skip
@@ -76,7 +71,7 @@ def behaviour_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
         if attack == "clean":
             continue
         a = scores_auc([r["score"] for r in mine + clean], [1] * len(mine) + [0] * len(clean))
-        alone[attack] = _seeds([_rate(r["attack_success"]) for r in mine])
+        alone[attack] = over_seeds([_rate(r["attack_success"]) for r in mine])
         cells.append(_cell(attack, "behaviour_detector", "offline", None, [_rate(r["clean_success"]) for r in mine],
                            auc=(a.auc, a.interval)))  # fmt: skip
     return cells, alone
@@ -89,7 +84,7 @@ def mitigation_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
     cells, alone = [], {}
     for (attack, arm), mine in _grouped(rows, "attack", "arm").items():
         if arm == "none":
-            alone[attack] = _seeds([_rate(r["attack_success"]) for r in mine])
+            alone[attack] = over_seeds([_rate(r["attack_success"]) for r in mine])
             continue
         defense = f"{arm} ({bench['finetune_steps'] // 1000}k steps)" if "finetune_steps" in bench else arm
         cells.append(_cell(attack, defense, "mitigation", [_rate(r["attack_success"]) for r in mine],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -199,6 +200,17 @@ class OverSeeds:
             if not _close(data[name], getattr(summary, name)):
                 raise ConfigError(f"{where}.{name}={data[name]!r} is not what its values give")
         return summary
+
+
+def pooled(rates: Sequence[Rate]) -> Rate:
+    """One rate per training seed pooled into one: every seed's episodes together (its interval covers the episode
+    sampling, not the spread between seeds)."""
+    return Rate(sum(r.k for r in rates), sum(r.n for r in rates))
+
+
+def over_seeds(rates: Sequence[Rate]) -> tuple[OverSeeds, Rate]:
+    """One rate per training seed as the matrix shows it: the values over seeds, and the pooled rate."""
+    return OverSeeds(tuple(r.value for r in rates)), pooled(rates)
 
 
 @dataclass(frozen=True)

@@ -70,3 +70,12 @@ def test_over_seeds_mean_sd_and_its_saved_form_checked_at_load():
         OverSeeds.serde_load({"values": [1.0]}, "at")
     with pytest.raises(ConfigError, match="at least one seed"):
         OverSeeds(())
+
+
+def test_rates_over_seeds_pool_their_episodes():
+    from seqtrojan.stats import Rate, over_seeds, pooled
+
+    rates = [Rate(9, 10), Rate(1, 10), Rate(50, 100)]
+    assert pooled(rates) == Rate(60, 120)
+    values, pool = over_seeds(rates)
+    assert values.values == (0.9, 0.1, 0.5) and pool == Rate(60, 120)

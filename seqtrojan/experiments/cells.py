@@ -60,7 +60,7 @@ from seqtrojan.folders import folder_lock, make_output_folder
 from seqtrojan.jobs import JobsConfig, TrainJob, make_backend
 from seqtrojan.presets import resolve_preset
 from seqtrojan.serde import from_dict, load_yaml, save_json
-from seqtrojan.stats import OverSeeds, Rate, auc_interval
+from seqtrojan.stats import OverSeeds, Rate, auc_interval, pooled
 from seqtrojan.zoo.build import ZooConfig
 
 LABELS = ("clean", "backdoored")
@@ -341,7 +341,7 @@ def assemble(cfg: CellsConfig, agents: Sequence[CellMeasurement], scale: str) ->
             rates = [a.persistence[i].adversary for a in mine]
             seen = [r.value for r in rates if r.n >= max(1, cfg.min_bin_episodes)]
             if seen:
-                bins.append((lo, hi, OverSeeds(tuple(seen)), Rate(sum(r.k for r in rates), sum(r.n for r in rates))))
+                bins.append((lo, hi, OverSeeds(tuple(seen)), pooled(rates)))
         sweep_means = [float(np.mean([p.activation.value for p in a.sweep])) for a in mine]
         sweep_pool = Rate(
             sum(p.activation.k for a in mine for p in a.sweep), sum(p.activation.n for a in mine for p in a.sweep)

@@ -58,7 +58,7 @@ from seqtrojan.jobs import JobsConfig, TrainJob, make_backend
 from seqtrojan.presets import resolve_preset
 from seqtrojan.report.sections.matrix import matrix_page
 from seqtrojan.serde import from_dict, load_yaml, save_json
-from seqtrojan.stats import OverSeeds, Rate, auc_interval
+from seqtrojan.stats import Rate, auc_interval, over_seeds
 from seqtrojan.zoo.build import ZooConfig
 
 CLEAN = "clean"
@@ -296,10 +296,6 @@ def _run_matrix(cfg: MatrixConfig, out: Path, scale: str, log: Callable[[str], N
     return result
 
 
-def _over(values: Sequence[Rate]) -> tuple[OverSeeds, Rate]:
-    return OverSeeds(tuple(r.value for r in values)), Rate(sum(r.k for r in values), sum(r.n for r in values))
-
-
 def assemble(cfg: MatrixConfig, agents: Sequence[AgentMeasurement], scale: str) -> MatrixResult:
     """The attack summaries and the cells from the agents' measurements."""
     by_attack: dict[str, list[AgentMeasurement]] = {}
@@ -311,23 +307,23 @@ def assemble(cfg: MatrixConfig, agents: Sequence[AgentMeasurement], scale: str) 
         mine = sorted(by_attack.get(attack, []), key=lambda a: a.seed)
         if not mine:
             continue
-        success, success_pooled = _over([a.attack_success for a in mine])
-        clean_success, clean_pooled = _over([a.clean_success for a in mine])
-        unintended, unintended_pooled = _over([a.unintentional for a in mine])
+        success, success_pooled = over_seeds([a.attack_success for a in mine])
+        clean_success, clean_pooled = over_seeds([a.clean_success for a in mine])
+        unintended, unintended_pooled = over_seeds([a.unintentional for a in mine])
         natural = [a.natural_trigger for a in mine if a.natural_trigger is not None]
         summaries.append(
             AttackSummary(
                 attack, ATTACKS.entry(attack).description, tuple(a.seed for a in mine), success, success_pooled,
                 clean_success, clean_pooled, unintended, unintended_pooled,
-                _over(natural)[1] if len(natural) == len(mine) else None,
+                over_seeds(natural)[1] if len(natural) == len(mine) else None,
             )
         )  # fmt: skip
         for name in cfg.online_names:
             arms = [a.online[name] for a in mine]
-            att, att_pooled = _over([x.attack_success_defended for x in arms])
-            cln, _ = _over([x.clean_success_defended for x in arms])
-            det, det_pooled = _over([x.detection for x in arms])
-            fa, fa_pooled = _over([x.false_alarm for x in arms])
+            att, att_pooled = over_seeds([x.attack_success_defended for x in arms])
+            cln, _ = over_seeds([x.clean_success_defended for x in arms])
+            det, det_pooled = over_seeds([x.detection for x in arms])
+            fa, fa_pooled = over_seeds([x.false_alarm for x in arms])
             cells.append(MatrixCell(attack, name, "online", att, att_pooled, cln, det, det_pooled, fa, fa_pooled,
                                     None, None))  # fmt: skip
         rows = dict.fromkeys(row for a in mine for row in a.mitigation)  # in the order the mitigations ran
@@ -335,8 +331,8 @@ def assemble(cfg: MatrixConfig, agents: Sequence[AgentMeasurement], scale: str) 
             outcomes = [a.mitigation[row] for a in mine if row in a.mitigation]
             if len(outcomes) != len(mine):
                 continue
-            att, att_pooled = _over([x.attack_success for x in outcomes])
-            cln, _ = _over([x.clean_success for x in outcomes])
+            att, att_pooled = over_seeds([x.attack_success for x in outcomes])
+            cln, _ = over_seeds([x.clean_success for x in outcomes])
             cells.append(MatrixCell(attack, row, "mitigation", att, att_pooled, cln, None, None, None, None,
                                     None, None))  # fmt: skip
         for name in cfg.offline_names:
