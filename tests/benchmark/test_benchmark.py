@@ -15,7 +15,7 @@ import torch
 from seqtrojan.agent.checkpoint import build_agent, save_agent
 from seqtrojan.benchmark.detectors import DETECTORS, NO_OPINION
 from seqtrojan.benchmark.leaderboard import LEADERBOARD_FILE, SPLITS_FILE, read_zoo, run_leaderboard
-from seqtrojan.benchmark.scoring import brier, cross_entropy, roc_auc, score, score_by_factor
+from seqtrojan.benchmark.scoring import BOOTSTRAP_ROUNDS, brier, cross_entropy, roc_auc, score, score_by_factor
 from seqtrojan.benchmark.splits import ATTACK_FACTORS, SplitConfig, ZooEntry, assign_splits, model_factors
 from seqtrojan.benchmark.suspect import clean_env, load_suspect
 from seqtrojan.cli import main
@@ -72,6 +72,14 @@ def test_scores_are_trojai_s_with_intervals():
     assert one_label.roc_auc.value is None and one_label.brier.value == pytest.approx(0.025)
     with pytest.raises(SeqTrojanError, match="probabilities must lie in"):
         score([0, 1], [0.2, 1.5], [0.0, 0.0])
+
+
+def test_a_certain_wrong_answer_costs_what_trojai_charges_and_intervals_take_2000_resamples():
+    # probabilities clipped to [1e-7, 1 - 1e-7]: a poisoned model called certainly clean costs -ln(1e-7) nats
+    assert cross_entropy(np.array([1]), np.array([0.0])) == pytest.approx(-np.log(1e-7))
+    assert cross_entropy(np.array([0]), np.array([1.0])) == pytest.approx(-np.log(1e-7))
+    assert cross_entropy(np.array([1]), np.array([1e-7])) == pytest.approx(-np.log(1e-7))  # inside: as given
+    assert BOOTSTRAP_ROUNDS == 2000
 
 
 def test_an_attack_s_group_is_its_poisoned_models_against_every_clean_one():
