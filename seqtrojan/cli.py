@@ -357,7 +357,8 @@ class MatrixArgs(StudyArgs):
     out: Path | None = None
     """output folder (default: results/matrix_<scale or preset>)"""
     attacks: str | None = None
-    """comma-separated attack names (default: the file's, or every registered attack that applies to its env)"""
+    """comma-separated attack names, each optionally at another knob value (recipe/value, e.g.
+    weight_camouflage/2) (default: the file's, or every registered attack that applies to its env)"""
 
 
 def _matrix(argv: list[str]) -> None:

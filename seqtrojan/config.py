@@ -482,9 +482,16 @@ class WeightCamouflageConfig:
     """added to |f_k(theta_clean)| in the per-feature normalisation, so that features near 0 do not dominate"""
     l2_weight: float = 0.0
     """weight of an extra l2_weight * ||theta - theta_clean||^2 pull toward the clean weights"""
+    warmup_steps: int = 0
+    """env steps of the run before the penalty applies: the backdoor is planted first, then hidden (held at the
+    clean statistics from the start, it formed late or not at all in some training seeds, docs/attacks.md)"""
 
     def __post_init__(self) -> None:
         _non_negative("attack.weight_camouflage", weight=self.weight, l2_weight=self.l2_weight)
+        if isinstance(self.warmup_steps, bool) or not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
+            raise ConfigError(
+                f"attack.weight_camouflage.warmup_steps must be an integer >= 0, got {short_repr(self.warmup_steps)}"
+            )
         if not (isinstance(self.feature_floor, (int, float)) and self.feature_floor > 0):
             raise ConfigError(
                 f"attack.weight_camouflage.feature_floor must be > 0, got {short_repr(self.feature_floor)}"

@@ -63,6 +63,63 @@ class Attack:
 ATTACKS: Registry[Attack] = Registry("attack", "attack")
 """The attacks ``seqtrojan matrix`` runs (``matrix.attacks`` names a subset)."""
 
+KNOB_SEPARATOR = "/"
+"""``recipe/value``: a registered recipe with its knob at ``value`` (``weight_camouflage/2``)"""
+
+
+@dataclass(frozen=True)
+class KnobbedAttack:
+    """A matrix row: a registered recipe, at its own strength or (``recipe/value``) at another value of its knob."""
+
+    name: str
+    """as written: ``weight_camouflage`` or ``weight_camouflage/2``"""
+    recipe: str
+    attack: Attack
+    """the recipe, its ``configure`` setting the knob to ``value`` after the recipe's own settings"""
+    value: float | None
+    """the knob's value, None for the recipe's own"""
+
+    @property
+    def folder(self) -> str:
+        """The name in agent folders and job ids: ``weight_camouflage_w2`` (the knob's letter, as the benchmarks
+        name theirs)."""
+        if self.value is None:
+            return self.recipe
+        knob = self.attack.knob
+        assert knob is not None  # resolve_attack refuses a value for a recipe without a knob
+        return f"{self.recipe}_{knob.letter}{self.value:g}"
+
+    @property
+    def description(self) -> str:
+        text = ATTACKS.entry(self.recipe).description
+        knob = self.attack.knob
+        return text if self.value is None or knob is None else f"{text} [{knob.setting} = {self.value:g}]"
+
+
+def resolve_attack(name: str) -> KnobbedAttack:
+    """``recipe`` or ``recipe/value`` as a :class:`KnobbedAttack`; :class:`ConfigError` in one line for an unknown
+    recipe, a value for a recipe without a knob, or a value that is not a finite number >= 0."""
+    recipe, separator, text = name.partition(KNOB_SEPARATOR)
+    attack = ATTACKS.get(recipe)
+    if not separator:
+        return KnobbedAttack(name, recipe, attack, None)
+    knob = attack.knob
+    if knob is None:
+        with_knobs = ", ".join(n for n, a in ATTACKS.items() if a.knob is not None)
+        raise ConfigError(f"attack {name!r}: {recipe} has no knob to set; recipes with one: {with_knobs}")
+    try:
+        value = float(text)
+    except ValueError:
+        raise ConfigError(f"attack {name!r}: the knob value {text!r} is not a number") from None
+    if not (value >= 0 and value != float("inf")):  # NaN fails the first test
+        raise ConfigError(f"attack {name!r}: the knob value must be a finite number >= 0, got {text!r}")
+    configure = attack.configure
+
+    def at_value(cfg: ExperimentConfig) -> ExperimentConfig:
+        return knob.apply(configure(cfg), value)
+
+    return KnobbedAttack(name, recipe, dataclasses.replace(attack, configure=at_value), value)
+
 
 def with_trigger(cfg: ExperimentConfig, **changes: object) -> ExperimentConfig:
     """``cfg`` with its env's trigger changed: any :class:`~seqtrojan.env.config.TriggerConfig` field on the grid
@@ -206,9 +263,12 @@ ATTACKS.register(
 )
 ATTACKS.register(
     "weight_camouflage",
-    "the backdoor added to a clean agent with a pull toward its weight statistics (the weight detector's features)",
+    "the backdoor added to a clean agent, then (after half of the run) pulled back toward the clean agent's weight "
+    "statistics (the weight detector's features)",
     Attack(
-        lambda cfg: with_attack(half_trojan(cfg), "weight_camouflage", weight=0.5, l2_weight=0.01),
+        lambda cfg: with_attack(
+            half_trojan(cfg), "weight_camouflage", weight=0.5, l2_weight=0.01, warmup_steps=cfg.ppo.total_steps // 2
+        ),
         from_clean=True,
         targets="weight_detector",
         knob=penalty_knob("weight_camouflage", "weight", 0.5, "w"),

@@ -49,7 +49,7 @@ from seqtrojan.experiment_results import (
     MitigationOutcome,
     OnlineArm,
 )
-from seqtrojan.experiments.attacks import ATTACKS
+from seqtrojan.experiments.attacks import ATTACKS, resolve_attack
 from seqtrojan.experiments.matrix_plot import plot_matrix
 from seqtrojan.experiments.measured import measure_all, train_all
 from seqtrojan.experiments.specs import AgentSpec, experiment_from_spec
@@ -72,7 +72,8 @@ class MatrixConfig:
     clean: AgentSpec = field(default_factory=lambda: AgentSpec(preset="clean_s17_h30"))
     """the clean agents (the offline detectors' negatives, and where from-clean attacks start)"""
     attacks: tuple[str, ...] | None = None
-    """registered attack names (``seqtrojan attacks``); None: all"""
+    """registered attack names (``seqtrojan attacks``), each optionally at another strength: ``recipe/value`` sets
+    the recipe's knob (``weight_camouflage/2``; a sweep names one recipe at several values); None: all"""
     online: tuple[str, ...] | None = None
     """registered online defenses (monitors); None: all"""
     mitigations: bool = True
@@ -99,15 +100,21 @@ class MatrixConfig:
             raise ConfigError(f"matrix.seeds must be an integer in 1..100, got {self.seeds!r}")
         if self.episodes < 1:
             raise ConfigError(f"matrix.episodes must be >= 1, got {self.episodes}")
-        for names, registry in ((self.attacks, ATTACKS), (self.online, MONITORS), (self.offline, DETECTORS)):
+        for names, registry in ((self.online, MONITORS), (self.offline, DETECTORS)):
             for name in names or ():
                 registry.entry(name)  # an unknown name: ConfigError listing the known ones
         if self.attacks is not None and not self.attacks:
             raise ConfigError("matrix.attacks is empty; name at least one attack or leave it out for all")
+        folders: dict[str, str] = {}
+        for name in self.attacks or ():
+            folder = resolve_attack(name).folder  # an unknown recipe or a bad knob value: ConfigError
+            if folder in folders:
+                raise ConfigError(f"matrix.attacks names one attack twice: {folders[folder]!r} and {name!r}")
+            folders[folder] = name
         base = self.base_config
         where = "the grid world" if base.is_grid else f"the Gymnasium env {getattr(base.env, 'id', '')!r}"
         for name in self.attacks or ():
-            if not ATTACKS.get(name).applies_to(base):
+            if not resolve_attack(name).attack.applies_to(base):
                 raise ConfigError(f"attack {name!r} draws its trigger with grid-world cells: it cannot run on {where}")
         for name in self.online or ():
             if not monitor_applies(MONITORS.get(name), base.env):
@@ -174,12 +181,13 @@ def matrix_jobs(cfg: MatrixConfig, runs: Path) -> tuple[list[TrainJob], list[Tra
         if not base.backdoor.enabled:
             raise ConfigError(f"the matrix's backdoor preset {cfg.backdoor.preset!r} does not enable backdoor training")
         for name in cfg.attack_names:
-            attack = ATTACKS.get(name)
+            row = resolve_attack(name)
+            attack = row.attack
             start = str(clean_job.model_dir) if attack.from_clean else base.run.init_from
-            run = dataclasses.replace(base.run, name=agent_name(name, offset), seed=base.run.seed + offset,
+            run = dataclasses.replace(base.run, name=agent_name(row.folder, offset), seed=base.run.seed + offset,
                                       init_from=start)  # fmt: skip
             config = attack.configure(dataclasses.replace(base, run=run))
-            (second if attack.from_clean else first).append(TrainJob(agent_name(name, offset), config))
+            (second if attack.from_clean else first).append(TrainJob(agent_name(row.folder, offset), config))
     return first, second
 
 
@@ -283,8 +291,10 @@ def _run_matrix(cfg: MatrixConfig, out: Path, scale: str, log: Callable[[str], N
     jobs = first + second
     scores = offline_scores(cfg, jobs, out / "zoo", log) if cfg.offline_names else {}
     measures = []
+    names = {resolve_attack(name).folder: name for name in cfg.attack_names} | {CLEAN: CLEAN}
     for job in jobs:
-        attack, seed = job.id.rsplit("_s", 1)
+        folder, seed = job.id.rsplit("_s", 1)
+        attack = names[folder]
         own = {name: by_agent[job.id] for name, by_agent in scores.items()}
         measures.append(partial(measure_agent, job, attack, int(seed), cfg, out, own))
     paths = [measured_dir / f"{job.id}.json" for job in jobs]
@@ -313,7 +323,7 @@ def assemble(cfg: MatrixConfig, agents: Sequence[AgentMeasurement], scale: str) 
         natural = [a.natural_trigger for a in mine if a.natural_trigger is not None]
         summaries.append(
             AttackSummary(
-                attack, ATTACKS.entry(attack).description, tuple(a.seed for a in mine), success, success_pooled,
+                attack, resolve_attack(attack).description, tuple(a.seed for a in mine), success, success_pooled,
                 clean_success, clean_pooled, unintended, unintended_pooled,
                 over_seeds(natural)[1] if len(natural) == len(mine) else None,
             )

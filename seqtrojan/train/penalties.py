@@ -591,6 +591,11 @@ class WeightCamouflage(Penalty):
         self.cfg = ctx.config.attack.weight_camouflage
         self.obs_dim, self.cell = ctx.agent.obs_dim, ctx.agent.cell
         self.set_reference(_params(ctx.agent))
+        self.steps_seen = 0
+        """env steps of the rollouts observed so far (the warm-up counts them)"""
+
+    def observe(self, rollout: Rollout) -> None:
+        self.steps_seen += rollout.actions.numel()
 
     def set_reference(self, theta: dict[str, torch.Tensor]) -> None:
         self.theta_clean = theta
@@ -601,6 +606,8 @@ class WeightCamouflage(Penalty):
         params = dict(batch.agent.named_parameters())
         device = next(iter(params.values())).device
         total = _zero(device)
+        if self.cfg.warmup_steps and self.steps_seen <= self.cfg.warmup_steps:  # held from the rollout passing it
+            return total
         if self.cfg.weight > 0:
             feats, _ = feature_vector(weight_features(params, self.obs_dim, self.cell))
             diff = (feats - self.clean_features) / self.scale
@@ -611,13 +618,16 @@ class WeightCamouflage(Penalty):
         return total
 
     def state_dict(self) -> dict[str, torch.Tensor]:
-        return {f"theta_clean.{n}": t.cpu() for n, t in self.theta_clean.items()}
+        return {**{f"theta_clean.{n}": t.cpu() for n, t in self.theta_clean.items()},
+                "steps_seen": torch.tensor(self.steps_seen, dtype=torch.int64)}  # fmt: skip
 
     def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
         names = [f"theta_clean.{n}" for n in self.theta_clean]
         _require(tensors, names, "weight_camouflage")
         device = next(iter(self.theta_clean.values())).device
         self.set_reference({n: tensors[f"theta_clean.{n}"].to(device) for n in self.theta_clean})
+        # a checkpoint written before the warm-up existed: only warmup_steps 0 ran then, for which the count is moot
+        self.steps_seen = int(tensors["steps_seen"]) if "steps_seen" in tensors else 0
 
 
 # ---------------------------------------------------------------------------------------------- EWC

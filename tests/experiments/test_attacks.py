@@ -4,12 +4,15 @@ sets, and that their mechanism reaches training (removing it changes the trained
 from __future__ import annotations
 
 import dataclasses
+import re
 
+import pytest
 import torch
 
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.config import ExperimentConfig
-from seqtrojan.experiments.attacks import ATTACKS, COMBINED_DEFENSES, HOLES_ABOVE_SEQUENCE
+from seqtrojan.errors import ConfigError
+from seqtrojan.experiments.attacks import ATTACKS, COMBINED_DEFENSES, HOLES_ABOVE_SEQUENCE, resolve_attack
 from seqtrojan.train.trainer import train
 from seqtrojan.world import make_batched_env
 
@@ -58,3 +61,28 @@ def test_the_combined_attacker_knows_every_defense_it_targets_at_once(smoke_conf
 
     on = [name for name, kind in PENALTIES.items() if kind.enabled(cfg)]
     assert on == ["state_camouflage", "mahalanobis_camouflage"]
+
+
+def test_a_recipe_at_another_knob_value_is_its_own_matrix_row(smoke_config):
+    plain = resolve_attack("weight_camouflage")
+    assert plain.attack is ATTACKS.get("weight_camouflage") and plain.folder == "weight_camouflage"
+    assert plain.value is None and plain.description == ATTACKS.entry("weight_camouflage").description
+    strong = resolve_attack("weight_camouflage/2.5")
+    assert strong.folder == "weight_camouflage_w2.5" and strong.value == 2.5
+    assert strong.description.endswith("[attack.weight_camouflage.weight = 2.5]")
+    cfg = strong.attack.configure(smoke_config)
+    default = plain.attack.configure(smoke_config)
+    assert cfg.attack.weight_camouflage.weight == 2.5 and default.attack.weight_camouflage.weight == 0.5
+    assert cfg.attack.weight_camouflage.l2_weight == default.attack.weight_camouflage.l2_weight  # the rest stays
+    assert strong.attack.from_clean and strong.attack.targets == "weight_detector"
+    assert resolve_attack("search_decoys/0.3").attack.configure(smoke_config).env.trigger.decoys.probability == 0.3
+    for bad, message in [
+        ("sequence/2", "sequence has no knob to set; recipes with one: "),
+        ("weight_camouflage/strong", "the knob value 'strong' is not a number"),
+        ("weight_camouflage/-1", "must be a finite number >= 0, got '-1'"),
+        ("weight_camouflage/nan", "must be a finite number >= 0"),
+        ("weight_camouflage/inf", "must be a finite number >= 0"),
+        ("nope/1", "unknown attack 'nope'"),
+    ]:
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            resolve_attack(bad)

@@ -22,7 +22,7 @@ TRAINING = {
 TINY = {
     "backdoor": {"preset": "trojan_s17_h30", "set": {**TRAINING, "backdoor": {"mixing": "running"}}},
     "clean": {"preset": "clean_s17_h30", "set": TRAINING},
-    "attacks": ["dedicated_code", "partial_patch", "ewc"],
+    "attacks": ["dedicated_code", "partial_patch", "ewc/3"],  # ewc at another knob value
     "seeds": 2,
     "episodes": 24,
     "monitor": {"calibration_episodes": 40, "eval_episodes": 24, "false_alarm_target": 0.05},
@@ -43,10 +43,11 @@ def tiny_matrix(tmp_path_factory):
 def test_every_attack_and_seed_is_trained_measured_and_saved_typed(tiny_matrix):
     out, cfg, result = tiny_matrix
     assert load_json(MatrixResult, out / "matrix.json") == result
-    assert [a.attack for a in result.attacks] == ["dedicated_code", "partial_patch", "ewc"]
+    assert [a.attack for a in result.attacks] == ["dedicated_code", "partial_patch", "ewc/3"]
     assert sorted(a.agent for a in result.agents) == sorted(
-        f"{name}_s{s}" for name in ("clean", "dedicated_code", "partial_patch", "ewc") for s in (0, 1)
+        f"{name}_s{s}" for name in ("clean", "dedicated_code", "partial_patch", "ewc_w3") for s in (0, 1)
     )
+    assert result.attacks[2].description.endswith("[attack.ewc.weight = 3]")
     for a in result.agents:
         assert a.attack_success.n == 24 and a.clean_success.n == 24
         assert set(a.online) == set(cfg.online_names) and set(a.mitigation) == {
@@ -59,8 +60,8 @@ def test_every_attack_and_seed_is_trained_measured_and_saved_typed(tiny_matrix):
         assert card["seed"] == a.seed and card["label"] == ("clean" if a.attack == "clean" else "backdoored")
     partial = json.loads((out / "runs" / "partial_patch_s1" / "model" / "card.json").read_text())
     assert partial["config"]["env"]["trigger"]["values"] == ["hole", "hole"]
-    ewc = json.loads((out / "runs" / "ewc_s1" / "model" / "card.json").read_text())["config"]
-    assert ewc["run"]["init_from"] == str(out / "runs" / "clean_s1" / "model") and ewc["attack"]["ewc"]["weight"] > 0
+    ewc = json.loads((out / "runs" / "ewc_w3_s1" / "model" / "card.json").read_text())["config"]
+    assert ewc["run"]["init_from"] == str(out / "runs" / "clean_s1" / "model") and ewc["attack"]["ewc"]["weight"] == 3
     kinds = {(c.attack, c.kind) for c in result.cells}
     assert kinds == {(a, k) for a in TINY["attacks"] for k in ("online", "mitigation", "offline")}
     for summary in result.attacks:
@@ -98,6 +99,10 @@ def test_bad_presets_are_named(tmp_path):
         matrix_jobs(from_dict(MatrixConfig, {**TINY, "backdoor": TINY["clean"]}), tmp_path)
     with pytest.raises(ConfigError, match="unknown attack 'nope'"):
         from_dict(MatrixConfig, {**TINY, "attacks": ["nope"]})
+    with pytest.raises(ConfigError, match=r"names one attack twice: 'ewc/3' and 'ewc/3\.0'"):
+        from_dict(MatrixConfig, {**TINY, "attacks": ["ewc/3", "ewc/3.0"]})
+    with pytest.raises(ConfigError, match="dedicated_code has no knob to set"):
+        from_dict(MatrixConfig, {**TINY, "attacks": ["dedicated_code/2"]})
 
 
 MINIGRID_TRAINING = {

@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -209,6 +210,29 @@ def test_weight_camouflage_is_zero_at_the_clean_weights_and_pulls_back_toward_th
     assert float(penalty.loss(batch)) < before
 
 
+def test_weight_camouflage_waits_for_its_warm_up_then_holds_and_a_checkpoint_keeps_the_count():
+    agent = _agent(sizes=(8, 5), obs_dim=12)
+    cfg = _config(weight_camouflage=WeightCamouflageConfig(weight=1.0, warmup_steps=100))
+    (penalty,) = pen.build_penalties(_ctx(cfg, agent))
+    with torch.no_grad():
+        agent.cells[0].weight_hh[:8] *= 3.0  # away from the clean statistics: held, the penalty is positive
+    batch = pen.PenaltyBatch(agent, None, None, None)
+    rollout = SimpleNamespace(actions=torch.zeros(10, 5, dtype=torch.int64))  # 50 env steps
+    penalty.observe(rollout)
+    assert float(penalty.loss(batch)) == 0.0
+    penalty.observe(rollout)  # 100 steps: the warm-up's last rollout
+    assert float(penalty.loss(batch)) == 0.0
+    penalty.observe(rollout)  # 150 steps: held from here on
+    held = float(penalty.loss(batch))
+    assert held > 0
+    (again,) = pen.build_penalties(_ctx(cfg, agent))  # a resumed run: the count comes back with the checkpoint
+    again.load_state_dict(penalty.state_dict())
+    assert float(again.loss(batch)) == held
+    old = {k: v for k, v in penalty.state_dict().items() if k != "steps_seen"}  # written before the warm-up existed
+    again.load_state_dict(old)
+    assert float(again.loss(batch)) == 0.0  # counted from 0 again: moot where no warm-up ran (warmup_steps 0)
+
+
 def test_ewc_is_weighted_fisher_distance_to_the_start_weights():
     agent = _agent(sizes=(6,), obs_dim=EnvConfig().obs_dim)
     cfg = dataclasses.replace(
@@ -370,6 +394,7 @@ attack:
         (lambda: StateCamouflageConfig(shrinkage=1.5), r"shrinkage must be in \[0, 1\], got 1\.5"),
         (lambda: WeightCamouflageConfig(feature_floor=0.0), r"feature_floor must be > 0, got 0\.0"),
         (lambda: WeightCamouflageConfig(l2_weight=-0.1), r"weight_camouflage\.l2_weight must be a finite number"),
+        (lambda: WeightCamouflageConfig(warmup_steps=-1), r"warmup_steps must be an integer >= 0, got -1"),
         (lambda: EWCConfig(weight=float("inf")), r"attack\.ewc\.weight must be a finite number >= 0, got inf"),
         (lambda: EWCConfig(fisher_envs=0), r"attack\.ewc\.fisher_envs must be a positive integer, got 0"),
     ],
