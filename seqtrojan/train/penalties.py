@@ -31,9 +31,11 @@ Registered here:
   h) and the moments that give that monitor's one-step linear prediction; on trojan-episode steps,
   ``weight * mean(relu(d / sqrt(F) - margin)^2)`` with ``d`` the whitened prediction error of the step's output
   transition, so that the goal switch is spread over transitions each within the clean range.
- detector's weight features (:mod:`seqtrojan.agent.weight_stats`) held at those
-  of the model the run started from, ``weight * sum_k ((f_k - f_k^clean) / (|f_k^clean| + feature_floor))^2``, plus
-  ``l2_weight * ||theta - theta_clean||^2``.
+- ``weight_camouflage`` (against the offline weight detector): the detector's weight features
+  (:mod:`seqtrojan.agent.weight_stats`) held at those of the model the run started from,
+  ``weight * sum_k ((f_k - f_k^clean) / (|f_k^clean| + feature_floor))^2``, plus
+  ``l2_weight * ||theta - theta_clean||^2``; none before ``warmup_steps`` env steps (the backdoor is planted, then
+  hidden).
 - ``ewc``: elastic weight consolidation, ``weight / 2 * sum_i F_i (theta_i - theta*_i)^2`` with the diagonal Fisher
   information of the start model's policy on normal-env episodes.
 - ``finetune_resistance`` (against clean fine-tuning): per minibatch, a copy of the agent takes ``inner_steps``
