@@ -40,6 +40,29 @@ def main(path: str) -> None:
         )
     online = [c for c in result.cells if c.kind == "online"]
     defenses = list(dict.fromkeys(c.defense for c in online))
+    acting = [c for c in result.cells if c.attack_success is not None]
+    if defenses:
+        online_table(result, online, defenses)
+    else:
+        print("\nOnline defenses: none applied to this matrix.")
+    if acting:
+        acting_tables(result, acting)
+    else:
+        print("\nDefenses acting (online resets, mitigations): none applied to this matrix.")
+    offline = [c for c in result.cells if c.kind == "offline"]
+    detectors = list(dict.fromkeys(c.defense for c in offline))
+    if detectors:
+        offline_table(result, offline, detectors)
+    else:
+        print("\nOffline detectors: none applied to this matrix.")
+    alone = {a.attack: (a.attack_success, a.attack_success_pooled) for a in result.attacks}
+    print("\nEvery defense against the worst working attack tried on it (attack success >= 0.5 undefended):\n")
+    print(defense_table(list(result.cells), alone))
+    print("\nEvery working attack against the acting defense that stops it best:\n")
+    print(attack_table(list(result.cells), alone))
+
+
+def online_table(result: MatrixResult, online: list, defenses: list[str]) -> None:
     print("\nOnline defenses, detection at the 1% false-alarm target (false alarms in brackets after the slash):\n")
     print("| attack | " + " | ".join(defenses) + " |")
     print("|---|" + "---|" * len(defenses))
@@ -50,7 +73,9 @@ def main(path: str) -> None:
             if d in cells else "" for d in defenses
         ]  # fmt: skip
         print(f"| {a.attack} | " + " | ".join(row) + " |")
-    acting = [c for c in result.cells if c.attack_success is not None]
+
+
+def acting_tables(result: MatrixResult, acting: list) -> None:
     names = list(dict.fromkeys(c.defense for c in acting))
     print("\nAttack success with the defense acting (online: state reset on an alarm; mitigations: after them):\n")
     print("| attack | none | " + " | ".join(names) + " |")
@@ -66,17 +91,6 @@ def main(path: str) -> None:
         cells = {c.defense: c for c in acting if c.attack == a.attack}
         row = [spread(cells[d].clean_success) if d in cells else "" for d in names]
         print(f"| {a.attack} | {spread(a.clean_success)} | " + " | ".join(row) + " |")
-    offline = [c for c in result.cells if c.kind == "offline"]
-    detectors = list(dict.fromkeys(c.defense for c in offline))
-    if detectors:
-        offline_table(result, offline, detectors)
-    else:
-        print("\nOffline detectors: none applied to this matrix.")
-    alone = {a.attack: (a.attack_success, a.attack_success_pooled) for a in result.attacks}
-    print("\nEvery defense against the worst working attack tried on it (attack success >= 0.5 undefended):\n")
-    print(defense_table(list(result.cells), alone))
-    print("\nEvery working attack against the acting defense that stops it best:\n")
-    print(attack_table(list(result.cells), alone))
 
 
 def offline_table(result: MatrixResult, offline: list, detectors: list[str]) -> None:

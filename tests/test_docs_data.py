@@ -4,6 +4,7 @@ the docs, fails here). Add a pair below when a documented run's data is committe
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -205,3 +206,34 @@ def test_the_paper_scale_tables_are_the_committed_rerun_printed():
                 assert f"| {title} | {mean_sd} |" in readme, f"README's headline lacks {title}: {mean_sd}"
                 checked += 1
     assert checked == 3
+
+
+def test_the_sequence_model_rerun_tables_are_its_data_printed():
+    """docs/results.md's 2026-12-04 cells section is ``scripts/cells_markdown.py`` on the committed cells.json."""
+    printed = _printed("scripts/cells_markdown.py", str(DATA / "cells" / "cells_paper_2026-12-04.json"))
+    rows = [line for line in printed.split("\nSettling")[0].splitlines() if line.startswith("| ")]
+    assert len(rows) > 15
+    text = (ROOT / "docs" / "results.md").read_text()
+    missing = [line for line in rows if line not in text]
+    assert not missing, f"docs/results.md lacks {len(missing)} row(s) of the cells rerun, e.g. {missing[0]}"
+
+
+def test_the_weight_camouflage_sweep_tables_are_its_data_printed():
+    """The warm-up section's attack rows and offline ROC-AUC rows are ``scripts/matrix_markdown.py`` on its data."""
+    printed = _printed(
+        "scripts/matrix_markdown.py", str(DATA / "defenses" / "matrix_weight_camouflage_2026-12-04.json")
+    )
+    main, offline = printed.split("\nOnline defenses")[0], printed.split("Offline detectors, ROC-AUC")[1]
+    rows = [line for part in (main, offline.split("\n\nEvery defense")[0]) for line in part.splitlines()
+            if line.startswith("| ")]  # fmt: skip
+    assert len(rows) == 10  # two headers, two separators, three attacks in each table
+    text = (ROOT / "docs" / "results.md").read_text()
+    missing = [line for line in rows if line not in text]
+    assert not missing, f"docs/results.md lacks {len(missing)} row(s) of the weight-camouflage sweep, e.g. {missing[0]}"
+
+
+def test_the_ray_speed_up_in_the_docs_is_its_data():
+    record = json.loads((DATA / "benchmark" / "ray_nodes_2026-12-04.json").read_text())
+    assert record["same_models"] is True
+    quoted = f"{record['speed_up']:.2f}x"
+    assert quoted in (ROOT / "docs" / "benchmark.md").read_text(), f"docs/benchmark.md lacks the speed-up {quoted}"
