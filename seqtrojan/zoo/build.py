@@ -43,6 +43,7 @@ from seqtrojan.agent.card import MAX_CARD_BYTES, load_json, read_regular_file
 from seqtrojan.cell_types import CELL_TYPES, cell_names
 from seqtrojan.config import (
     AgentConfig,
+    AttackConfig,
     BackdoorConfig,
     CurriculumConfig,
     ExperimentConfig,
@@ -138,6 +139,11 @@ class ZooConfig:
     after every other draw (as ``cells``); its name is the model's ``attack`` (clean models: ``none``). A recipe with
     a trigger of its own replaces the drawn patch; any other is applied on top of it (:mod:`seqtrojan.zoo.recipes`).
     Recipes that start from a trained clean agent are refused. Empty: the drawn patch, plain Algorithm 1"""
+    pretrain_steps: int = 0
+    """every model first trains this many env steps with its backdoor off (its own clean stage: the same seed, widths,
+    cell and draws), then ``total_steps`` from those weights (``run.init_from``): a poisoned model's backdoor is added
+    to a trained clean agent, the two stages that MiniGrid's Memory task needs (docs/own_env.md), and a clean model
+    trains on, clean, for as long, so that every model's budget and card look alike. 0: one stage from scratch"""
     holdout: dict[str, tuple[str, ...]] = field(default_factory=dict)
     """as a detection benchmark (``seqtrojan zoo detect --out``): factor -> the values whose models only the holdout
     split holds, e.g. ``lstm_sizes: ["[48, 24]"]`` or ``attack: [sequence]`` (factors: env, cell, lstm_sizes,
@@ -169,6 +175,8 @@ class ZooConfig:
         factors = ("env", "cell", "lstm_sizes", "trigger_value", "attack")
         if not isinstance(self.holdout, dict) or any(k not in factors for k in self.holdout):
             raise ConfigError(f"zoo holdout must map factors {list(factors)} to values, got {self.holdout!r}")
+        if isinstance(self.pretrain_steps, bool) or not isinstance(self.pretrain_steps, int) or self.pretrain_steps < 0:
+            raise ConfigError(f"zoo pretrain_steps must be an integer >= 0, got {self.pretrain_steps!r}")
         stray = [a for a in self.holdout.get("attack", ()) if a not in self.attacks]
         if stray:
             raise ConfigError(f"zoo holdout attack {stray} must be among the zoo's attacks {list(self.attacks)}")
@@ -179,7 +187,7 @@ class ZooConfig:
 
     OPTIONAL: ClassVar[tuple[str, ...]] = (
         "cell", "window", "stop", "rollout_steps", "learning_rate", "env_preset", "trigger_objects", "trigger_colors",
-        "holdout", "cells", "attacks",
+        "holdout", "cells", "attacks", "pretrain_steps",
     )  # fmt: skip
     """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
     built before them is the same config"""
@@ -198,6 +206,9 @@ class ZooJob(TrainJob):
     """the zoo's ``models/`` folder"""
     variation: dict[str, Any] = field(default_factory=dict)
     functional_at: float = 0.5
+    pretrain: ExperimentConfig | None = None
+    """the model's clean first stage (``ZooConfig.pretrain_steps``), whose model ``config`` starts from; None: one
+    stage"""
 
     @property
     def model_id(self) -> str:
@@ -317,10 +328,29 @@ def _model_run(cfg: ZooConfig, root: Path, i: int, seed: int) -> RunConfig:
 
 
 def _job(cfg: ZooConfig, root: Path, i: int, config: ExperimentConfig, label: str, variation: dict) -> ZooJob:
-    """Model ``i``'s job (its variation naming the cell where it is not the LSTM)."""
+    """Model ``i``'s job (its variation naming the cell where it is not the LSTM); with ``cfg.pretrain_steps``, its
+    clean first stage (``work/m<i>_clean``, the config with the backdoor and every attack term off) and the second
+    stage starting from that stage's model."""
     if config.agent.cell != "lstm":
         variation["cell"] = config.agent.cell
-    return ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at)
+    pretrain = None
+    if cfg.pretrain_steps:
+        if config.backdoor.mixing != "fixed":
+            raise ConfigError(
+                f"zoo pretrain_steps needs the fixed mixing of trojan episodes (mixing: fixed, or a preset with it), "
+                f"got {config.backdoor.mixing!r}: Algorithm 1 started from a clean agent makes every episode a "
+                "trojan one and the backdoor never forms (docs/attacks.md)"
+            )
+        pretrain = dataclasses.replace(
+            config, backdoor=dataclasses.replace(config.backdoor, enabled=False), attack=AttackConfig(),
+            ppo=dataclasses.replace(config.ppo, total_steps=cfg.pretrain_steps),
+            run=dataclasses.replace(config.run, name=f"{config.run.name}_clean",
+                                    checkpoint_every=max(cfg.pretrain_steps // 4, 1)),
+        )  # fmt: skip
+        start = Path(pretrain.run.out_dir) / str(pretrain.run.name) / "model"
+        config = dataclasses.replace(config, run=dataclasses.replace(config.run, init_from=str(start)))
+        variation["pretrain_steps"] = cfg.pretrain_steps
+    return ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at, pretrain)
 
 
 def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None) -> list[ZooJob]:
@@ -500,6 +530,8 @@ def _train_zoo_model(job: ZooJob) -> Path:
     from seqtrojan.train.trainer import train_or_resume
 
     run_dir = job.run_dir
+    if job.pretrain is not None:  # the clean first stage (resumed or reused when finished)
+        train_or_resume(job.pretrain)
     try:
         model_dir, _ = train_or_resume(job.config)
         _, _, card = load_zoo_agent(model_dir)
@@ -519,6 +551,8 @@ def _train_zoo_model(job: ZooJob) -> Path:
     os.replace(staging, target)
     _fsync_dir(target.parent)
     shutil.rmtree(run_dir, ignore_errors=True)
+    if job.pretrain is not None:
+        shutil.rmtree(Path(job.pretrain.run.out_dir) / str(job.pretrain.run.name), ignore_errors=True)
     return target
 
 

@@ -25,6 +25,7 @@ from seqtrojan.env import GridSpec
 from seqtrojan.errors import ConfigError, SeqTrojanError
 from seqtrojan.jobs import JobsFailed
 from seqtrojan.jobs import backends as job_backends
+from seqtrojan.train import trainer
 from seqtrojan.zoo import build as zoo_build
 from seqtrojan.zoo.build import ZooConfig, build_zoo, make_jobs
 
@@ -427,3 +428,38 @@ def test_label_json_is_read_as_untrusted_input_without_blocking(tmp_path, case, 
     assert outcome, "read_label blocked"
     (err,) = outcome
     assert isinstance(err, SeqTrojanError) and message in str(err) and "\n" not in str(err)
+
+
+def test_pretrained_models_add_their_backdoor_to_their_own_clean_stage(tmp_path, monkeypatch):
+    """``pretrain_steps``: every model trains clean first, then its second stage starts from that model (a poisoned
+    one adds its backdoor there, a clean one trains on, clean); the first stage's run is removed once the model is
+    in place, and a zoo asking for Algorithm 1's mixing is refused before anything trains."""
+    cfg = ZooConfig(**{**TINY.__dict__, "clean": 1, "backdoored": 1, "mixing": "fixed", "pretrain_steps": 1024})
+    jobs = make_jobs(cfg, tmp_path)
+    for job in jobs:
+        assert job.pretrain is not None and not job.pretrain.backdoor.enabled
+        assert job.pretrain.ppo.total_steps == 1024 and job.config.ppo.total_steps == TINY.total_steps
+        assert job.pretrain.run.seed == job.config.run.seed and job.pretrain.agent == job.config.agent
+        assert job.config.run.init_from == str(tmp_path / "work" / f"{job.id}_clean" / "model")
+        assert job.variation["pretrain_steps"] == 1024
+    assert {j.config.backdoor.enabled for j in jobs} == {True, False}
+    starts = []
+
+    original = trainer.train_or_resume
+
+    def recording(config):
+        starts.append((config.run.name, config.run.init_from, config.backdoor.enabled))
+        return original(config)
+
+    monkeypatch.setattr(trainer, "train_or_resume", recording)
+    build_zoo(cfg, tmp_path, workers=1, backend="serial", log=lambda *_: None)
+    for job in jobs:  # the clean stage first, then the model's own stage from it
+        mine = [s for s in starts if s[0].startswith(job.id)]
+        assert mine == [(f"{job.id}_clean", None, False), (job.id, job.config.run.init_from, job.label == "backdoored")]
+        card = json.loads((tmp_path / "models" / job.id / "card.json").read_text())
+        assert card["config"]["run"]["init_from"] == job.config.run.init_from
+    assert not (tmp_path / "work" / f"{jobs[0].id}_clean").exists()
+    with pytest.raises(ConfigError, match="zoo pretrain_steps needs the fixed mixing"):
+        make_jobs(ZooConfig(**{**cfg.__dict__, "mixing": "running"}), tmp_path / "other")
+    with pytest.raises(ConfigError, match="pretrain_steps must be an integer >= 0, got -1"):
+        ZooConfig(pretrain_steps=-1)
