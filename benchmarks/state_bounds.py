@@ -40,7 +40,7 @@ from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.agent.state import Intervention
 from seqtrojan.defense.state_bounds import StateBoundsConfig, clean_trace, fit_trace
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
-from seqtrojan.experiments.attacks import ATTACKS
+from seqtrojan.experiments.attacks import ATTACKS, resolve_attack
 from seqtrojan.experiments.matrix import load_matrix_config
 from seqtrojan.experiments.specs import experiment_from_spec
 from seqtrojan.stats import OverSeeds, Rate, pooled
@@ -83,24 +83,17 @@ def train_clean(seed: int, out: Path, steps: int | None) -> Path:
 def train_agent(attack: str, seed: int, out: Path, steps: int | None):
     mcfg = load_matrix_config("smoke")
     trigger, _, attack = attack.rpartition("+")  # "in_distribution_patch+mahalanobis_camouflage/5": both recipes
-    recipe, _, knob = attack.partition("/")
-    dial = ATTACKS.get(recipe).knob
-    if knob and dial is None:
-        with_knobs = [name for name, a in ATTACKS.items() if a.knob is not None]
-        raise SystemExit(f"a knob value applies to {', '.join(with_knobs)} only, got {attack!r}")
-    name = f"{recipe}_{dial.letter}{knob}_s{seed}" if knob and dial else f"{attack}_s{seed}"
-    name = f"{trigger}_{name}" if trigger else name
+    row = resolve_attack(attack)  # "recipe/value": the recipe with its knob at value (as the matrix names it)
+    name = f"{trigger}_{row.folder}_s{seed}" if trigger else f"{row.folder}_s{seed}"
     base = experiment_from_spec(mcfg.backdoor, out, name, "cpu")
     ppo = base.ppo if steps is None else dataclasses.replace(base.ppo, total_steps=steps)
     run = dataclasses.replace(base.run, seed=base.run.seed + seed, threads=1, checkpoint_every=10**12)
     cfg = dataclasses.replace(base, ppo=ppo, run=run)
-    if ATTACKS.get(recipe).from_clean:  # the backdoor is added to the clean agent of the same training seed
+    if row.attack.from_clean:  # the backdoor is added to the clean agent of the same training seed
         cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, init_from=str(train_clean(seed, out, steps))))
     if trigger:  # another recipe's trigger first (an adaptive recipe changes only the training terms)
         cfg = ATTACKS.get(trigger).configure(cfg)
-    cfg = ATTACKS.get(recipe).configure(cfg)
-    if knob and dial:  # the attacker who knows the defense: its recipe with another knob value
-        cfg = dial.apply(cfg, float(knob))
+    cfg = row.attack.configure(cfg)  # with another knob value: the attacker who knows the defense
     model_dir, _ = train_or_resume(cfg)
     agent, loaded, _ = load_agent(model_dir)
     return agent.eval(), loaded
