@@ -126,6 +126,7 @@ LEADERBOARD_TABLES = [
     ("benchmark/leaderboard_smoke.json", "results.md"),
     ("benchmark/leaderboard_smoke_300k.json", "benchmark.md"),
     ("benchmark/leaderboard_attacks.json", "benchmark.md"),
+    ("benchmark/leaderboard_minigrid_memory.json", "benchmark.md"),
 ]
 """a leaderboard and the page holding its table as ``scripts/leaderboard_markdown.py`` prints it"""
 
