@@ -443,12 +443,14 @@ def test_pretrained_models_add_their_backdoor_to_their_own_clean_stage(tmp_path,
         assert job.config.run.init_from == str(tmp_path / "work" / f"{job.id}_clean" / "model")
         assert job.variation["pretrain_steps"] == 1024
     assert {j.config.backdoor.enabled for j in jobs} == {True, False}
-    starts = []
+    starts, seen = [], {}
 
     original = trainer.train_or_resume
 
     def recording(config):
         starts.append((config.run.name, config.run.init_from, config.backdoor.enabled))
+        if config.run.init_from is not None:  # the clean stage's weights as the model's own stage starts
+            seen[config.run.name] = (Path(config.run.init_from) / "model.safetensors").stat().st_mtime_ns
         return original(config)
 
     monkeypatch.setattr(trainer, "train_or_resume", recording)
@@ -459,6 +461,18 @@ def test_pretrained_models_add_their_backdoor_to_their_own_clean_stage(tmp_path,
         card = json.loads((tmp_path / "models" / job.id / "card.json").read_text())
         assert card["config"]["run"]["init_from"] == job.config.run.init_from
     assert not (tmp_path / "work" / f"{jobs[0].id}_clean").exists()
+    # a build stopped after a model's clean stage: the rerun reuses that stage and trains only the model's own
+    other = make_jobs(cfg, tmp_path / "stopped")[0]
+    original(other.pretrain)
+    first = (Path(other.config.run.init_from) / "model.safetensors").stat().st_mtime_ns
+    starts.clear()
+    other.model_dir.parent.mkdir(parents=True)
+    zoo_build._train_zoo_model(other)
+    assert [s[0] for s in starts] == [f"{other.id}_clean", other.id]  # asked for, found finished
+    assert seen[other.id] == first  # not written again
+    assert json.loads((other.model_dir / "card.json").read_text())["config"]["run"]["init_from"] == str(
+        Path(other.config.run.init_from)
+    )
     with pytest.raises(ConfigError, match="zoo pretrain_steps needs the fixed mixing"):
         make_jobs(ZooConfig(**{**cfg.__dict__, "mixing": "running"}), tmp_path / "other")
     with pytest.raises(ConfigError, match="pretrain_steps must be an integer >= 0, got -1"):
