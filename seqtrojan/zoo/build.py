@@ -138,7 +138,9 @@ class ZooConfig:
     """registered attack recipes (``seqtrojan attacks``) each backdoored model's recipe is drawn from, uniformly,
     after every other draw (as ``cells``); its name is the model's ``attack`` (clean models: ``none``). A recipe with
     a trigger of its own replaces the drawn patch; any other is applied on top of it (:mod:`seqtrojan.zoo.recipes`).
-    Recipes that start from a trained clean agent are refused. Empty: the drawn patch, plain Algorithm 1"""
+    Recipes that start from a trained clean agent (``from_clean``, ``weight_camouflage``, ``ewc``,
+    ``switch_camouflage``) need ``pretrain_steps``: their clean agent is then the model's own clean first stage.
+    Empty: the drawn patch, plain Algorithm 1"""
     pretrain_steps: int = 0
     """every model first trains this many env steps with its backdoor off (its own clean stage: the same seed, widths,
     cell and draws), then ``total_steps`` from those weights (``run.init_from``): a poisoned model's backdoor is added
@@ -233,7 +235,7 @@ def make_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None = None) -> 
     some (see :mod:`seqtrojan.zoo.recipes` for why it is passed in)."""
     if cfg.env_preset is not None:
         return _gymnasium_jobs(cfg, root, recipes)
-    check_recipes(cfg.attacks, recipes, ExperimentConfig(backdoor=BackdoorConfig(enabled=True)))
+    check_recipes(cfg.attacks, recipes, ExperimentConfig(backdoor=BackdoorConfig(enabled=True)), cfg.pretrain_steps > 0)
     jobs = []
     for i, label, seed, rng in _model_draws(cfg):
         sizes = cfg.lstm_sizes[rng.integers(len(cfg.lstm_sizes))]
@@ -260,6 +262,8 @@ def make_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None = None) -> 
             "lstm_sizes": list(sizes), "curriculum": [g.label for g in stages], "trigger_value": value,
             "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
+        if cfg.pretrain_steps:  # a from-clean recipe is checked against its clean agent
+            config = _from_clean_stage(config)
         config = _with_recipe(config, variation, recipes, attack, TriggerConfig(), f"m{i:04d}")
         jobs.append(_job(cfg, root, i, config, label, variation))
     return jobs
@@ -344,13 +348,18 @@ def _job(cfg: ZooConfig, root: Path, i: int, config: ExperimentConfig, label: st
         pretrain = dataclasses.replace(
             config, backdoor=dataclasses.replace(config.backdoor, enabled=False), attack=AttackConfig(),
             ppo=dataclasses.replace(config.ppo, total_steps=cfg.pretrain_steps),
-            run=dataclasses.replace(config.run, name=f"{config.run.name}_clean",
+            run=dataclasses.replace(config.run, name=f"{config.run.name}_clean", init_from=None,
                                     checkpoint_every=max(cfg.pretrain_steps // 4, 1)),
         )  # fmt: skip
-        start = Path(pretrain.run.out_dir) / str(pretrain.run.name) / "model"
-        config = dataclasses.replace(config, run=dataclasses.replace(config.run, init_from=str(start)))
+        config = _from_clean_stage(config)
         variation["pretrain_steps"] = cfg.pretrain_steps
     return ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at, pretrain)
+
+
+def _from_clean_stage(config: ExperimentConfig) -> ExperimentConfig:
+    """``config`` starting from its clean first stage's model (``work/m<i>_clean/model``, see :func:`_job`)."""
+    start = Path(config.run.out_dir) / f"{config.run.name}_clean" / "model"
+    return dataclasses.replace(config, run=dataclasses.replace(config.run, init_from=str(start)))
 
 
 def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None) -> list[ZooJob]:
@@ -375,7 +384,8 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None) -> l
     if env.trigger.patch != "vector" and not rows:
         raise ConfigError(f"zoo env_preset {cfg.env_preset!r}: its observation is no image to draw a trigger on")
     check_recipes(
-        cfg.attacks, recipes, dataclasses.replace(base, backdoor=dataclasses.replace(base.backdoor, enabled=True))
+        cfg.attacks, recipes, dataclasses.replace(base, backdoor=dataclasses.replace(base.backdoor, enabled=True)),
+        cfg.pretrain_steps > 0,
     )
     jobs = []
     for i, label, seed, rng in _model_draws(cfg):
@@ -400,6 +410,8 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None) -> l
         }  # fmt: skip
         if trigger.objective == "target_action":
             variation["target_action"] = trigger.target_action
+        if cfg.pretrain_steps:  # a from-clean recipe is checked against its clean agent
+            config = _from_clean_stage(config)
         config = _with_recipe(config, variation, recipes, attack, env.trigger, f"m{i:04d}")
         jobs.append(_job(cfg, root, i, config, label, variation))
     return jobs

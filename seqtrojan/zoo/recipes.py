@@ -51,11 +51,15 @@ class RecipeBook(Protocol):
     def get(self, name: str) -> Recipe: ...
 
 
-def check_recipes(names: tuple[str, ...], recipes: RecipeBook | None, reference: ExperimentConfig) -> None:
+def check_recipes(
+    names: tuple[str, ...], recipes: RecipeBook | None, reference: ExperimentConfig, pretrained: bool = False
+) -> None:
     """Refuse, in one line, a zoo's ``attacks`` that cannot be drawn: no registry given, an unregistered name, a
     recipe that does not apply to the zoo's env (``reference``: a backdoored config of it), or one that starts from
-    a trained clean agent (``from_clean``: its ``run.init_from`` is the clean twin's folder, a model the zoo's
-    independent jobs never wait for)."""
+    a trained clean agent (``from_clean``) in a zoo whose models have no clean first stage (``pretrained``: the
+    zoo's ``pretrain_steps``). With that stage, a from-clean recipe's clean twin is the model's own first stage (its
+    ``run.init_from``, which the second stage starts from in any case); without it the twin would be another job's
+    model, which a zoo's independent jobs never wait for."""
     if not names:
         return
     if recipes is None:
@@ -68,10 +72,11 @@ def check_recipes(names: tuple[str, ...], recipes: RecipeBook | None, reference:
     if unknown:
         raise ConfigError(f"zoo attacks: unknown recipe(s) {unknown}; registered: {', '.join(registered)}")
     from_clean = [n for n in names if recipes.get(n).from_clean]
-    if from_clean:
+    if from_clean and not pretrained:
         raise ConfigError(
             f"zoo attacks: {from_clean} add a backdoor to a trained clean agent (run.init_from), and a zoo's models "
-            "are independent jobs that never wait for one; choose recipes trained from scratch"
+            "are independent jobs that never wait for one; set pretrain_steps (each model's clean first stage is "
+            "then its clean agent) or choose recipes trained from scratch"
         )
     elsewhere = [n for n in names if not recipes.get(n).applies_to(reference)]
     if elsewhere:
