@@ -384,7 +384,9 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None) -> l
     if env.trigger.patch != "vector" and not rows:
         raise ConfigError(f"zoo env_preset {cfg.env_preset!r}: its observation is no image to draw a trigger on")
     check_recipes(
-        cfg.attacks, recipes, dataclasses.replace(base, backdoor=dataclasses.replace(base.backdoor, enabled=True)),
+        cfg.attacks,
+        recipes,
+        dataclasses.replace(base, backdoor=dataclasses.replace(base.backdoor, enabled=True)),
         cfg.pretrain_steps > 0,
     )
     jobs = []

@@ -128,3 +128,47 @@ def test_the_attack_benchmark_preset_validates(tmp_path):
     assert held and set(cfg.attacks) <= set(SCRATCH) and {own_pattern(n) for n in cfg.attacks} == {True, False}
     assert len(jobs) == cfg.size and all(j.config.curriculum.stages[-1] == GridSpec(7, 3) for j in jobs)
     assert json.loads(json.dumps([j.variation for j in jobs]))  # the manifest's variations are plain JSON
+
+
+FROM_CLEAN = tuple(name for name, attack in ATTACKS.items() if attack.from_clean)
+
+
+def test_a_from_clean_recipe_starts_from_the_model_s_own_clean_stage(tmp_path):
+    """With ``pretrain_steps`` a from-clean recipe is drawn: its clean agent (``run.init_from``, which its penalties
+    compare against) is the model's own first stage, and that stage is clean, from scratch and penalty-free."""
+    with pytest.raises(ConfigError, match="set pretrain_steps"):
+        make_jobs(ZooConfig(clean=1, backdoored=8, attacks=FROM_CLEAN, mixing="fixed"), tmp_path, ATTACKS)
+    cfg = ZooConfig(clean=2, backdoored=40, total_steps=4096, pretrain_steps=2048, mixing="fixed", attacks=FROM_CLEAN)
+    jobs = make_jobs(cfg, tmp_path, ATTACKS)
+    assert {j.variation["attack"] for j in jobs if j.label == "backdoored"} == set(FROM_CLEAN)
+    for job in jobs:
+        stage = tmp_path / "work" / f"{job.id}_clean" / "model"
+        assert job.config.run.init_from == str(stage) and job.pretrain.run.init_from is None
+        assert not job.pretrain.backdoor.enabled and job.pretrain.attack == type(job.config.attack)()
+        assert job.pretrain.ppo.total_steps == 2048 and job.config.ppo.total_steps == 4096
+        if job.variation["attack"] == "weight_camouflage":  # the recipe's warm-up is half of the second stage
+            assert job.config.attack.weight_camouflage.warmup_steps == 2048
+        if job.variation["attack"] == "ewc":
+            assert job.config.attack.ewc.weight == 100.0
+    gym = ZooConfig(clean=1, backdoored=12, env_preset="minigrid_memory_backdoor", total_steps=4096,
+                    pretrain_steps=2048, attacks=("weight_camouflage", "switch_camouflage"))  # fmt: skip
+    for job in make_jobs(gym, tmp_path, ATTACKS):
+        assert job.config.run.init_from == str(tmp_path / "work" / f"{job.id}_clean" / "model")
+
+
+def test_the_memory_attack_benchmark_preset_draws_every_attack_into_both_splits(tmp_path):
+    """The preset's seed was chosen (docs/benchmark.md) so that every recipe is drawn at least twice and the split
+    left for train/test and the holdout both hold clean and poisoned models: a changed draw breaks it."""
+    from collections import Counter
+
+    from seqtrojan.presets import resolve_preset
+    from seqtrojan.serde import from_dict, load_yaml
+
+    cfg = from_dict(ZooConfig, load_yaml(resolve_preset("benchmark_minigrid_memory_attacks")), "")
+    jobs = make_jobs(cfg, tmp_path, ATTACKS)
+    drawn = Counter(j.variation["attack"] for j in jobs if j.label == "backdoored")
+    assert set(drawn) == set(cfg.attacks) and min(drawn.values()) >= 2
+    held = [j.variation["lstm_sizes"] == [64, 32] or j.variation["attack"] == "weight_camouflage" for j in jobs]
+    for in_holdout in (False, True):
+        labels = Counter(j.label for j, h in zip(jobs, held) if h == in_holdout)
+        assert min(labels["clean"], labels["backdoored"]) >= 6
