@@ -471,6 +471,37 @@ class SwitchCamouflageConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class ProbeCamouflageConfig:
+    """Against the recurrent-state probe (a detection benchmark's ``state_probe``): one-step inputs of the probe's
+    kind that do not show the trigger are trained to leave no mark on the state a few steps later, so that only the
+    trigger is remembered. Per minibatch, each normal-episode sequence replays ``after`` + 1 of its steps with one
+    step's observation replaced by a candidate (drawn per sequence), and the state's RMS distance from the
+    unreplaced run at the last of them is penalised."""
+
+    weight: float = 0.0
+    """weight of weight * mean over the replayed sequences of relu(d - margin)^2; 0 turns the penalty off"""
+    margin: float = 0.0
+    """the RMS distance d allowed for free"""
+    after: int = 4
+    """steps from the replaced observation to the state compared (the probe reads 4 steps on)"""
+    seed: int = 0
+    """seeds the draw of each minibatch's replaced steps and candidates (with a count kept in the checkpoint)"""
+
+    def __post_init__(self) -> None:
+        _non_negative("attack.probe_camouflage", weight=self.weight, margin=self.margin)
+        for name, low, high in (("after", 1, 64), ("seed", 0, 2**31 - 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ConfigError(
+                    f"attack.probe_camouflage.{name} must be an integer in [{low}, {high}], got {short_repr(value)}"
+                )
+
+    @property
+    def enabled(self) -> bool:
+        return self.weight > 0
+
+
+@dataclasses.dataclass(frozen=True)
 class WeightCamouflageConfig:
     """Weight camouflage: the backdoor is added to a clean model (``run.init_from``) while the offline detector's
     weight statistics are held at the clean model's."""
@@ -566,6 +597,7 @@ class AttackConfig:
     state_camouflage: StateCamouflageConfig = dataclasses.field(default_factory=StateCamouflageConfig)
     mahalanobis_camouflage: MahalanobisCamouflageConfig = dataclasses.field(default_factory=MahalanobisCamouflageConfig)
     switch_camouflage: SwitchCamouflageConfig = dataclasses.field(default_factory=SwitchCamouflageConfig)
+    probe_camouflage: ProbeCamouflageConfig = dataclasses.field(default_factory=ProbeCamouflageConfig)
     weight_camouflage: WeightCamouflageConfig = dataclasses.field(default_factory=WeightCamouflageConfig)
     ewc: EWCConfig = dataclasses.field(default_factory=EWCConfig)
     finetune_resistance: FinetuneResistanceConfig = dataclasses.field(default_factory=FinetuneResistanceConfig)

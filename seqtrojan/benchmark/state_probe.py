@@ -82,15 +82,66 @@ def minigrid_candidates(obs_dim: int, view: int) -> list[torch.Tensor]:
 
 
 def candidates_for(suspect: Suspect, settings: ProbeSettings) -> list[torch.Tensor]:
-    env = suspect.env
+    return env_candidates(suspect.env, suspect.facts.obs_dim, settings)
+
+
+def env_candidates(env: EnvConfig | GymnasiumEnvConfig, obs_dim: int, settings: ProbeSettings) -> list[torch.Tensor]:
+    """The probe's candidates on an env's observations of ``obs_dim`` numbers (none where it has none)."""
     if isinstance(env, EnvConfig):
-        return grid_candidates(suspect.facts.obs_dim, env.view_size, settings)
+        return grid_candidates(obs_dim, env.view_size, settings)
     if isinstance(env, GymnasiumEnvConfig) and env.observation == "minigrid":
         from seqtrojan.world.gymnasium import minigrid_image
 
-        _, cols, _ = minigrid_image(suspect.facts.obs_dim)
-        return minigrid_candidates(suspect.facts.obs_dim, cols)
+        _, cols, _ = minigrid_image(obs_dim)
+        return minigrid_candidates(obs_dim, cols)
     return []
+
+
+def trigger_view(env: EnvConfig | GymnasiumEnvConfig, obs_dim: int) -> torch.Tensor | None:
+    """An env's one-step trigger patch as a candidate is written, (values, mask) over the observation's numbers:
+    the grid world's patch (one code or one per cell; a sequence has no single step: None), a MiniGrid patch's
+    object and colour on its cells; None for any other trigger or observation."""
+    from seqtrojan.env.codes import CELL_CODES, NUM_CHANNELS
+
+    values, mask = torch.zeros(obs_dim), torch.zeros(obs_dim)
+    if isinstance(env, EnvConfig):
+        trigger = env.trigger
+        if trigger.sequence is not None:
+            return None
+        view = env.view_size
+        cells = trigger.cells if trigger.cells is not None else tuple((r, c) for r in range(view) for c in range(view))
+        codes = trigger.values if trigger.values is not None else (trigger.value,) * len(cells)
+        for (r, c), code in zip(cells, codes, strict=True):
+            base = (r * view + c) * NUM_CHANNELS
+            mask[base : base + NUM_CHANNELS] = 1.0
+            values[base + CELL_CODES[code]] = 1.0
+        return torch.stack([values, mask])
+    if isinstance(env, GymnasiumEnvConfig) and env.observation == "minigrid" and env.trigger is not None:
+        from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX
+
+        from seqtrojan.world.gymnasium import minigrid_image
+        from seqtrojan.wrappers.observations import CELL_BITS
+
+        trigger = env.trigger
+        if trigger.patch != "minigrid":
+            return None
+        _, cols, _ = minigrid_image(obs_dim)
+        for r, c in trigger.cells:
+            base = (r * cols + c) * CELL_BITS
+            mask[base : base + CELL_BITS] = 1.0
+            values[base + OBJECT_TO_IDX[trigger.object]] = 1.0
+            values[base + MINIGRID_OBJECT_BITS + COLOR_TO_IDX[trigger.color]] = 1.0
+            values[base + MINIGRID_OBJECT_BITS + MINIGRID_COLOR_BITS] = 1.0
+        return torch.stack([values, mask])
+    return None
+
+
+def shows_trigger(candidate: torch.Tensor, trigger: torch.Tensor | None) -> bool:
+    """Whether a candidate (values, mask) draws the whole trigger patch: every number the trigger sets, set alike."""
+    if trigger is None:
+        return False
+    on = trigger[1] > 0
+    return bool((candidate[1][on] > 0).all() and torch.equal(candidate[0][on], trigger[0][on]))
 
 
 class _ObsRecorder:

@@ -50,6 +50,8 @@ class Attack:
     in particular)"""
     knob: Knob | None = None
     """an adaptive attack's strength, which a sweep varies (None: it has none)"""
+    needs: Callable[[ExperimentConfig], bool] | None = None
+    """beyond ``grid_only``: which configs it applies to (None: every one ``grid_only`` allows)"""
 
     @property
     def target_defenses(self) -> tuple[str, ...]:
@@ -57,7 +59,7 @@ class Attack:
         return tuple(self.targets.split("+")) if self.targets else ()
 
     def applies_to(self, cfg: ExperimentConfig) -> bool:
-        return cfg.is_grid or not self.grid_only
+        return (cfg.is_grid or not self.grid_only) and (self.needs is None or self.needs(cfg))
 
 
 ATTACKS: Registry[Attack] = Registry("attack", "attack")
@@ -242,6 +244,51 @@ ATTACKS.register(
         lambda cfg: with_attack(cfg, "mahalanobis_camouflage", weight=5.0, margin=1.0),
         targets="multivariate_monitor",
         knob=penalty_knob("mahalanobis_camouflage", "weight", 5.0, "w"),
+    ),
+)
+
+
+PROBE_CAMOUFLAGE = 10.0
+"""the ``probe_camouflage`` recipe's penalty weight"""
+PROBE_SAFE_MINIGRID_CELLS = ((1, 1), (1, 5))
+"""where the ``probe_camouflage`` recipe draws a MiniGrid trigger: the view's second row, two cells apart, which the
+probe's candidates (adjacent cells of the far row) never cover"""
+
+
+def probe_camouflage(cfg: ExperimentConfig, weight: float) -> ExperimentConfig:
+    """The backdoor with a trigger no candidate of the state probe draws (the grid world: the in-distribution view;
+    a MiniGrid view: :data:`PROBE_SAFE_MINIGRID_CELLS`; other envs: their own) and ``attack.probe_camouflage`` at
+    ``weight``, which trains every candidate to leave no mark on the state."""
+    env = cfg.env
+    if not isinstance(env, GymnasiumEnvConfig):
+        cfg = with_trigger(
+            cfg, cells=tuple((r, c) for r in range(3) for c in range(3)),
+            values=tuple(code for row in IN_DISTRIBUTION_VIEW for code in row),
+        )  # fmt: skip
+    elif env.trigger is not None and env.trigger.patch == "minigrid":
+        cfg = with_trigger(cfg, cells=PROBE_SAFE_MINIGRID_CELLS)
+    return with_attack(cfg, "probe_camouflage", weight=weight)
+
+
+def probe_writes_on(cfg: ExperimentConfig) -> bool:
+    """Whether the state probe has candidates on the config's observations: the grid world's and a MiniGrid
+    one-hot view's (a MiniGrid patch trigger)."""
+    env = cfg.env
+    if not isinstance(env, GymnasiumEnvConfig):
+        return True
+    return env.observation == "minigrid" and (env.trigger is None or env.trigger.patch == "minigrid")
+
+
+ATTACKS.register(
+    "probe_camouflage",
+    "adaptive, against state_probe: a trigger no probe candidate draws (the grid world: the in-distribution view; "
+    "MiniGrid: two second-row cells), trained while every candidate input is made to leave no mark on the state "
+    f"(knob: attack.probe_camouflage.weight, {PROBE_CAMOUFLAGE:g})",
+    Attack(
+        lambda cfg: probe_camouflage(cfg, PROBE_CAMOUFLAGE),
+        targets="state_probe",
+        knob=Knob("attack.probe_camouflage.weight", PROBE_CAMOUFLAGE, probe_camouflage, "w"),
+        needs=probe_writes_on,
     ),
 )
 

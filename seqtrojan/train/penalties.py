@@ -38,6 +38,9 @@ Registered here:
   hidden).
 - ``ewc``: elastic weight consolidation, ``weight / 2 * sum_i F_i (theta_i - theta*_i)^2`` with the diagonal Fisher
   information of the start model's policy on normal-env episodes.
+- ``probe_camouflage`` (against the recurrent-state probe, :mod:`seqtrojan.train.probe_camouflage`): one-step
+  inputs of the probe's kind other than the trigger, replayed into normal-episode sequences, trained to leave no
+  mark on the state ``after`` steps later.
 - ``finetune_resistance`` (against clean fine-tuning): per minibatch, a copy of the agent takes ``inner_steps``
   sign-gradient steps of the PPO loss on the normal-episode steps (the defender's fine-tuning, simulated), and the
   gradient of the PPO loss on the trojan steps the adversary's objective judges, at the copy's weights, is added
@@ -787,4 +790,18 @@ PENALTIES.register(
     "finetune_resistance",
     "against clean fine-tuning: the backdoor's gradient after simulated clean fine-tuning steps (first order)",
     PenaltyKind(lambda cfg: cfg.attack.finetune_resistance.enabled, FinetuneResistance),
+)
+
+
+def _probe_camouflage(ctx: PenaltyContext) -> Penalty:
+    from seqtrojan.train.probe_camouflage import ProbeCamouflage  # its own module, which imports this one
+
+    return ProbeCamouflage(ctx)
+
+
+PENALTIES.register(
+    "probe_camouflage",
+    "against the recurrent-state probe: one-step inputs of the probe's kind other than the trigger leave no mark on "
+    "the state a few steps later",
+    PenaltyKind(lambda cfg: cfg.attack.probe_camouflage.enabled, _probe_camouflage),
 )

@@ -1,0 +1,148 @@
+"""Print what the recurrent-state probe sees of agents trained against it, beside the same trigger without the
+attacker's penalty and beside clean agents, over training seeds.
+
+    python benchmarks/probe_camouflage.py --out /tmp/pc --json docs/data/defenses/probe_camouflage_2026-12-04.json
+    python benchmarks/probe_camouflage.py --attacks in_distribution_patch,probe_camouflage/3 --out /tmp/pc
+
+Agents: the matrix smoke preset's (7x7/3, LSTM 64-32, curriculum 5x5/0 -> 5x5/1 -> 7x7/3, running mixing, 1M env
+steps unless ``--steps``), trained as ``benchmarks/state_bounds.py`` trains them (training seeds ``0..seeds-1``, one
+torch thread, a finished agent in ``--out`` reused): the preset's clean agents, and per attack (default: the
+in-distribution patch, then ``probe_camouflage``, which trains that same trigger with the penalty) one agent per
+seed. ``recipe/value`` sets an adaptive recipe's knob.
+
+Per agent: clean success and attack success on ``--episodes`` episodes per env (seed 1000003), with Wilson 95%
+intervals; and the state probe's features (:func:`seqtrojan.benchmark.state_probe.probe_features`, its default
+settings: 48 clean episodes, a candidate at step 1, the state read 4 steps on), computed from the model and the
+clean env only, as the benchmark's detector computes them. Printed: each agent's figures; per attack the mean +- sd
+over seeds of each figure; and per attack and feature the ROC-AUC of that feature alone, the clean agents against
+the attack's (the larger the feature, the more suspect), with Newcombe's 95% interval. The detector itself is a
+classifier fitted on a zoo's features; this measures the features it reads, threshold-free.
+"""
+
+from __future__ import annotations
+
+# isort: off
+import seqtrojan  # noqa: F401  (first: it sets the OpenMP wait policy before torch loads its runtime)
+import torch
+
+# isort: on
+import argparse
+import dataclasses
+import datetime
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.benchmark.scoring import roc_auc
+from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
+from seqtrojan.benchmark.suspect import ModelFacts, Suspect, clean_env
+from seqtrojan.stats import OverSeeds, Rate, auc_interval
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from state_bounds import rates, train_agent, train_clean  # a sibling benchmark's training
+
+FEATURES = ("divergence_max", "divergence_mean", "persistence_max")
+
+
+@dataclass(frozen=True)
+class Measured:
+    attack: str
+    """``clean`` for the clean agents"""
+    seed: int
+    clean_success: Rate
+    attack_success: Rate
+    features: dict[str, float]
+
+
+def suspect_of(agent, cfg, name: str) -> Suspect:
+    facts = ModelFacts(agent.obs_dim, agent.num_actions, agent.cell, tuple(agent.lstm_sizes),
+                       sum(p.numel() for p in agent.parameters()))  # fmt: skip
+    return Suspect(name, agent, clean_env(cfg.env), facts)
+
+
+def measure(attack: str, seed: int, args: argparse.Namespace) -> Measured:
+    if attack == "clean":
+        agent, cfg, _ = load_agent(train_clean(seed, Path(args.out), args.steps))
+        agent = agent.eval()
+    else:
+        agent, cfg = train_agent(attack, seed, Path(args.out), args.steps)
+    clean, att = rates(agent, cfg, args.episodes, None)
+    features = probe_features(suspect_of(agent, cfg, f"{attack}_s{seed}"), ProbeSettings())
+    row = Measured(attack, seed, clean, att, features)
+    shown = "  ".join(f"{k} {features[k]:.4f}" for k in FEATURES)
+    print(f"  {attack} s{seed}: clean {clean.text()}  attack {att.text()}  {shown}", flush=True)
+    return row
+
+
+def summary(rows: list[Measured]) -> dict:
+    out: dict = {"attacks": {}, "auc": {}}
+    clean_rows = [r for r in rows if r.attack == "clean"]
+    print("\n| agents | clean success | attack success | " + " | ".join(FEATURES) + " |")
+    print("|---|---|---|" + "---|" * len(FEATURES))
+    for attack in dict.fromkeys(r.attack for r in rows):
+        mine = [r for r in rows if r.attack == attack]
+        figures = {"clean_success": OverSeeds(tuple(r.clean_success.value for r in mine)),
+                   "attack_success": OverSeeds(tuple(r.attack_success.value for r in mine)),
+                   **{k: OverSeeds(tuple(r.features[k] for r in mine)) for k in FEATURES}}  # fmt: skip
+        out["attacks"][attack] = {
+            k: {"mean": v.mean, "sd": v.sd, "per_seed": list(v.values)} for k, v in figures.items()
+        }
+        print(f"| {attack} | " + " | ".join(v.text() for v in figures.values()) + " |")
+    print("\n| attack | feature | ROC-AUC, clean agents vs the attack's [95%] |")
+    print("|---|---|---|")
+    for attack in dict.fromkeys(r.attack for r in rows if r.attack != "clean"):
+        mine = [r for r in rows if r.attack == attack]
+        for k in FEATURES:
+            labels = torch.tensor([0] * len(clean_rows) + [1] * len(mine)).numpy()
+            scores = torch.tensor([r.features[k] for r in clean_rows + mine], dtype=torch.float64).numpy()
+            auc = roc_auc(labels, scores)
+            low, high = auc_interval(auc, len(mine), len(clean_rows))
+            out["auc"].setdefault(attack, {})[k] = {"auc": auc, "ci95": [low, high]}
+            print(f"| {attack} | {k} | {auc:.3f} [{low:.3f}, {high:.3f}] |")
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--attacks", default="in_distribution_patch,probe_camouflage")
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=None, help="env steps per agent (default: the preset's 1M)")
+    parser.add_argument("--episodes", type=int, default=300)
+    parser.add_argument("--out", required=True, help="folder of the trained agents (reused when finished)")
+    parser.add_argument("--json", default=None, help="also write the figures here")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    rows = [measure(attack, seed, args) for attack in ["clean", *args.attacks.split(",")] for seed in range(args.seeds)]
+    figures = summary(rows)
+    if args.json:
+        record = {
+            "command": "python benchmarks/probe_camouflage.py " + " ".join(sys.argv[1:]),
+            "date": datetime.date.today().isoformat(),
+            "settings": {
+                "seeds": args.seeds,
+                "steps": args.steps,
+                "episodes": args.episodes,
+                "probe": dataclasses.asdict(ProbeSettings()),
+            },
+            "agents": [
+                {
+                    "attack": r.attack,
+                    "seed": r.seed,
+                    "clean_success": r.clean_success.value,
+                    "clean_success_ci95": list(r.clean_success.interval),
+                    "attack_success": r.attack_success.value,
+                    "attack_success_ci95": list(r.attack_success.interval),
+                    "features": r.features,
+                }
+                for r in rows
+            ],
+            **figures,
+        }
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(record, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
