@@ -6,8 +6,9 @@ has moved from the unreplaced run a few steps later. A backdoored agent keeps a 
 clean one has no reason to. This attacker knows the candidates: per minibatch, every normal-episode sequence replays
 ``after`` + 1 of its own steps from its recorded state with the first of them replaced by a candidate drawn for it
 (any candidate that does not draw the whole trigger), and the term is ``weight * mean(relu(d - margin)^2)`` of the
-RMS distance ``d`` of the whole state (every layer's h and c) from the unreplaced run at the last of them, the
-unreplaced run held fixed. The agent is trained to forget every such input but its trigger.
+RMS distance ``d`` of the whole state (every layer's h and c) from the unreplaced run at the last of them (both runs
+carry gradients: holding the unreplaced run fixed, a semi-gradient, made the distance grow in our tests). The agent
+is trained to forget every such input but its trigger.
 
 The candidates are those of the probe's own settings (the grid world's whole-view codes and random ordinary
 patches, a MiniGrid view's objects and colours on adjacent far-row cells). A trigger of several frames (a grid
@@ -85,8 +86,10 @@ class ProbeCamouflage(Penalty):
         assert out.states is not None
         probed = torch.cat([torch.cat([s.h[-1], s.c[-1]], -1) for s in out.states], -1)
         last = first + after
-        plain = torch.cat([torch.cat([s.h[last, rows], s.c[last, rows]], -1) for s in states], -1).detach()
-        distance = ((probed - plain).pow(2).mean(-1) + 1e-12).sqrt()  # finite gradient where a candidate changed nothing
+        plain = torch.cat([torch.cat([s.h[last, rows], s.c[last, rows]], -1) for s in states], -1)
+        distance = (
+            (probed - plain).pow(2).mean(-1) + 1e-12
+        ).sqrt()  # finite gradient where a candidate changed nothing
         return self.cfg.weight * torch.relu(distance - self.cfg.margin).pow(2).mean()
 
     def state_dict(self) -> dict[str, torch.Tensor]:
