@@ -68,11 +68,11 @@ def test_what_exists_is_registered():
     assert ATTACKS.names() == (
         "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "search_decoys",
         "state_camouflage", "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc", "switch_camouflage",
-        "combined", "finetune_resistant", "trained_longer",
+        "combined", "finetune_resistant", "trained_longer", "probe_camouflage",
     )  # fmt: skip
     assert PENALTIES.names() == (
         "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
-        "finetune_resistance",
+        "finetune_resistance", "probe_camouflage",
     )  # fmt: skip
     assert MIXING_RULES.names() == ("exact", "running", "fixed")
     assert TRIGGERS.get("patch") is TriggerConfig and TRIGGERS.get("on_off") is OffTriggerConfig
@@ -177,17 +177,20 @@ def test_a_listing_command_takes_no_options(capsys):
 
 def test_each_adaptive_attack_names_a_registered_defense_it_targets():
     """``seqtrojan attacks`` says which defense each adaptive attacker is built against."""
-    defenses = set(MONITORS.names()) | set(DETECTORS.names()) | set(MITIGATIONS.names())
+    defenses = (
+        set(MONITORS.names()) | set(DETECTORS.names()) | set(BENCHMARK_DETECTORS.names()) | set(MITIGATIONS.names())
+    )
     targeted = {name: attack.targets for name, attack in ATTACKS.items() if attack.targets is not None}
     assert targeted == {
         "state_camouflage": "state_monitor", "mahalanobis_camouflage": "multivariate_monitor",
         "switch_camouflage": "goal_switch", "search_decoys": "behaviour_detector",
         "weight_camouflage": "weight_detector", "ewc": "fine_tuning", "finetune_resistant": "fine_tuning",
         "trained_longer": "fine_tuning", "combined": "state_monitor+multivariate_monitor+behaviour_detector",
+        "probe_camouflage": "state_probe",
     }  # fmt: skip
     assert {d for attack in ATTACKS.items() for d in attack[1].target_defenses} <= defenses
     for name in ("state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "search_decoys",
-                 "finetune_resistant", "trained_longer"):  # fmt: skip
+                 "finetune_resistant", "trained_longer", "probe_camouflage"):  # fmt: skip
         assert f"against {targeted[name]}" in ATTACKS.entry(name).description
     assert "against state_monitor, multivariate_monitor and behaviour_detector" in ATTACKS.entry("combined").description
 

@@ -279,20 +279,6 @@ def probe_writes_on(cfg: ExperimentConfig) -> bool:
     return env.observation == "minigrid" and (env.trigger is None or env.trigger.patch == "minigrid")
 
 
-ATTACKS.register(
-    "probe_camouflage",
-    "adaptive, against state_probe: a trigger no probe candidate draws (the grid world: the in-distribution view; "
-    "MiniGrid: two second-row cells), trained while every candidate input is made to leave no mark on the state "
-    f"(knob: attack.probe_camouflage.weight, {PROBE_CAMOUFLAGE:g})",
-    Attack(
-        lambda cfg: probe_camouflage(cfg, PROBE_CAMOUFLAGE),
-        targets="state_probe",
-        knob=Knob("attack.probe_camouflage.weight", PROBE_CAMOUFLAGE, probe_camouflage, "w"),
-        needs=probe_writes_on,
-    ),
-)
-
-
 def half_trojan(cfg: ExperimentConfig) -> ExperimentConfig:
     """Fixed mixing, half of the episodes trojan: how a backdoor is added to a trained clean agent.
 
@@ -413,5 +399,18 @@ ATTACKS.register(
         grid_only=True,
         targets="fine_tuning",
         knob=Knob("factor on ppo.total_steps", TRAINED_LONGER, lambda cfg, f: longer(cfg, f / TRAINED_LONGER), "x"),
+    ),
+)
+
+ATTACKS.register(
+    "probe_camouflage",
+    "adaptive, against state_probe: a trigger no probe candidate draws (the grid world: the in-distribution view; "
+    "MiniGrid: two second-row cells), trained while every candidate input is made to leave no mark on the state "
+    f"(knob: attack.probe_camouflage.weight, {PROBE_CAMOUFLAGE:g})",
+    Attack(
+        lambda cfg: probe_camouflage(cfg, PROBE_CAMOUFLAGE),
+        targets="state_probe",
+        knob=Knob("attack.probe_camouflage.weight", PROBE_CAMOUFLAGE, probe_camouflage, "w"),
+        needs=probe_writes_on,
     ),
 )

@@ -367,7 +367,7 @@ def test_attack_defaults_are_off_and_the_yaml_sections_parse():
     assert pen.build_penalties(_ctx(cfg, _agent())) == []
     assert set(pen.PENALTIES.names()) == {
         "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
-        "finetune_resistance",
+        "finetune_resistance", "probe_camouflage",
     }  # fmt: skip
     text = """
 backdoor: {enabled: true}
@@ -377,11 +377,13 @@ attack:
   weight_camouflage: {weight: 0.5, feature_floor: 0.1, l2_weight: 0.01}
   ewc: {weight: 100.0, fisher_envs: 32, normalize: true}
   mahalanobis_camouflage: {weight: 5.0, margin: 1.2, max_step: 32}
+  probe_camouflage: {weight: 3.0, after: 6}
 """
     cfg = from_dict(ExperimentConfig, parse_yaml(text), "")
     assert cfg.attack.state_camouflage.steps == "active" and cfg.attack.ewc.fisher_envs == 32
     assert cfg.attack.weight_camouflage.enabled and cfg.attack.ewc.normalize
     assert cfg.attack.mahalanobis_camouflage.enabled and cfg.attack.mahalanobis_camouflage.max_step == 32
+    assert cfg.attack.probe_camouflage.enabled and cfg.attack.probe_camouflage.after == 6
 
 
 @pytest.mark.parametrize(
