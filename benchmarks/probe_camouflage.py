@@ -14,9 +14,10 @@ Per agent: clean success and attack success on ``--episodes`` episodes per env (
 intervals; and the state probe's features (:func:`seqtrojan.benchmark.state_probe.probe_features`, its default
 settings: 48 clean episodes, a candidate at step 1, the state read 4 steps on), computed from the model and the
 clean env only, as the benchmark's detector computes them. Printed: each agent's figures; per attack the mean +- sd
-over seeds of each figure; and per attack and feature the ROC-AUC of that feature alone, the clean agents against
-the attack's (the larger the feature, the more suspect), with Newcombe's 95% interval. The detector itself is a
-classifier fitted on a zoo's features; this measures the features it reads, threshold-free.
+over seeds of each figure; per attack and feature the ROC-AUC of that feature alone, the clean agents against the
+attack's (the larger the feature, the more suspect), with Newcombe's 95% interval; and the detector as the benchmark
+fits it (a logistic regression on these features, here fitted on the clean agents and the first attack's, the plain
+backdoor) scoring each other attack's agents.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.benchmark.detectors import fit_features
 from seqtrojan.benchmark.scoring import roc_auc
 from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
 from seqtrojan.benchmark.suspect import ModelFacts, Suspect, clean_env
@@ -51,8 +53,8 @@ class Measured:
     attack: str
     """``clean`` for the clean agents"""
     seed: int
-    clean_success: Rate
-    attack_success: Rate
+    clean_success: float
+    attack_success: float
     features: dict[str, float]
 
 
@@ -62,7 +64,7 @@ def suspect_of(agent, cfg, name: str) -> Suspect:
     return Suspect(name, agent, clean_env(cfg.env), facts)
 
 
-def measure(attack: str, seed: int, args: argparse.Namespace) -> Measured:
+def measure(attack: str, seed: int, args: argparse.Namespace) -> tuple[Measured, tuple[Rate, Rate]]:
     if attack == "clean":
         agent, cfg, _ = load_agent(train_clean(seed, Path(args.out), args.steps))
         agent = agent.eval()
@@ -70,10 +72,10 @@ def measure(attack: str, seed: int, args: argparse.Namespace) -> Measured:
         agent, cfg = train_agent(attack, seed, Path(args.out), args.steps)
     clean, att = rates(agent, cfg, args.episodes, None)
     features = probe_features(suspect_of(agent, cfg, f"{attack}_s{seed}"), ProbeSettings())
-    row = Measured(attack, seed, clean, att, features)
+    row = Measured(attack, seed, clean.value, att.value, features)
     shown = "  ".join(f"{k} {features[k]:.4f}" for k in FEATURES)
     print(f"  {attack} s{seed}: clean {clean.text()}  attack {att.text()}  {shown}", flush=True)
-    return row
+    return row, (clean, att)
 
 
 def summary(rows: list[Measured]) -> dict:
@@ -83,8 +85,8 @@ def summary(rows: list[Measured]) -> dict:
     print("|---|---|---|" + "---|" * len(FEATURES))
     for attack in dict.fromkeys(r.attack for r in rows):
         mine = [r for r in rows if r.attack == attack]
-        figures = {"clean_success": OverSeeds(tuple(r.clean_success.value for r in mine)),
-                   "attack_success": OverSeeds(tuple(r.attack_success.value for r in mine)),
+        figures = {"clean_success": OverSeeds(tuple(r.clean_success for r in mine)),
+                   "attack_success": OverSeeds(tuple(r.attack_success for r in mine)),
                    **{k: OverSeeds(tuple(r.features[k] for r in mine)) for k in FEATURES}}  # fmt: skip
         out["attacks"][attack] = {
             k: {"mean": v.mean, "sd": v.sd, "per_seed": list(v.values)} for k, v in figures.items()
@@ -101,7 +103,26 @@ def summary(rows: list[Measured]) -> dict:
             low, high = auc_interval(auc, len(mine), len(clean_rows))
             out["auc"].setdefault(attack, {})[k] = {"auc": auc, "ci95": [low, high]}
             print(f"| {attack} | {k} | {auc:.3f} [{low:.3f}, {high:.3f}] |")
+    fitted = fitted_probe(rows)
+    if fitted:
+        print(f"\n| attack | P(poisoned) from the probe fitted on clean vs {fitted['fitted_on']} agents, per seed |")
+        print("|---|---|")
+        for attack, values in fitted["probability"].items():
+            print(f"| {attack} | {', '.join(f'{v:.3f}' for v in values)} |")
+    out["fitted_probe"] = fitted
     return out
+
+
+def fitted_probe(rows: list[Measured]) -> dict:
+    """The benchmark's detector as it would be fitted: a logistic regression on the probe's features of the clean
+    agents and the first attack's (the plain backdoor), then each other attack's agents scored with it."""
+    attacks = list(dict.fromkeys(r.attack for r in rows if r.attack != "clean"))
+    if len(attacks) < 2:
+        return {}
+    train = [r for r in rows if r.attack in ("clean", attacks[0])]
+    model = fit_features(lambda r: r.features, train, [int(r.attack != "clean") for r in train])  # type: ignore[arg-type, return-value]
+    scored = {a: [model.probability(r) for r in rows if r.attack == a] for a in attacks[1:]}  # type: ignore[arg-type]
+    return {"fitted_on": attacks[0], "probability": scored}
 
 
 def main() -> None:
@@ -110,11 +131,24 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--steps", type=int, default=None, help="env steps per agent (default: the preset's 1M)")
     parser.add_argument("--episodes", type=int, default=300)
-    parser.add_argument("--out", required=True, help="folder of the trained agents (reused when finished)")
+    parser.add_argument("--out", default=None, help="folder of the trained agents (reused when finished)")
     parser.add_argument("--json", default=None, help="also write the figures here")
+    parser.add_argument("--table", default=None, help="print the tables of a JSON file this script wrote, and stop")
     args = parser.parse_args()
+    if args.table:
+        agents = json.loads(Path(args.table).read_text())["agents"]
+        summary([Measured(a["attack"], a["seed"], a["clean_success"], a["attack_success"], a["features"])
+                 for a in agents])  # fmt: skip
+        return
+    if not args.out:
+        parser.error("--out is required to train and measure")
     torch.set_num_threads(1)
-    rows = [measure(attack, seed, args) for attack in ["clean", *args.attacks.split(",")] for seed in range(args.seeds)]
+    rates_of: dict[tuple[str, int], tuple[Rate, Rate]] = {}
+    rows = []
+    for attack in ["clean", *args.attacks.split(",")]:
+        for seed in range(args.seeds):
+            row, rates_of[attack, seed] = measure(attack, seed, args)
+            rows.append(row)
     figures = summary(rows)
     if args.json:
         record = {
@@ -130,10 +164,10 @@ def main() -> None:
                 {
                     "attack": r.attack,
                     "seed": r.seed,
-                    "clean_success": r.clean_success.value,
-                    "clean_success_ci95": list(r.clean_success.interval),
-                    "attack_success": r.attack_success.value,
-                    "attack_success_ci95": list(r.attack_success.interval),
+                    "clean_success": r.clean_success,
+                    "clean_success_ci95": list(rates_of[r.attack, r.seed][0].interval),
+                    "attack_success": r.attack_success,
+                    "attack_success_ci95": list(rates_of[r.attack, r.seed][1].interval),
                     "features": r.features,
                 }
                 for r in rows
