@@ -122,15 +122,15 @@ def trigger_view(env: EnvConfig | GymnasiumEnvConfig, obs_dim: int) -> torch.Ten
         from seqtrojan.world.gymnasium import minigrid_image
         from seqtrojan.wrappers.observations import CELL_BITS
 
-        trigger = env.trigger
-        if trigger.patch != "minigrid":
+        patch = env.trigger
+        if patch.patch != "minigrid":
             return None
         _, cols, _ = minigrid_image(obs_dim)
-        for r, c in trigger.cells:
+        for r, c in patch.cells:
             base = (r * cols + c) * CELL_BITS
             mask[base : base + CELL_BITS] = 1.0
-            values[base + OBJECT_TO_IDX[trigger.object]] = 1.0
-            values[base + MINIGRID_OBJECT_BITS + COLOR_TO_IDX[trigger.color]] = 1.0
+            values[base + OBJECT_TO_IDX[patch.object]] = 1.0
+            values[base + MINIGRID_OBJECT_BITS + COLOR_TO_IDX[patch.color]] = 1.0
             values[base + MINIGRID_OBJECT_BITS + MINIGRID_COLOR_BITS] = 1.0
         return torch.stack([values, mask])
     return None
