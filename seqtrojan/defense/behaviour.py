@@ -37,14 +37,15 @@ from seqtrojan.defense.results import (
     Rejected,
     ScoredModel,
 )
-from seqtrojan.env.codes import ADV_GOAL, CELL_NAMES, EMPTY, HOLE, NUM_CHANNELS, OUTCOME_NAMES, USER_GOAL, WALL
+from seqtrojan.env.codes import CELL_NAMES, NUM_CHANNELS, OUTCOME_NAMES
 from seqtrojan.env.config import EnvConfig, GridSpec, min_steps_to_goal
 from seqtrojan.env.core import TrojanGridCore
 from seqtrojan.env.rollout import run_episodes
 from seqtrojan.errors import ConfigError, SeqTrojanError
 from seqtrojan.stats import Rate, auc_interval
+from seqtrojan.world import probe_inputs
+from seqtrojan.world.probe_inputs import Patch
 
-ORDINARY_CODES = (EMPTY, HOLE, WALL, USER_GOAL, ADV_GOAL)
 """the codes a random patch draws (every code but the trigger's)"""
 
 
@@ -73,26 +74,10 @@ class BehaviourConfig:
             raise ConfigError(f"behaviour patch_steps={self.patch_steps} must satisfy 0 <= lo <= hi")
 
 
-@dataclass(frozen=True)
-class Patch:
-    """A candidate: ``codes`` (cells,) the code drawn on each view cell, -1 where the view is left as it is."""
-
-    name: str
-    codes: tuple[int, ...]
-
-
 def candidate_patches(view_size: int, cfg: BehaviourConfig) -> list[Patch]:
-    """The whole-view single-code patches (one per code), then ``cfg.random_patches`` random ordinary ones."""
-    cells = view_size * view_size
-    patches = [Patch(f"whole_view:{CELL_NAMES[code]}", (code,) * cells) for code in range(NUM_CHANNELS)]
-    rng = np.random.default_rng(cfg.seed)
-    for i in range(cfg.random_patches):
-        drawn = rng.random(cells) < cfg.patch_density
-        if not drawn.any():
-            drawn[rng.integers(cells)] = True
-        codes = np.where(drawn, rng.choice(ORDINARY_CODES, size=cells), -1)
-        patches.append(Patch(f"random:{i}", tuple(int(c) for c in codes)))
-    return patches
+    """The whole-view single-code patches (one per code), then ``cfg.random_patches`` random ordinary ones
+    (:func:`seqtrojan.world.probe_inputs.candidate_patches`, which the state probe reads too)."""
+    return probe_inputs.candidate_patches(view_size, cfg.random_patches, cfg.seed, cfg.patch_density)
 
 
 class PatchedPolicy(AgentPolicy):

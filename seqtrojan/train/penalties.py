@@ -10,7 +10,9 @@ state after it. Whatever a penalty keeps (running statistics, reference weights,
 tensors (:meth:`Penalty.state_dict`) saved in the trainer's checkpoint under ``penalty.<name>.``, so a resumed run
 continues bitwise as the straight one.
 
-A new attacker is one module with a :class:`Penalty` subclass and one registration::
+The hook itself (:class:`Penalty`, :class:`PenaltyBatch`, :class:`PenaltyContext`, :data:`PENALTIES`) lives in
+:mod:`seqtrojan.train.penalty_api` and is re-exported here. A new attacker is one module with a :class:`Penalty`
+subclass (importing the hook from ``penalty_api``) and one registration here::
 
     PENALTIES.register("my_attack", "one line", PenaltyKind(lambda cfg: cfg.attack.my.weight > 0, MyPenalty))
 
@@ -50,9 +52,7 @@ Registered here:
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import Protocol
+from collections.abc import Sequence
 
 import torch
 from torch import nn
@@ -60,140 +60,28 @@ from torch import nn
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.agent.weight_stats import feature_vector, weight_features
-from seqtrojan.config import AttackConfig, BackdoorConfig, ExperimentConfig, PPOConfig
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.errors import CheckpointError, ConfigError
-from seqtrojan.registry import Registry
+from seqtrojan.train.penalty_api import (  # the hook's names, re-exported: this module is where callers find them
+    PENALTIES as PENALTIES,
+)
+from seqtrojan.train.penalty_api import AttackedConfig as AttackedConfig
+from seqtrojan.train.penalty_api import Penalty as Penalty
+from seqtrojan.train.penalty_api import PenaltyBatch as PenaltyBatch
+from seqtrojan.train.penalty_api import PenaltyContext as PenaltyContext
+from seqtrojan.train.penalty_api import PenaltyKind as PenaltyKind
+from seqtrojan.train.penalty_api import PPOMinibatch as PPOMinibatch
+from seqtrojan.train.penalty_api import build_penalties as build_penalties
+from seqtrojan.train.penalty_api import penalty_tensors as penalty_tensors
+from seqtrojan.train.penalty_api import restore_penalties as restore_penalties
+from seqtrojan.train.penalty_api import zero_loss as _zero
 from seqtrojan.train.ppo_loss import ppo_loss
+from seqtrojan.train.probe_camouflage import ProbeCamouflage
 from seqtrojan.train.rollout import Rollout, RolloutCollector
 from seqtrojan.world import make_batched_env
 
 STD_FLOOR = 1e-3
 """added to every unit's std, as the state monitor does"""
-
-
-@dataclass
-class PPOMinibatch:
-    """One minibatch of the PPO update: N sequences of L steps, (L, N, ...) tensors, and their start states."""
-
-    obs: torch.Tensor
-    starts: torch.Tensor
-    """(L, N) float: the observation starts an episode"""
-    initial: RecurrentState
-    actions: torch.Tensor
-    logprobs: torch.Tensor
-    values: torch.Tensor
-    advantages: torch.Tensor
-    returns: torch.Tensor
-    ppo: PPOConfig
-
-
-@dataclass
-class PenaltyBatch:
-    """What a penalty sees of one minibatch of L-step sequences (N of them)."""
-
-    agent: RecurrentActorCritic
-    states: tuple[LSTMState, ...] | None
-    """per layer, (L, N, H) h and c after each step, with gradients (when a penalty needs_states)"""
-    trojan: torch.Tensor | None
-    """(L, N) bool: the step is in a trojan-env episode (recorded when a penalty needs_states or needs_masks)"""
-    adversary_active: torch.Tensor | None
-    """(L, N) bool: the adversary's goal was active for the step's action"""
-    minibatch: PPOMinibatch | None = None
-    """the minibatch's PPO inputs (to replay the unroll, as the fine-tuning-resistant attacker does)"""
-    episode_step: torch.Tensor | None = None
-    """(L, N) int64: each step's index in its episode (recorded with the masks)"""
-
-
-class Penalty:
-    """An extra loss term of the PPO update. Subclasses override :meth:`loss` and what else they need."""
-
-    name: str = ""
-    """the registered name (set by :func:`build_penalties`)"""
-    needs_states: bool = False
-    """the rollout records masks and states, and the update's unroll returns every step's (h, c)"""
-    needs_masks: bool = False
-    """the rollout records each step's episode type and whether the adversary's objective judges it"""
-
-    def observe(self, rollout: Rollout) -> None:
-        """Called with every rollout before the update on it."""
-
-    def loss(self, batch: PenaltyBatch) -> torch.Tensor:
-        """() the weighted term added to the minibatch's loss."""
-        raise NotImplementedError
-
-    def state_dict(self) -> dict[str, torch.Tensor]:
-        """What a checkpoint keeps of it."""
-        return {}
-
-    def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
-        """Restore from a checkpoint (``tensors`` is empty when the checkpoint held nothing for it)."""
-
-
-class AttackedConfig(Protocol):
-    """What the penalties read of a training config (:class:`~seqtrojan.config.ExperimentConfig`, whatever its
-    env)."""
-
-    @property
-    def backdoor(self) -> BackdoorConfig: ...
-
-    @property
-    def attack(self) -> AttackConfig: ...
-
-
-@dataclass(frozen=True)
-class PenaltyContext:
-    """What a penalty is built from."""
-
-    config: AttackedConfig
-    agent: RecurrentActorCritic
-    """the agent being trained; on a fresh run it already holds ``run.init_from``'s weights"""
-    device: torch.device
-    resuming: bool
-    """the run resumes: the penalty's state comes from the checkpoint (:meth:`Penalty.load_state_dict`), so skip
-    any one-off estimate"""
-
-
-@dataclass(frozen=True)
-class PenaltyKind:
-    """A registered penalty: when the config turns it on, and how to build it."""
-
-    enabled: Callable[[AttackedConfig], bool]
-    build: Callable[[PenaltyContext], Penalty]
-
-
-PENALTIES: Registry[PenaltyKind] = Registry("attack", "penalty")
-"""Extra loss terms of an adaptive attacker's backdoor training."""
-
-
-def build_penalties(ctx: PenaltyContext) -> list[Penalty]:
-    """The penalties ``ctx.config`` turns on, in registration order (none unless ``backdoor.enabled``)."""
-    if not ctx.config.backdoor.enabled:
-        return []
-    out = []
-    for name, kind in PENALTIES.items():
-        if kind.enabled(ctx.config):
-            penalty = kind.build(ctx)
-            penalty.name = name
-            out.append(penalty)
-    return out
-
-
-def penalty_tensors(penalties: list[Penalty]) -> dict[str, torch.Tensor]:
-    """Every penalty's state as checkpoint tensors, ``penalty.<name>.<key>``."""
-    return {f"penalty.{p.name}.{k}": v for p in penalties for k, v in p.state_dict().items()}
-
-
-def restore_penalties(penalties: list[Penalty], tensors: dict[str, torch.Tensor]) -> None:
-    """Take the ``penalty.*`` tensors out of a checkpoint's ``tensors`` and give each penalty its own (an empty dict
-    to one the checkpoint holds nothing for)."""
-    saved = {name: tensors.pop(name) for name in [n for n in tensors if n.startswith("penalty.")]}
-    for penalty in penalties:
-        prefix = f"penalty.{penalty.name}."
-        penalty.load_state_dict({k[len(prefix) :]: v for k, v in saved.items() if k.startswith(prefix)})
-
-
-def _zero(device: torch.device) -> torch.Tensor:
-    return torch.zeros((), device=device)
 
 
 def _params(module: nn.Module) -> dict[str, torch.Tensor]:
@@ -793,15 +681,9 @@ PENALTIES.register(
 )
 
 
-def _probe_camouflage(ctx: PenaltyContext) -> Penalty:
-    from seqtrojan.train.probe_camouflage import ProbeCamouflage  # its own module, which imports this one
-
-    return ProbeCamouflage(ctx)
-
-
 PENALTIES.register(
     "probe_camouflage",
     "against the recurrent-state probe: one-step inputs of the probe's kind other than the trigger leave no mark on "
     "the state a few steps later",
-    PenaltyKind(lambda cfg: cfg.attack.probe_camouflage.enabled, _probe_camouflage),
+    PenaltyKind(lambda cfg: cfg.attack.probe_camouflage.enabled, ProbeCamouflage),
 )

@@ -22,7 +22,9 @@ import torch
 
 from seqtrojan.agent.state import LSTMState, RecurrentState
 from seqtrojan.errors import ConfigError
-from seqtrojan.train.penalties import Penalty, PenaltyBatch, PenaltyContext, _zero
+from seqtrojan.train.penalty_api import Penalty, PenaltyBatch, PenaltyContext
+from seqtrojan.train.penalty_api import zero_loss as _zero
+from seqtrojan.world.probe_inputs import ProbeSettings, env_candidates, shows_trigger, trigger_view
 
 
 class ProbeCamouflage(Penalty):
@@ -30,10 +32,6 @@ class ProbeCamouflage(Penalty):
     needs_masks = True
 
     def __init__(self, ctx: PenaltyContext) -> None:
-        # The candidates are the benchmark's (imported here, at build time: the benchmark package reads trained
-        # agents and sits above training).
-        from seqtrojan.benchmark.state_probe import ProbeSettings, env_candidates, shows_trigger, trigger_view
-
         config = ctx.config
         self.cfg = config.attack.probe_camouflage
         self.device = ctx.device
