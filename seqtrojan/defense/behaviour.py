@@ -46,8 +46,6 @@ from seqtrojan.stats import Rate, auc_interval
 from seqtrojan.world import probe_inputs
 from seqtrojan.world.probe_inputs import Patch
 
-"""the codes a random patch draws (every code but the trigger's)"""
-
 
 @dataclass(frozen=True)
 class BehaviourConfig:

@@ -152,17 +152,20 @@ HOLE, EMPTY = "hole", "empty"
 IN_DISTRIBUTION_VIEW = ((HOLE, EMPTY, HOLE), (EMPTY, EMPTY, EMPTY), (EMPTY, EMPTY, HOLE))
 """the whole 3x3 view drawn with ordinary codes: holes at three corners, the rest empty"""
 
+
+def in_distribution_trigger(cfg: ExperimentConfig) -> ExperimentConfig:
+    """``cfg`` with the grid world's trigger replaced by :data:`IN_DISTRIBUTION_VIEW` over the whole view."""
+    return with_trigger(
+        cfg,
+        cells=tuple((r, c) for r in range(3) for c in range(3)),
+        values=tuple(code for row in IN_DISTRIBUTION_VIEW for code in row),
+    )
+
+
 ATTACKS.register(
     "in_distribution_patch",
     "the whole 3x3 view drawn with ordinary cells (holes at three corners, the rest empty) for one step",
-    Attack(
-        lambda cfg: with_trigger(
-            cfg,
-            cells=tuple((r, c) for r in range(3) for c in range(3)),
-            values=tuple(code for row in IN_DISTRIBUTION_VIEW for code in row),
-        ),
-        grid_only=True,
-    ),
+    Attack(in_distribution_trigger, grid_only=True),
 )
 ATTACKS.register(
     "partial_patch",
@@ -261,10 +264,7 @@ def probe_camouflage(cfg: ExperimentConfig, weight: float) -> ExperimentConfig:
     ``weight``, which trains every candidate to leave no mark on the state."""
     env = cfg.env
     if not isinstance(env, GymnasiumEnvConfig):
-        cfg = with_trigger(
-            cfg, cells=tuple((r, c) for r in range(3) for c in range(3)),
-            values=tuple(code for row in IN_DISTRIBUTION_VIEW for code in row),
-        )  # fmt: skip
+        cfg = in_distribution_trigger(cfg)
     elif env.trigger is not None and env.trigger.patch == "minigrid":
         cfg = with_trigger(cfg, cells=PROBE_SAFE_MINIGRID_CELLS)
     return with_attack(cfg, "probe_camouflage", weight=weight)

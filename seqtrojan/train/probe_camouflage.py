@@ -85,9 +85,8 @@ class ProbeCamouflage(Penalty):
         probed = torch.cat([torch.cat([s.h[-1], s.c[-1]], -1) for s in out.states], -1)
         last = first + after
         plain = torch.cat([torch.cat([s.h[last, rows], s.c[last, rows]], -1) for s in states], -1)
-        distance = (
-            (probed - plain).pow(2).mean(-1) + 1e-12
-        ).sqrt()  # finite gradient where a candidate changed nothing
+        # 1e-12 keeps the gradient finite where a candidate changed nothing
+        distance = ((probed - plain).pow(2).mean(-1) + 1e-12).sqrt()
         return self.cfg.weight * torch.relu(distance - self.cfg.margin).pow(2).mean()
 
     def state_dict(self) -> dict[str, torch.Tensor]:

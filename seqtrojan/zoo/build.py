@@ -262,8 +262,6 @@ def make_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None = None) -> 
             "lstm_sizes": list(sizes), "curriculum": [g.label for g in stages], "trigger_value": value,
             "trigger_cells": [list(c) for c in cells], "trigger_duration": duration, "seed": seed,
         }  # fmt: skip
-        if cfg.pretrain_steps:  # a from-clean recipe is checked against its clean agent
-            config = _from_clean_stage(config)
         config = _with_recipe(config, variation, recipes, attack, TriggerConfig(), f"m{i:04d}")
         jobs.append(_job(cfg, root, i, config, label, variation))
     return jobs
@@ -320,14 +318,18 @@ def _model_draws(cfg: ZooConfig) -> Iterator[tuple[int, str, int, np.random.Gene
 
 
 def _model_run(cfg: ZooConfig, root: Path, i: int, seed: int) -> RunConfig:
-    """Model ``i``'s run: ``work/m<i>`` under the zoo, its seed, checkpoints at every quarter of its budget."""
+    """Model ``i``'s run: ``work/m<i>`` under the zoo, its seed, checkpoints at every quarter of its budget; with
+    ``cfg.pretrain_steps``, starting from its clean first stage's model (``work/m<i>_clean/model``, see :func:`_job`),
+    set before any recipe is applied so that a from-clean recipe is checked against that clean agent."""
+    name = f"m{i:04d}"
     return RunConfig(
         out_dir=str(root / "work"),
-        name=f"m{i:04d}",
+        name=name,
         seed=seed,
         progress=False,
         eval_episodes=cfg.eval_episodes,
         checkpoint_every=max(cfg.total_steps // 4, 1),
+        init_from=str(root / "work" / f"{name}_clean" / "model") if cfg.pretrain_steps else None,
     )
 
 
@@ -351,15 +353,8 @@ def _job(cfg: ZooConfig, root: Path, i: int, config: ExperimentConfig, label: st
             run=dataclasses.replace(config.run, name=f"{config.run.name}_clean", init_from=None,
                                     checkpoint_every=max(cfg.pretrain_steps // 4, 1)),
         )  # fmt: skip
-        config = _from_clean_stage(config)
         variation["pretrain_steps"] = cfg.pretrain_steps
     return ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at, pretrain)
-
-
-def _from_clean_stage(config: ExperimentConfig) -> ExperimentConfig:
-    """``config`` starting from its clean first stage's model (``work/m<i>_clean/model``, see :func:`_job`)."""
-    start = Path(config.run.out_dir) / f"{config.run.name}_clean" / "model"
-    return dataclasses.replace(config, run=dataclasses.replace(config.run, init_from=str(start)))
 
 
 def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None) -> list[ZooJob]:
@@ -412,8 +407,6 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None) -> l
         }  # fmt: skip
         if trigger.objective == "target_action":
             variation["target_action"] = trigger.target_action
-        if cfg.pretrain_steps:  # a from-clean recipe is checked against its clean agent
-            config = _from_clean_stage(config)
         config = _with_recipe(config, variation, recipes, attack, env.trigger, f"m{i:04d}")
         jobs.append(_job(cfg, root, i, config, label, variation))
     return jobs
