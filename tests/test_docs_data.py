@@ -128,13 +128,26 @@ LEADERBOARD_TABLES = [
     ("benchmark/leaderboard_smoke_300k.json", "benchmark.md"),
     ("benchmark/leaderboard_attacks.json", "benchmark.md"),
     ("benchmark/leaderboard_minigrid_memory.json", "benchmark.md"),
+    ("benchmark/leaderboard_minigrid_memory_attacks.json", "benchmark.md"),
+    ("benchmark/leaderboard_minigrid_memory_attacks.json", "results.md"),
 ]
 """a leaderboard and the page holding its table as ``scripts/leaderboard_markdown.py`` prints it"""
 
 
-@pytest.mark.parametrize(("data", "page"), LEADERBOARD_TABLES)
-def test_leaderboard_tables_printed_by_the_script_are_in_the_docs(data, page):
-    printed = _printed("scripts/leaderboard_markdown.py", str(DATA / data))
+LEADERBOARD_FACTOR_TABLES = [
+    (
+        "benchmark/leaderboard_minigrid_memory_attacks.json", "benchmark.md",
+        ("--by", "attack", "--detectors", "weight_statistics,state_probe,query_response,trigger_reconstruction"),
+    ),
+]  # fmt: skip
+"""the same, for a breakdown by one factor (the script's options)"""
+
+
+@pytest.mark.parametrize(
+    ("data", "page", "options"), [(d, p, ()) for d, p in LEADERBOARD_TABLES] + LEADERBOARD_FACTOR_TABLES
+)
+def test_leaderboard_tables_printed_by_the_script_are_in_the_docs(data, page, options):
+    printed = _printed("scripts/leaderboard_markdown.py", str(DATA / data), *options)
     text = (ROOT / "docs" / page).read_text()
     missing = [line for line in printed.splitlines() if line not in text]
     assert len(printed.splitlines()) > 4 and not missing, f"docs/{page} lacks {missing[:1]} of {data}"
