@@ -17,6 +17,9 @@ scores every registered one.
 - ``state_probe``: one-step candidate inputs (in the observation's own encoding) replayed over recorded clean
   episodes, and how far and how persistently they move the recurrent state once gone from view
   (:mod:`seqtrojan.benchmark.state_probe`); grid world and MiniGrid views.
+- ``state_probe_deviation``: the state probe's features read on both sides (:func:`fit_deviations`): how far they
+  lie from the train split's clean models', above or below; the answer to an attacker who trains the state to
+  remember less than a clean agent's (``probe_camouflage``).
 - ``trigger_reconstruction``: a relaxed one-step trigger (mask and pattern over the view) optimised by gradient to
   change the policy most over the steps after it has left the view, with an L1 size penalty: the recurrent
   Neural Cleanse (:mod:`seqtrojan.benchmark.reconstruction`); grid world and MiniGrid views.
@@ -84,7 +87,7 @@ class FeatureModel:
         if self.constant is not None:
             return self.constant
         row = self.features(suspect)
-        x = np.nan_to_num(np.array([[row.get(n, 0.0) for n in self.names]]), nan=0.0, posinf=0.0, neginf=0.0)
+        x = _finite(np.array([[row.get(n, 0.0) for n in self.names]]))
         return float(self.pipeline.predict_proba(x)[0, 1])
 
 
@@ -99,8 +102,73 @@ def fit_features(
     y = np.asarray(labels, dtype=np.int64)
     if len(set(y.tolist())) < 2 or not names:
         return FeatureModel(features, names, None, float(y.mean()))
-    x = np.nan_to_num(np.array([[r[n] for n in names] for r in rows]), nan=0.0, posinf=0.0, neginf=0.0)
+    x = _finite(np.array([[r[n] for n in names] for r in rows]))
     return FeatureModel(features, names, _classifier().fit(x, y))
+
+
+@dataclass(frozen=True)
+class DeviationModel:
+    """A logistic regression on how far a suspect's features lie from the train split's clean models', on either
+    side: per feature ``log(1 + z^2)``, z the feature's distance from the clean models' mean in units of their
+    spread. A feature pushed below every clean model's value is as suspect as one above."""
+
+    features: Callable[[Suspect], dict[str, float]]
+    names: tuple[str, ...]
+    clean_mean: np.ndarray
+    clean_sd: np.ndarray
+    pipeline: Any
+    constant: float | None = None
+
+    def probability(self, suspect: Suspect) -> float:
+        if self.constant is not None:
+            return self.constant
+        row = self.features(suspect)
+        x = _finite(np.array([[row.get(n, 0.0) for n in self.names]]))
+        return float(self.pipeline.predict_proba(_deviation(x, self.clean_mean, self.clean_sd))[0, 1])
+
+
+MIN_CLEAN_FOR_DEVIATION = 3
+"""clean train models a :class:`DeviationModel` needs (each one's own deviation is measured against the others)"""
+
+
+def _finite(x: np.ndarray) -> np.ndarray:
+    return np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def _spread(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per column: the mean and the sample standard deviation, floored at 1% of the mean's size (plus 1e-6) so
+    that a feature on which the clean models agree exactly does not make every other value infinitely far."""
+    mean = x.mean(0)
+    return mean, np.maximum(x.std(0, ddof=1), 0.01 * np.abs(mean) + 1e-6)
+
+
+def _deviation(x: np.ndarray, mean: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    return np.log1p(((x - mean) / sd) ** 2)
+
+
+def fit_deviations(
+    features: Callable[[Suspect], dict[str, float]], suspects: Sequence[Suspect], labels: Sequence[int]
+) -> DeviationModel:
+    """A :class:`DeviationModel` on the features every train suspect has. Each clean train model's deviation is
+    measured against the other clean models (leave one out), as a clean model the detector has never seen would be;
+    fewer than :data:`MIN_CLEAN_FOR_DEVIATION` clean train models, or one label only: it answers the train split's
+    poisoned share."""
+    if not suspects:
+        raise SeqTrojanError("a detector needs train models to fit on")
+    rows = [features(s) for s in suspects]
+    names = tuple(sorted(set.intersection(*(set(r) for r in rows))))
+    y = np.asarray(labels, dtype=np.int64)
+    clean = np.flatnonzero(y == 0)
+    empty = np.zeros(len(names))
+    if len(set(y.tolist())) < 2 or not names or len(clean) < MIN_CLEAN_FOR_DEVIATION:
+        return DeviationModel(features, names, empty, empty, None, float(y.mean()))
+    x = _finite(np.array([[r[n] for n in names] for r in rows]))
+    mean, sd = _spread(x[clean])
+    z = _deviation(x, mean, sd)
+    for i in clean:
+        others_mean, others_sd = _spread(x[clean[clean != i]])
+        z[i] = _deviation(x[i : i + 1], others_mean, others_sd)[0]
+    return DeviationModel(features, names, mean, sd, _classifier().fit(z, y))
 
 
 def metadata_features(suspect: Suspect) -> dict[str, float]:
@@ -182,7 +250,7 @@ class _Search:
 class _Abstaining:
     """A fitted detector that answers :data:`NO_OPINION` for a suspect it does not apply to."""
 
-    model: FeatureModel
+    model: FittedDetector
     applies: Callable[[Suspect], bool]
 
     def probability(self, suspect: Suspect) -> float:
@@ -192,10 +260,12 @@ class _Abstaining:
 
 
 def _fit_abstaining(
-    compute: Callable[[Suspect], dict[str, float]], suspects: Sequence[Suspect], labels: Sequence[int]
-) -> FittedDetector:
-    """A logistic regression on features that are costly (each suspect's computed once, then kept) and empty where
-    they do not apply to a suspect (it then answers :data:`NO_OPINION`)."""
+    compute: Callable[[Suspect], dict[str, float]], suspects: Sequence[Suspect], labels: Sequence[int],
+    fit: Callable[..., FittedDetector] = fit_features,
+) -> FittedDetector:  # fmt: skip
+    """A logistic regression (``fit``: :func:`fit_features` or :func:`fit_deviations`) on features that are costly
+    (each suspect's computed once, then kept) and empty where they do not apply to a suspect (it then answers
+    :data:`NO_OPINION`)."""
     cache: dict[int, dict[str, float]] = {}
 
     def features(suspect: Suspect) -> dict[str, float]:
@@ -203,7 +273,7 @@ def _fit_abstaining(
             cache[id(suspect)] = compute(suspect)
         return cache[id(suspect)]
 
-    return _Abstaining(fit_features(features, suspects, labels), lambda s: bool(features(s)))
+    return _Abstaining(fit(features, suspects, labels), lambda s: bool(features(s)))
 
 
 @dataclass(frozen=True)
@@ -215,6 +285,20 @@ class StateProbe:
 
     def fit(self, suspects: Sequence[Suspect], labels: Sequence[int]) -> FittedDetector:
         return _fit_abstaining(lambda suspect: probe_features(suspect, self.settings), suspects, labels)
+
+
+@dataclass(frozen=True)
+class StateProbeDeviation:
+    """The state probe's features read on both sides (:func:`fit_deviations`): how far they lie from the train
+    split's clean models', so that a state trained to remember less than a clean one (the ``probe_camouflage``
+    attacker) is as suspect as one that remembers a trigger."""
+
+    settings: ProbeSettings = field(default_factory=ProbeSettings)
+
+    def fit(self, suspects: Sequence[Suspect], labels: Sequence[int]) -> FittedDetector:
+        return _fit_abstaining(
+            lambda suspect: probe_features(suspect, self.settings), suspects, labels, fit=fit_deviations
+        )
 
 
 @dataclass(frozen=True)
@@ -308,6 +392,12 @@ DETECTORS.register(
 DETECTORS.register(
     "state_probe", "one-step candidate inputs whose mark on the recurrent state persists after they are gone",
     StateProbe(),
+)  # fmt: skip
+DETECTORS.register(
+    "state_probe_deviation",
+    "the state probe's features read on both sides: their distance from the train split's clean models', so a "
+    "state that remembers less than a clean one is suspect too",
+    StateProbeDeviation(),
 )  # fmt: skip
 DETECTORS.register(
     "query_response", "meta-classifier on the policy's and state's answers to fixed clean probe episodes",

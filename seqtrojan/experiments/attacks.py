@@ -270,6 +270,18 @@ def probe_camouflage(cfg: ExperimentConfig, weight: float) -> ExperimentConfig:
     return with_attack(cfg, "probe_camouflage", weight=weight)
 
 
+PROBE_MIMICRY_MARGIN = 0.2
+"""the ``probe_mimicry`` recipe's margin: the RMS mark a candidate may leave on the state for free, about the largest
+mark a clean grid agent's state keeps of one (the probe's ``divergence_max`` of clean smoke-scale agents: 0.16-0.38)"""
+
+
+def probe_mimicry(cfg: ExperimentConfig, margin: float) -> ExperimentConfig:
+    """:func:`probe_camouflage` at its weight with ``attack.probe_camouflage.margin`` at ``margin``: each
+    candidate's mark is pushed down to the margin, not to zero, so that the state remembers as much as a clean
+    agent's, not less."""
+    return with_attack(probe_camouflage(cfg, PROBE_CAMOUFLAGE), "probe_camouflage", margin=margin)
+
+
 def probe_writes_on(cfg: ExperimentConfig) -> bool:
     """Whether the state probe has candidates on the config's observations: the grid world's and a MiniGrid
     one-hot view's (a MiniGrid patch trigger)."""
@@ -411,6 +423,18 @@ ATTACKS.register(
         lambda cfg: probe_camouflage(cfg, PROBE_CAMOUFLAGE),
         targets="state_probe",
         knob=Knob("attack.probe_camouflage.weight", PROBE_CAMOUFLAGE, probe_camouflage, "w"),
+        needs=probe_writes_on,
+    ),
+)
+ATTACKS.register(
+    "probe_mimicry",
+    "adaptive, against state_probe_deviation: probe_camouflage that pushes each candidate's mark on the state down "
+    "to a margin, not to zero, so the probe's features sit inside the clean agents' range instead of below it "
+    f"(knob: attack.probe_camouflage.margin, {PROBE_MIMICRY_MARGIN:g})",
+    Attack(
+        lambda cfg: probe_mimicry(cfg, PROBE_MIMICRY_MARGIN),
+        targets="state_probe_deviation",
+        knob=Knob("attack.probe_camouflage.margin", PROBE_MIMICRY_MARGIN, probe_mimicry, "m"),
         needs=probe_writes_on,
     ),
 )
