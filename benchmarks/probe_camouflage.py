@@ -3,6 +3,8 @@ attacker's penalty and beside clean agents, over training seeds.
 
     python benchmarks/probe_camouflage.py --out /tmp/pc --json docs/data/defenses/probe_camouflage_2026-12-04.json
     python benchmarks/probe_camouflage.py --attacks in_distribution_patch,probe_camouflage/3 --out /tmp/pc
+    python benchmarks/probe_camouflage.py --attacks in_distribution_patch,probe_camouflage,probe_mimicry/0.1 \
+        --seeds 5 --out /tmp/pc
 
 Agents: the matrix smoke preset's (7x7/3, LSTM 64-32, curriculum 5x5/0 -> 5x5/1 -> 7x7/3, running mixing, 1M env
 steps unless ``--steps``), trained as ``benchmarks/state_bounds.py`` trains them (training seeds ``0..seeds-1``, one
@@ -15,15 +17,18 @@ intervals; and the state probe's features (:func:`seqtrojan.benchmark.state_prob
 settings: 48 clean episodes, a candidate at step 1, the state read 4 steps on), computed from the model and the
 clean env only, as the benchmark's detector computes them. Printed: each agent's figures; per attack the mean +- sd
 over seeds of each figure; per attack and feature the ROC-AUC of that feature alone, the clean agents against the
-attack's (the larger the feature, the more suspect), with Newcombe's 95% interval; and the detector as the benchmark
-fits it (a logistic regression on these features, here fitted on the clean agents and the first attack's, the plain
-backdoor) scoring each other attack's agents.
+attack's (the larger the feature, the more suspect), with Newcombe's 95% interval; and both probe detectors as the
+benchmark fits them (``state_probe``, a logistic regression on these features, and ``state_probe_deviation``, one on
+their two-sided distance from the clean agents'), fitted on the clean agents and the first attack's (the plain
+backdoor): each agent's P(poisoned) out of sample (an agent of that train set left out of the fit that scores it)
+and per attack the ROC-AUC against the clean agents.
 """
 
 from __future__ import annotations
 
 # isort: off
 import seqtrojan  # noqa: F401  (first: it sets the OpenMP wait policy before torch loads its runtime)
+import numpy as np
 import torch
 
 # isort: on
@@ -36,7 +41,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from seqtrojan.agent.checkpoint import load_agent
-from seqtrojan.benchmark.detectors import fit_features
+from seqtrojan.benchmark.detectors import fit_deviations, fit_features
 from seqtrojan.benchmark.scoring import roc_auc
 from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
 from seqtrojan.benchmark.suspect import ModelFacts, Suspect, clean_env
@@ -103,26 +108,55 @@ def summary(rows: list[Measured]) -> dict:
             low, high = auc_interval(auc, len(mine), len(clean_rows))
             out["auc"].setdefault(attack, {})[k] = {"auc": auc, "ci95": [low, high]}
             print(f"| {attack} | {k} | {auc:.3f} [{low:.3f}, {high:.3f}] |")
-    fitted = fitted_probe(rows)
+    fitted = fitted_probes(rows)
     if fitted:
-        print(f"\n| attack | P(poisoned) from the probe fitted on clean vs {fitted['fitted_on']} agents, per seed |")
-        print("|---|---|")
-        for attack, values in fitted["probability"].items():
-            print(f"| {attack} | {', '.join(f'{v:.3f}' for v in values)} |")
+        print(f"\n| attack | probe fitted on clean vs {fitted['fitted_on']} agents | P(poisoned) per seed | "
+              "ROC-AUC against the clean agents [95%] |")  # fmt: skip
+        print("|---|---|---|---|")
+        for attack, kinds in fitted["attacks"].items():
+            for kind, scored in kinds.items():
+                values = ", ".join(f"{v:.3f}" for v in scored["probability"])
+                low, high = scored["auc_ci95"]
+                print(f"| {attack} | {kind} | {values} | {scored['auc']:.3f} [{low:.3f}, {high:.3f}] |")
     out["fitted_probe"] = fitted
     return out
 
 
-def fitted_probe(rows: list[Measured]) -> dict:
-    """The benchmark's detector as it would be fitted: a logistic regression on the probe's features of the clean
-    agents and the first attack's (the plain backdoor), then each other attack's agents scored with it."""
+FITS = {"one-sided (state_probe)": fit_features, "two-sided (state_probe_deviation)": fit_deviations}
+"""the benchmark's two probe detectors, as their logistic regressions are fitted"""
+
+
+def fitted_probes(rows: list[Measured]) -> dict:
+    """Both probe detectors as the benchmark would fit them, on the clean agents and the first attack's (the plain
+    backdoor), scoring every agent out of sample: an agent of that train set by the detector fitted without it
+    (leave one out), every other attack's agent by the detector fitted on all of it. Per attack and detector: each
+    seed's P(poisoned) and the ROC-AUC of the attack's agents against the clean ones, with Newcombe's interval."""
     attacks = list(dict.fromkeys(r.attack for r in rows if r.attack != "clean"))
-    if len(attacks) < 2:
+    if not attacks:
         return {}
     train = [r for r in rows if r.attack in ("clean", attacks[0])]
-    model = fit_features(lambda r: r.features, train, [int(r.attack != "clean") for r in train])  # type: ignore[arg-type, return-value]
-    scored = {a: [model.probability(r) for r in rows if r.attack == a] for a in attacks[1:]}  # type: ignore[arg-type]
-    return {"fitted_on": attacks[0], "probability": scored}
+
+    def label(r: Measured) -> int:
+        return int(r.attack != "clean")
+
+    result: dict = {"fitted_on": attacks[0], "attacks": {}}
+    for kind, fit in FITS.items():
+        whole = fit(lambda r: r.features, train, [label(r) for r in train])  # type: ignore[arg-type]
+        scores = {}
+        for r in rows:
+            if r in train:
+                rest = [t for t in train if t is not r]
+                scores[id(r)] = fit(lambda t: t.features, rest, [label(t) for t in rest]).probability(r)  # type: ignore[arg-type]
+            else:
+                scores[id(r)] = whole.probability(r)  # type: ignore[arg-type]
+        clean = [scores[id(r)] for r in rows if r.attack == "clean"]
+        for attack in attacks:
+            mine = [scores[id(r)] for r in rows if r.attack == attack]
+            labels = np.array([0] * len(clean) + [1] * len(mine))
+            auc = roc_auc(labels, np.array(clean + mine))
+            low, high = auc_interval(auc, len(mine), len(clean))
+            result["attacks"].setdefault(attack, {})[kind] = {"probability": mine, "auc": auc, "auc_ci95": [low, high]}
+    return result
 
 
 def main() -> None:

@@ -1,5 +1,6 @@
 """The adaptive attacker against the recurrent-state probe (``probe_camouflage``): descent on its term alone makes
-the probe itself (computed independently, from the model and the clean env) see less; it judges only normal-episode
+the probe itself (computed independently, from the model and the clean env) see less, and with a margin
+(``probe_mimicry``) stops near it; it judges only normal-episode
 steps; its candidates leave out exactly those that draw the trigger, which it reads as the env draws it; its recipe
 moves the trigger where no candidate reaches; envs and cells it cannot serve are refused in one line."""
 
@@ -24,7 +25,12 @@ from seqtrojan.benchmark.suspect import ModelFacts, Suspect, clean_env
 from seqtrojan.config import AgentConfig, AttackConfig, BackdoorConfig, ExperimentConfig, PPOConfig
 from seqtrojan.config import ProbeCamouflageConfig as Settings
 from seqtrojan.errors import ConfigError
-from seqtrojan.experiments.attacks import ATTACKS, IN_DISTRIBUTION_VIEW, PROBE_SAFE_MINIGRID_CELLS
+from seqtrojan.experiments.attacks import (
+    ATTACKS,
+    IN_DISTRIBUTION_VIEW,
+    PROBE_MIMICRY_MARGIN,
+    PROBE_SAFE_MINIGRID_CELLS,
+)
 from seqtrojan.presets import resolve_preset
 from seqtrojan.serde import from_dict, load_yaml
 from seqtrojan.train import penalties as pen
@@ -100,6 +106,37 @@ def test_descent_on_its_term_makes_the_probe_see_less(weight):
     assert int(penalty.state_dict()["minibatches"]) == 60  # the draws' count, kept in the checkpoint
 
 
+def _descended(margin_of_before: float) -> tuple[float, dict[str, float]]:
+    """The probe's features of a random grid agent before, and after 60 Adam steps on the penalty (weight 3) with
+    its margin at ``margin_of_before`` times the agent's largest divergence before."""
+    agent = _agent(GRID)
+    before = probe_features(_suspect(agent, GRID), ProbeSettings())["divergence_max"]
+    penalty = _penalty(GRID, agent, weight=3.0, margin=margin_of_before * before)
+    obs = _clean_views(GRID, agent)
+    normal = torch.zeros(obs.shape[:2], dtype=torch.bool)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=3e-3)
+    for _ in range(60):
+        loss = penalty.loss(_batch(agent, obs, normal))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return before, probe_features(_suspect(agent, GRID), ProbeSettings())
+
+
+def test_its_margin_holds_the_mark_at_the_margin_instead_of_erasing_it():
+    """``probe_mimicry``'s mechanism: with the margin at half the agent's largest divergence, descent stops near the
+    margin (the probe still reads a mark, far more of one than without a margin), where a margin of 0 erases it."""
+    before, erased = _descended(0.0)
+    _, held = _descended(0.5)
+    assert held["divergence_max"] < before
+    assert held["divergence_max"] > 1.4 * erased["divergence_max"], (held, erased)
+    assert held["divergence_mean"] > 2.0 * erased["divergence_mean"], (held, erased)
+    agent = _agent(GRID)  # a margin above every distance costs nothing
+    free = _penalty(GRID, agent, weight=3.0, margin=10.0)
+    obs = _clean_views(GRID, agent)
+    assert float(free.loss(_batch(agent, obs, torch.zeros(obs.shape[:2], dtype=torch.bool)))) == 0.0
+
+
 def test_it_judges_normal_episode_sequences_only_and_resumes_its_draws():
     agent = _agent(GRID)
     penalty = _penalty(GRID, agent, weight=1.0)
@@ -146,6 +183,11 @@ def test_the_trigger_is_read_as_the_env_draws_it_and_only_candidates_that_draw_i
     recipe = ATTACKS.get("probe_camouflage").configure(GRID)
     assert recipe.env.trigger.values == tuple(code for row in IN_DISTRIBUTION_VIEW for code in row)
     assert not any(shows_trigger(c, trigger_view(recipe.env, 54)) for c in env_candidates(grid, 54, ProbeSettings()))
+    mimicry = ATTACKS.get("probe_mimicry").configure(GRID)  # the same trigger and weight, with a margin
+    assert mimicry.env == recipe.env and mimicry.attack.probe_camouflage == dataclasses.replace(
+        recipe.attack.probe_camouflage, margin=PROBE_MIMICRY_MARGIN
+    )
+    assert ATTACKS.get("probe_mimicry").knob.apply(mimicry, 0.3).attack.probe_camouflage.margin == 0.3
 
 
 def test_envs_and_cells_it_cannot_serve_are_refused_in_one_line():
