@@ -110,7 +110,7 @@ def summary(rows: list[Measured]) -> dict:
             print(f"| {attack} | {k} | {auc:.3f} [{low:.3f}, {high:.3f}] |")
     fitted = fitted_probes(rows)
     if fitted:
-        print(f"\n| attack | probe fitted on clean vs {fitted['fitted_on']} agents | P(poisoned) per seed | "
+        print(f"\n| attack | detector, fitted on clean vs {fitted['fitted_on']} agents | P(poisoned) per seed | "
               "ROC-AUC against the clean agents [95%] |")  # fmt: skip
         print("|---|---|---|---|")
         for attack, kinds in fitted["attacks"].items():
@@ -122,8 +122,8 @@ def summary(rows: list[Measured]) -> dict:
     return out
 
 
-FITS = {"one-sided (state_probe)": fit_features, "two-sided (state_probe_deviation)": fit_deviations}
-"""the benchmark's two probe detectors, as their logistic regressions are fitted"""
+FITS = {"state_probe": fit_features, "state_probe_deviation": fit_deviations}
+"""the benchmark's two probe detectors (one-sided and two-sided), as their logistic regressions are fitted"""
 
 
 def fitted_probes(rows: list[Measured]) -> dict:
@@ -200,8 +200,10 @@ def main() -> None:
                     "seed": r.seed,
                     "clean_success": r.clean_success,
                     "clean_success_ci95": list(rates_of[r.attack, r.seed][0].interval),
+                    "clean_success_rate": {"k": rates_of[r.attack, r.seed][0].k, "n": rates_of[r.attack, r.seed][0].n},
                     "attack_success": r.attack_success,
                     "attack_success_ci95": list(rates_of[r.attack, r.seed][1].interval),
+                    "attack_success_rate": {"k": rates_of[r.attack, r.seed][1].k, "n": rates_of[r.attack, r.seed][1].n},
                     "features": r.features,
                 }
                 for r in rows

@@ -5,7 +5,8 @@ and every attack against the best defense tried on it.
 
 Reads what ``benchmarks/goal_switch.py`` (online monitors: alarms and the alarm-driven state reset),
 ``benchmarks/behaviour_evasion.py`` (the behaviour detector's ROC-AUC against clean agents) and
-``benchmarks/finetune.py`` (fine-tuning and fine-pruning) write; other JSON files are skipped with a line on stderr.
+``benchmarks/finetune.py`` (fine-tuning and fine-pruning) and ``benchmarks/probe_camouflage.py`` (the two state-probe
+detectors' ROC-AUC against clean agents, out of sample) write; other JSON files are skipped with a line on stderr.
 An attack is named as its benchmark named it (``recipe/knob`` for an adaptive recipe at another strength) and, where
 two files measured the same attack on the same defense (other agents), by its file as well.
 
@@ -92,8 +93,24 @@ def mitigation_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
     return cells, alone
 
 
+def probe_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
+    """``benchmarks/probe_camouflage.py``: each probe detector's out-of-sample P(poisoned) of each attack's agents
+    against the clean agents' (the ROC-AUC the benchmark wrote)."""
+    cells, alone = [], {}
+    for attack, detectors in bench["fitted_probe"]["attacks"].items():
+        mine = [a for a in bench["agents"] if a["attack"] == attack]
+        alone[attack] = over_seeds([_rate(a["attack_success_rate"]) for a in mine])
+        for detector, scored in detectors.items():
+            auc = (scored["auc"], tuple(scored["auc_ci95"]))
+            cells.append(_cell(attack, detector, "offline", None, [_rate(a["clean_success_rate"]) for a in mine],
+                               auc=auc))  # type: ignore[arg-type]  # fmt: skip
+    return cells, alone
+
+
 READERS = (("monitor", monitor_cells), ("best", behaviour_cells), ("arm", mitigation_cells))
 """a row key that marks a benchmark's JSON -> how its rows become cells"""
+FILE_READERS = (("fitted_probe", probe_cells),)
+"""a top-level key that marks a benchmark's JSON without rows -> how it becomes cells"""
 
 
 def read_cells(paths: list[str]) -> tuple[list[MatrixCell], Undefended]:
@@ -104,6 +121,8 @@ def read_cells(paths: list[str]) -> tuple[list[MatrixCell], Undefended]:
         bench = json.loads(Path(path).read_text())
         rows = bench.get("rows") if isinstance(bench, dict) else None
         reader = next((read for key, read in READERS if rows and key in rows[0]), None)
+        if reader is None and isinstance(bench, dict):
+            reader = next((read for key, read in FILE_READERS if bench.get(key) and "agents" in bench), None)
         if reader is None:
             print(f"skipped {path}: not a benchmark this script reads", file=sys.stderr)
             continue

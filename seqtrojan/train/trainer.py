@@ -395,9 +395,10 @@ def evaluate_final(agent: RecurrentActorCritic, cfg: ExperimentConfig, device: t
 
 def _evaluated_kinds(cfg: ExperimentConfig) -> tuple[tuple[str, bool], ...]:
     """The env types a final evaluation measures: the trojan env too for a backdoored run, and for a clean run on
-    a Gymnasium env with a trigger (a clean model's unintended response to the trigger)."""
-    trigger = getattr(cfg.env, "trigger", None) if not cfg.is_grid else None
-    if cfg.backdoor.enabled or trigger is not None:
+    the grid world (whose env always has a trigger) or on a Gymnasium env with one: a clean model's unintended
+    response to the trigger (a zoo records it as the model's unintentional activation)."""
+    trigger = getattr(cfg.env, "trigger", None)
+    if cfg.backdoor.enabled or cfg.is_grid or trigger is not None:
         return (("normal", False), ("trojan", True))
     return (("normal", False),)
 

@@ -471,8 +471,9 @@ def load_zoo_agent(folder: Path):
 
 def read_label(folder: Path) -> dict[str, Any]:
     """A model's ``label.json``, checked: a mapping whose ``label`` is clean or backdoored, ``trigger`` null or a
-    mapping with a string ``value``, ``variation`` a mapping, ``attack_success`` null or a number and
-    ``functional_backdoor`` null or a boolean. Anything else is a one-line :class:`CheckpointError`."""
+    mapping with a string ``value``, ``variation`` a mapping, ``attack_success``, ``clean_success`` and
+    ``unintentional_activation`` null or numbers, and ``functional_backdoor`` null or a boolean (labels written
+    before the last two existed lack them). Anything else is a one-line :class:`CheckpointError`."""
     path = folder / "label.json"
     try:
         truth = read_json_file(path, MAX_LABEL_BYTES)
@@ -492,13 +493,24 @@ def read_label(folder: Path) -> dict[str, Any]:
         raise CheckpointError(f"{str(path)!r}: attack_success must be null or a number, got {attack!r}")
     if truth.get("functional_backdoor") not in (None, True, False):
         raise CheckpointError(f"{str(path)!r}: functional_backdoor must be null or a boolean")
+    for key in ("clean_success", "unintentional_activation"):
+        if truth.get(key) is not None and not _is_number(truth[key]):
+            raise CheckpointError(f"{str(path)!r}: {key} must be null or a number, got {truth[key]!r}")
     return truth
 
 
 def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
-    """``label.json`` of a job's model, from the job and its card's metrics."""
+    """``label.json`` of a job's model, from the job and its card's metrics: the label and the variation; for a
+    poisoned model its trigger, its attack success (trojan-env success) and whether that reaches ``functional_at``;
+    for every model its clean success (normal-env success), and for a clean one its unintentional activation (its
+    trojan-env success: the env still shows the model's drawn trigger, so this is how often a model trained without
+    it reaches the adversary's goal anyway; a clean model that failed the task reaches it by chance as well, so read
+    it beside the clean success)."""
     truth: dict[str, Any] = {"label": job.label, "variation": job.variation, "trigger": None,
-                             "attack_success": None, "functional_backdoor": None}  # fmt: skip
+                             "attack_success": None, "functional_backdoor": None,
+                             "clean_success": metrics.get("normal_success"), "unintentional_activation": None}  # fmt: skip
+    if job.label == "clean":  # its env still draws the model's trigger: how often it leads a clean model astray
+        truth["unintentional_activation"] = metrics.get("trojan_success")
     if job.label == "backdoored":
         attack = metrics.get("trojan_success")
         trigger = to_dict(job.config.env.trigger)

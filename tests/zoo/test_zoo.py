@@ -75,11 +75,14 @@ def test_build_writes_models_labels_manifest_and_resumes(built):
         truth = json.loads((folder / "label.json").read_text())
         assert truth["label"] == card["label"] == e["label"] == cfg.label
         assert (truth["trigger"] is None) == (e["label"] == "clean")
+        assert truth["clean_success"] == card["metrics"]["normal_success"]
         if e["label"] == "backdoored":
             assert truth["attack_success"] == card["metrics"]["trojan_success"] == e["metrics"]["trojan_success"]
             assert truth["functional_backdoor"] == (truth["attack_success"] >= TINY.functional_at)
+            assert truth["unintentional_activation"] is None
         else:
             assert truth["attack_success"] is None and truth["functional_backdoor"] is None
+            assert truth["unintentional_activation"] == card["metrics"]["trojan_success"] is not None
     assert json.loads((built / "zoo.json").read_text())["total_steps"] == TINY.total_steps
     logs = []
     build_zoo(TINY, built, workers=1, log=logs.append)
@@ -477,3 +480,13 @@ def test_pretrained_models_add_their_backdoor_to_their_own_clean_stage(tmp_path,
         make_jobs(ZooConfig(**{**cfg.__dict__, "mixing": "running"}), tmp_path / "other")
     with pytest.raises(ConfigError, match="pretrain_steps must be an integer >= 0, got -1"):
         ZooConfig(pretrain_steps=-1)
+
+
+@pytest.mark.parametrize("key", ["attack_success", "clean_success", "unintentional_activation"])
+def test_a_label_s_rates_must_be_numbers_or_null(tmp_path, key):
+    (tmp_path / "label.json").write_text(json.dumps({"label": "clean", key: "high"}))
+    with pytest.raises(SeqTrojanError, match=f"{key} must be null or a number") as err:
+        zoo_build.read_label(tmp_path)
+    assert "\n" not in str(err.value)
+    (tmp_path / "label.json").write_text(json.dumps({"label": "clean", key: None}))
+    assert zoo_build.read_label(tmp_path)["label"] == "clean"  # null, or absent in older labels: accepted
