@@ -506,9 +506,10 @@ def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
     trojan-env success: the env still shows the model's drawn trigger, so this is how often a model trained without
     it reaches the adversary's goal anyway; a clean model that failed the task reaches it by chance as well, so read
     it beside the clean success)."""
-    truth: dict[str, Any] = {"label": job.label, "variation": job.variation, "trigger": None,
-                             "attack_success": None, "functional_backdoor": None,
-                             "clean_success": metrics.get("normal_success"), "unintentional_activation": None}  # fmt: skip
+    truth: dict[str, Any] = {
+        "label": job.label, "variation": job.variation, "trigger": None, "attack_success": None,
+        "functional_backdoor": None, "clean_success": metrics.get("normal_success"), "unintentional_activation": None,
+    }  # fmt: skip
     if job.label == "clean":  # its env still draws the model's trigger: how often it leads a clean model astray
         truth["unintentional_activation"] = metrics.get("trojan_success")
     if job.label == "backdoored":
