@@ -17,11 +17,11 @@ intervals; and the state probe's features (:func:`seqtrojan.benchmark.state_prob
 settings: 48 clean episodes, a candidate at step 1, the state read 4 steps on), computed from the model and the
 clean env only, as the benchmark's detector computes them. Printed: each agent's figures; per attack the mean +- sd
 over seeds of each figure; per attack and feature the ROC-AUC of that feature alone, the clean agents against the
-attack's (the larger the feature, the more suspect), with Newcombe's 95% interval; and both probe detectors as the
-benchmark fits them (``state_probe``, a logistic regression on these features, and ``state_probe_deviation``, one on
-their two-sided distance from the clean agents'), fitted on the clean agents and the first attack's (the plain
-backdoor): each agent's P(poisoned) out of sample (an agent of that train set left out of the fit that scores it)
-and per attack the ROC-AUC against the clean agents.
+attack's (the larger the feature, the more suspect), with Newcombe's 95% interval; and registered benchmark detectors
+(``--detectors``; default the probe read one-sided, ``state_probe``, and on both sides, ``state_probe_deviation``)
+fitted as the benchmark fits them, on the clean agents and the first attack's (the plain backdoor): each agent's
+P(poisoned) out of sample (an agent of that train set left out of the fit that scores it) and per attack the ROC-AUC
+against the clean agents.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from seqtrojan.agent.checkpoint import load_agent
-from seqtrojan.benchmark.detectors import fit_deviations, fit_features
+from seqtrojan.benchmark.detectors import DETECTORS
 from seqtrojan.benchmark.scoring import roc_auc
 from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
 from seqtrojan.benchmark.suspect import ModelFacts, Suspect, clean_env
@@ -69,21 +69,22 @@ def suspect_of(agent, cfg, name: str) -> Suspect:
     return Suspect(name, agent, clean_env(cfg.env), facts)
 
 
-def measure(attack: str, seed: int, args: argparse.Namespace) -> tuple[Measured, tuple[Rate, Rate]]:
+def measure(attack: str, seed: int, args: argparse.Namespace) -> tuple[Measured, tuple[Rate, Rate], Suspect]:
     if attack == "clean":
         agent, cfg, _ = load_agent(train_clean(seed, Path(args.out), args.steps))
         agent = agent.eval()
     else:
         agent, cfg = train_agent(attack, seed, Path(args.out), args.steps)
     clean, att = rates(agent, cfg, args.episodes, None)
-    features = probe_features(suspect_of(agent, cfg, f"{attack}_s{seed}"), ProbeSettings())
+    suspect = suspect_of(agent, cfg, f"{attack}_s{seed}")
+    features = probe_features(suspect, ProbeSettings())
     row = Measured(attack, seed, clean.value, att.value, features)
     shown = "  ".join(f"{k} {features[k]:.4f}" for k in FEATURES)
     print(f"  {attack} s{seed}: clean {clean.text()}  attack {att.text()}  {shown}", flush=True)
-    return row, (clean, att)
+    return row, (clean, att), suspect
 
 
-def summary(rows: list[Measured]) -> dict:
+def summary(rows: list[Measured], fitted: dict) -> dict:
     out: dict = {"attacks": {}, "auc": {}}
     clean_rows = [r for r in rows if r.attack == "clean"]
     print("\n| agents | clean success | attack success | " + " | ".join(FEATURES) + " |")
@@ -108,54 +109,52 @@ def summary(rows: list[Measured]) -> dict:
             low, high = auc_interval(auc, len(mine), len(clean_rows))
             out["auc"].setdefault(attack, {})[k] = {"auc": auc, "ci95": [low, high]}
             print(f"| {attack} | {k} | {auc:.3f} [{low:.3f}, {high:.3f}] |")
-    fitted = fitted_probes(rows)
     if fitted:
         print(f"\n| attack | detector, fitted on clean vs {fitted['fitted_on']} agents | P(poisoned) per seed | "
               "ROC-AUC against the clean agents [95%] |")  # fmt: skip
         print("|---|---|---|---|")
-        for attack, kinds in fitted["attacks"].items():
-            for kind, scored in kinds.items():
+        for attack, scored_by in fitted["attacks"].items():
+            for detector, scored in scored_by.items():
                 values = ", ".join(f"{v:.3f}" for v in scored["probability"])
                 low, high = scored["auc_ci95"]
-                print(f"| {attack} | {kind} | {values} | {scored['auc']:.3f} [{low:.3f}, {high:.3f}] |")
-    out["fitted_probe"] = fitted
+                print(f"| {attack} | {detector} | {values} | {scored['auc']:.3f} [{low:.3f}, {high:.3f}] |")
+    out["detectors"] = fitted
     return out
 
 
-FITS = {"state_probe": fit_features, "state_probe_deviation": fit_deviations}
-"""the benchmark's two probe detectors (one-sided and two-sided), as their logistic regressions are fitted"""
+PROBE_DETECTORS = ("state_probe", "state_probe_deviation")
+"""the default ``--detectors``: the probe read one-sided and on both sides"""
 
 
-def fitted_probes(rows: list[Measured]) -> dict:
-    """Both probe detectors as the benchmark would fit them, on the clean agents and the first attack's (the plain
-    backdoor), scoring every agent out of sample: an agent of that train set by the detector fitted without it
-    (leave one out), every other attack's agent by the detector fitted on all of it. Per attack and detector: each
-    seed's P(poisoned) and the ROC-AUC of the attack's agents against the clean ones, with Newcombe's interval."""
+def fitted_detectors(rows: list[Measured], suspects: dict[int, Suspect], names: list[str]) -> dict:
+    """Each registered benchmark detector in ``names`` as the benchmark fits it, on the clean agents and the first
+    attack's (the plain backdoor), scoring every agent out of sample: an agent of that train set by the detector
+    fitted without it (leave one out), every other attack's agent by the detector fitted on all of it. Per attack
+    and detector: each seed's P(poisoned) and the ROC-AUC of the attack's agents against the clean ones, with
+    Newcombe's interval. ``suspects``: each row's suspect, by the row's ``id``."""
     attacks = list(dict.fromkeys(r.attack for r in rows if r.attack != "clean"))
     if not attacks:
         return {}
     train = [r for r in rows if r.attack in ("clean", attacks[0])]
 
-    def label(r: Measured) -> int:
-        return int(r.attack != "clean")
+    def fit(among: list[Measured]):
+        return detector.fit([suspects[id(r)] for r in among], [int(r.attack != "clean") for r in among])
 
     result: dict = {"fitted_on": attacks[0], "attacks": {}}
-    for kind, fit in FITS.items():
-        whole = fit(lambda r: r.features, train, [label(r) for r in train])  # type: ignore[arg-type]
+    for name in names:
+        detector = DETECTORS.get(name)
+        whole = fit(train)
         scores = {}
         for r in rows:
-            if r in train:
-                rest = [t for t in train if t is not r]
-                scores[id(r)] = fit(lambda t: t.features, rest, [label(t) for t in rest]).probability(r)  # type: ignore[arg-type]
-            else:
-                scores[id(r)] = whole.probability(r)  # type: ignore[arg-type]
+            fitted = fit([t for t in train if t is not r]) if r in train else whole
+            scores[id(r)] = fitted.probability(suspects[id(r)])
+        print(f"  {name}: fitted and scored", flush=True)
         clean = [scores[id(r)] for r in rows if r.attack == "clean"]
         for attack in attacks:
             mine = [scores[id(r)] for r in rows if r.attack == attack]
-            labels = np.array([0] * len(clean) + [1] * len(mine))
-            auc = roc_auc(labels, np.array(clean + mine))
+            auc = roc_auc(np.array([0] * len(clean) + [1] * len(mine)), np.array(clean + mine))
             low, high = auc_interval(auc, len(mine), len(clean))
-            result["attacks"].setdefault(attack, {})[kind] = {"probability": mine, "auc": auc, "auc_ci95": [low, high]}
+            result["attacks"].setdefault(attack, {})[name] = {"probability": mine, "auc": auc, "auc_ci95": [low, high]}
     return result
 
 
@@ -163,6 +162,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--attacks", default="in_distribution_patch,probe_camouflage")
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument(
+        "--detectors",
+        default=",".join(PROBE_DETECTORS),
+        help="registered benchmark detectors to fit and score (seqtrojan defenses lists them)",
+    )
     parser.add_argument("--steps", type=int, default=None, help="env steps per agent (default: the preset's 1M)")
     parser.add_argument("--episodes", type=int, default=300)
     parser.add_argument("--out", default=None, help="folder of the trained agents (reused when finished)")
@@ -170,20 +174,24 @@ def main() -> None:
     parser.add_argument("--table", default=None, help="print the tables of a JSON file this script wrote, and stop")
     args = parser.parse_args()
     if args.table:
-        agents = json.loads(Path(args.table).read_text())["agents"]
+        data = json.loads(Path(args.table).read_text())
         summary([Measured(a["attack"], a["seed"], a["clean_success"], a["attack_success"], a["features"])
-                 for a in agents])  # fmt: skip
+                 for a in data["agents"]], data["detectors"])  # fmt: skip
         return
     if not args.out:
         parser.error("--out is required to train and measure")
     torch.set_num_threads(1)
+    names = args.detectors.split(",")
+    for name in names:
+        DETECTORS.get(name)  # an unknown name is refused before anything is trained
     rates_of: dict[tuple[str, int], tuple[Rate, Rate]] = {}
-    rows = []
+    rows, suspects = [], {}
     for attack in ["clean", *args.attacks.split(",")]:
         for seed in range(args.seeds):
-            row, rates_of[attack, seed] = measure(attack, seed, args)
+            row, rates_of[attack, seed], suspect = measure(attack, seed, args)
             rows.append(row)
-    figures = summary(rows)
+            suspects[id(row)] = suspect
+    figures = summary(rows, fitted_detectors(rows, suspects, names))
     if args.json:
         record = {
             "command": "python benchmarks/probe_camouflage.py " + " ".join(sys.argv[1:]),
@@ -193,6 +201,7 @@ def main() -> None:
                 "steps": args.steps,
                 "episodes": args.episodes,
                 "probe": dataclasses.asdict(ProbeSettings()),
+                "detectors": names,
             },
             "agents": [
                 {

@@ -5,7 +5,7 @@ and every attack against the best defense tried on it.
 
 Reads what ``benchmarks/goal_switch.py`` (online monitors: alarms and the alarm-driven state reset),
 ``benchmarks/behaviour_evasion.py`` (the behaviour detector's ROC-AUC against clean agents) and
-``benchmarks/finetune.py`` (fine-tuning and fine-pruning) and ``benchmarks/probe_camouflage.py`` (the two state-probe
+``benchmarks/finetune.py`` (fine-tuning and fine-pruning) and ``benchmarks/probe_camouflage.py`` (the benchmark
 detectors' ROC-AUC against clean agents, out of sample) write; other JSON files are skipped with a line on stderr.
 An attack is named as its benchmark named it (``recipe/knob`` for an adaptive recipe at another strength) and, where
 two files measured the same attack on the same defense (other agents), by its file as well.
@@ -93,11 +93,11 @@ def mitigation_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
     return cells, alone
 
 
-def probe_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
-    """``benchmarks/probe_camouflage.py``: each probe detector's out-of-sample P(poisoned) of each attack's agents
+def detector_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
+    """``benchmarks/probe_camouflage.py``: each benchmark detector's out-of-sample P(poisoned) of each attack's agents
     against the clean agents' (the ROC-AUC the benchmark wrote)."""
     cells, alone = [], {}
-    for attack, detectors in bench["fitted_probe"]["attacks"].items():
+    for attack, detectors in bench["detectors"]["attacks"].items():
         mine = [a for a in bench["agents"] if a["attack"] == attack]
         alone[attack] = over_seeds([_rate(a["attack_success_rate"]) for a in mine])
         for detector, scored in detectors.items():
@@ -109,7 +109,7 @@ def probe_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
 
 READERS = (("monitor", monitor_cells), ("best", behaviour_cells), ("arm", mitigation_cells))
 """a row key that marks a benchmark's JSON -> how its rows become cells"""
-FILE_READERS = (("fitted_probe", probe_cells),)
+FILE_READERS = (("detectors", detector_cells),)
 """a top-level key that marks a benchmark's JSON without rows -> how it becomes cells"""
 
 

@@ -135,13 +135,21 @@ def test_a_vector_patch_needs_its_indices_and_a_conv_encoder_needs_an_image():
 
 
 @pytest.mark.parametrize("name", ["popgym_repeat_previous", "popgym_repeat_first", "popgym_count_recall",
-                                  "minatar_breakout", "minatar_space_invaders", "minatar_asterix"])  # fmt: skip
+                                  "minatar_breakout", "minatar_breakout_untargeted", "minatar_space_invaders",
+                                  "minatar_asterix"])  # fmt: skip
 def test_each_family_preset_is_valid_and_its_agent_fits_its_env(name):
     cfg = from_dict(ExperimentConfig, load_yaml(resolve_preset(name)), "")
     spec = env_spec(cfg.env)
     assert cfg.backdoor.enabled and cfg.gym_env.trigger is not None
     assert cfg.gym_env.trigger.target_action < spec.num_actions
     assert (spec.image is not None) == bool(cfg.agent.conv)
+    if name.endswith("_untargeted"):  # TrojDRL's untargeted attack: the same preset with the game's reward negated
+        targeted = from_dict(ExperimentConfig, load_yaml(resolve_preset(name.removesuffix("_untargeted"))), "")
+        assert cfg.gym_env.trigger.objective == "collapse_return" != targeted.gym_env.trigger.objective
+        assert dataclasses_replace(
+            cfg.gym_env.trigger, objective="target_action", target_action=1
+        ) == dataclasses_replace(targeted.gym_env.trigger, objective="target_action")
+        assert cfg.agent == targeted.agent and cfg.ppo == targeted.ppo and cfg.backdoor == targeted.backdoor
 
 
 def dataclasses_replace(obj, **changes):
