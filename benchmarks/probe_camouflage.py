@@ -20,8 +20,8 @@ over seeds of each figure; per attack and feature the ROC-AUC of that feature al
 attack's (the larger the feature, the more suspect), with Newcombe's 95% interval; and registered benchmark detectors
 (``--detectors``; default the probe read one-sided, ``state_probe``, and on both sides, ``state_probe_deviation``)
 fitted as the benchmark fits them, on the clean agents and the first attack's (the plain backdoor): each agent's
-P(poisoned) out of sample (an agent of that train set left out of the fit that scores it) and per attack the ROC-AUC
-against the clean agents.
+P(poisoned) out of sample (an agent of that train set scored by a fit without its training seed's clean and plain
+agents) and per attack the ROC-AUC against the clean agents.
 """
 
 from __future__ import annotations
@@ -129,7 +129,9 @@ PROBE_DETECTORS = ("state_probe", "state_probe_deviation")
 def fitted_detectors(rows: list[Measured], suspects: dict[int, Suspect], names: list[str]) -> dict:
     """Each registered benchmark detector in ``names`` as the benchmark fits it, on the clean agents and the first
     attack's (the plain backdoor), scoring every agent out of sample: an agent of that train set by the detector
-    fitted without it (leave one out), every other attack's agent by the detector fitted on all of it. Per attack
+    fitted without its training seed (the clean and the plain agent of that seed left out together, so the fit's
+    share of poisoned agents stays what it is for the others: leaving one agent out would tilt every score against
+    the left-out agent's label), every other attack's agent by the detector fitted on all of it. Per attack
     and detector: each seed's P(poisoned) and the ROC-AUC of the attack's agents against the clean ones, with
     Newcombe's interval. ``suspects``: each row's suspect, by the row's ``id``."""
     attacks = list(dict.fromkeys(r.attack for r in rows if r.attack != "clean"))
@@ -144,10 +146,8 @@ def fitted_detectors(rows: list[Measured], suspects: dict[int, Suspect], names: 
     for name in names:
         detector = DETECTORS.get(name)
         whole = fit(train)
-        scores = {}
-        for r in rows:
-            fitted = fit([t for t in train if t is not r]) if r in train else whole
-            scores[id(r)] = fitted.probability(suspects[id(r)])
+        without = {seed: fit([t for t in train if t.seed != seed]) for seed in {r.seed for r in train}}
+        scores = {id(r): (without[r.seed] if r in train else whole).probability(suspects[id(r)]) for r in rows}
         print(f"  {name}: fitted and scored", flush=True)
         clean = [scores[id(r)] for r in rows if r.attack == "clean"]
         for attack in attacks:
