@@ -40,6 +40,8 @@ BENCH_TABLES = [
     ("families/popgym_count_recall.json", "families.md", "families.py"),
     ("families/popgym_repeat_first.json", "families.md", "families.py"),
     ("families/minatar_breakout.json", "families.md", "families.py"),
+    ("families/minatar_space_invaders.json", "families.md", "families.py"),
+    ("families/minatar_asterix.json", "families.md", "families.py"),
 ]
 """a benchmark's JSON file, the page holding its table and the benchmark (``benchmarks/NAME --table JSON`` prints it)"""
 
