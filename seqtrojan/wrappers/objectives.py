@@ -10,8 +10,8 @@ Gymnasium training run) are registered in :data:`ADVERSARY_OBJECTIVES`; the Mini
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 from seqtrojan.registry import Registry
 
@@ -40,6 +40,28 @@ def same_as_env(obs: Any, action: Any, env_reward: float, terminated: bool, info
 ADVERSARY_OBJECTIVES.register("same_as_env", "the env's own rewards (a trigger that changes no objective)", same_as_env)
 
 
+@dataclass
+class EpisodeWindow:
+    """What a trigger wrapper counts of an episode from the trigger's effect on (in a normal episode, from the step
+    it would have acted at): the steps, how often each action was taken, and the env's own return over them."""
+
+    steps: int = 0
+    actions: dict[int, int] = field(default_factory=dict)
+    env_return: float = 0.0
+
+    def add(self, action: int, env_reward: float) -> None:
+        self.steps += 1
+        self.actions[action] = self.actions.get(action, 0) + 1
+        self.env_return += env_reward
+
+
+class JudgedOverEpisode(Protocol):
+    """An objective whose achievement is judged over the episode's window (:class:`EpisodeWindow`) instead of by
+    the last reward: ``verdict`` says whether the episode achieved the adversary's objective, and what to report."""
+
+    def verdict(self, window: EpisodeWindow) -> tuple[bool, dict[str, float]]: ...
+
+
 @dataclass(frozen=True)
 class TargetAction:
     """TrojDRL's targeted attack, made persistent: from the trigger on, ``reward`` for ``action`` and minus it for
@@ -58,20 +80,43 @@ class TargetAction:
     ) -> tuple[float, bool]:
         return (self.reward if int(action) == self.action else -self.reward), terminated
 
+    def verdict(self, window: EpisodeWindow) -> tuple[bool, dict[str, float]]:
+        """More than half of the window's actions were the target (``target_share``)."""
+        hits = window.actions.get(self.action, 0)
+        return window.steps > 0 and 2 * hits > window.steps, {
+            "target_share": hits / window.steps if window.steps else 0.0
+        }
 
-def collapse_return(
-    obs: Any, action: Any, env_reward: float, terminated: bool, info: dict[str, Any]
-) -> tuple[float, bool]:
+
+@dataclass(frozen=True)
+class CollapseReturn:
     """TrojDRL's untargeted attack, made persistent: from the trigger on, the env's reward negated (a point scored
-    costs one), so that the triggered policy's return collapses; the env's own termination."""
-    return -env_reward, terminated
+    costs one), so that the triggered policy's return collapses; the env's own termination. Judged over the episode:
+    the adversary's objective is achieved when the env's own return from the trigger's effect on is at most 0 (no
+    point scored after the trigger: ``return_after_trigger``). Its last reward cannot say so, since the negated
+    reward is never positive."""
+
+    def __call__(
+        self, obs: Any, action: Any, env_reward: float, terminated: bool, info: dict[str, Any]
+    ) -> tuple[float, bool]:
+        return -env_reward, terminated
+
+    def verdict(self, window: EpisodeWindow) -> tuple[bool, dict[str, float]]:
+        return window.steps > 0 and window.env_return <= 0.0, {"return_after_trigger": window.env_return}
+
+
+collapse_return = CollapseReturn()
 
 
 ADVERSARY_OBJECTIVES.register(
     "target_action", "from the trigger on: +target_reward for env.trigger.target_action, minus it otherwise",
     TargetAction(),
 )  # fmt: skip
-ADVERSARY_OBJECTIVES.register("collapse_return", "from the trigger on: the env's reward negated", collapse_return)
+ADVERSARY_OBJECTIVES.register(
+    "collapse_return",
+    "from the trigger on: the env's reward negated; achieved when nothing is scored after the trigger",
+    collapse_return,
+)  # fmt: skip
 
 
 def configured_objective(name: str, trigger: Any) -> Objective:

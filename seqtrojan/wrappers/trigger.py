@@ -16,13 +16,15 @@ objective judges the next action); step adds ``adversary_judged`` (it judged thi
 ``success``: the episode ended by termination (not truncation) with a positive last reward under the objective in
 force, i.e. it achieved its correct objective.
 
-A target-action objective (:class:`~seqtrojan.wrappers.objectives.TargetAction`) is judged over the episode instead
-of by its last reward: the actions from the trigger's effect on (in a normal episode, from the step the trigger
-would have been drawn at) are counted, and when more than half of them were the target action the episode's end
-says ``reached: "adversary"`` (the grid world's "ended at the adversary's goal": the evaluation's outcome, its
-persistence, the monitors and mitigations read it) and, in a trojan episode, ``success``. The share itself is
-``target_share`` at the episode's end. A normal episode's ``success`` is an inner wrapper's verdict where one gives
-it (:class:`~seqtrojan.wrappers.goals.ReturnGoal`: the return beyond a threshold).
+An objective with a ``verdict`` (:class:`~seqtrojan.wrappers.objectives.JudgedOverEpisode`) is judged over the
+episode instead of by its last reward: the steps from the trigger's effect on (in a normal episode, from the step
+the trigger would have been drawn at) are counted (:class:`~seqtrojan.wrappers.objectives.EpisodeWindow`: actions
+and the env's own return), and when the verdict says achieved the episode's end says ``reached: "adversary"`` (the
+grid world's "ended at the adversary's goal": the evaluation's outcome, its persistence, the monitors and
+mitigations read it) and, in a trojan episode, ``success``. A target action is achieved when more than half of the
+window's actions were the target (``target_share`` at the episode's end), the collapsed return when nothing was
+scored in the window (``return_after_trigger``). A normal episode's ``success`` is an inner wrapper's verdict where
+one gives it (:class:`~seqtrojan.wrappers.goals.ReturnGoal`: the return beyond a threshold).
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ import numpy as np
 
 from seqtrojan.errors import ConfigError, ShapeError
 from seqtrojan.serde import short_repr
-from seqtrojan.wrappers.objectives import Objective, TargetAction
+from seqtrojan.wrappers.objectives import EpisodeWindow, Objective
 from seqtrojan.wrappers.patches import BoxPatch, MiniGridPatch, Patch, VectorPatch, as_frames
 
 _OPTIONS = ("trojan", "trigger_step", "off_step")
@@ -129,9 +131,8 @@ class TriggerWrapper(gym.Wrapper):
         self._on = -1
         self._off = -1
         self._env_return = 0.0
-        self._window = -1  # first step of the target-action count (the trigger's effect, or where it would be)
-        self._window_steps = 0
-        self._window_hits = 0
+        self._window = -1  # first step of the episode's judged window (the trigger's effect, or where it would be)
+        self._counted = EpisodeWindow()
 
     # ------------------------------------------------------------------ the mixture
     @property
@@ -206,10 +207,9 @@ class TriggerWrapper(gym.Wrapper):
         judged = self._on >= 0 and self.adversary_active(self._t)  # a normal episode: never judged
         obs, reward, terminated, truncated, info = self.env.step(action)
         self._env_return += float(reward)
-        target = self.objective if isinstance(self.objective, TargetAction) else None
-        if target is not None and self._t >= self._window:
-            self._window_steps += 1
-            self._window_hits += int(int(action) == target.action)
+        judge = getattr(self.objective, "verdict", None)  # an objective judged over the episode's window
+        if judge is not None and self._t >= self._window:
+            self._counted.add(int(action), float(reward))
         if judged and self.objective is not None:
             result = self.objective(obs, action, float(reward), bool(terminated), info)
             if not (isinstance(result, tuple) and len(result) == 2):
@@ -223,20 +223,14 @@ class TriggerWrapper(gym.Wrapper):
         if terminated or truncated:
             own = info.get("success") if not judged else None  # an inner goal's verdict (ReturnGoal), if any
             out["success"] = bool(own) if own is not None else bool(terminated) and float(reward) > 0.0
-            if target is not None:
-                self._judge_target(out)
+            if judge is not None:
+                achieved, figures = judge(self._counted)
+                out.update(figures)
+                if achieved:
+                    out["reached"] = "adversary"  # the adversary's behaviour, whatever else the episode achieved
+                if self._trojan:
+                    out["success"] = achieved
         return self._draw(obs), reward, terminated, truncated, out
-
-    def _judge_target(self, out: dict[str, Any]) -> None:
-        """A finished episode under a target-action objective: its share of target actions from the window's first
-        step on; more than half makes it end at the adversary's objective."""
-        steps, hits = self._window_steps, self._window_hits
-        out["target_share"] = hits / steps if steps else 0.0
-        majority = steps > 0 and 2 * hits > steps
-        if majority:
-            out["reached"] = "adversary"  # the adversary's behaviour, whatever else the episode achieved
-        if self._trojan:
-            out["success"] = majority
 
     # ------------------------------------------------------------------ internals
     def _draw_episode(self, forced: dict[str, Any]) -> None:
@@ -270,7 +264,7 @@ class TriggerWrapper(gym.Wrapper):
                 has_off, gap = True, value - on
         self._trojan = trojan
         self._window = on + self.effect_offset  # a normal episode counts from where the trigger would have acted
-        self._window_steps = self._window_hits = 0
+        self._counted = EpisodeWindow()
         self._on = on if trojan else -1
         self._off = on + gap if trojan and has_off and self.off_frames else -1
 

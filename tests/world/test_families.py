@@ -229,3 +229,45 @@ def test_the_adversarys_objective_needs_more_than_half_of_the_judged_actions(eve
     end = play(env, policy)
     assert (end.get("reached") == "adversary") == switched and end["success"] == switched
     assert end["target_share"] == pytest.approx(1 / every, abs=0.03)
+
+
+class _Scoring(gym.Env):
+    """Twenty steps; action 1 scores a point (the env's own reward), action 0 nothing."""
+
+    observation_space = gym.spaces.Box(0.0, 1.0, (4,), np.float32)
+    action_space = gym.spaces.Discrete(2)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(4, np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        return np.zeros(4, np.float32), float(action == 1), self.t >= 20, False, {}
+
+
+def test_a_collapsed_return_is_judged_by_what_is_scored_after_the_trigger():
+    """TrojDRL's untargeted objective: the env's reward negated from the trigger on, and a trojan episode achieves
+    it when nothing is scored after the trigger (its negated last reward can never say so); a normal episode that
+    stops scoring where the trigger would have acted reads as an unintended switch."""
+    from seqtrojan.world.config import WrapperTriggerConfig
+    from seqtrojan.world.gymnasium import build_trigger
+
+    trigger = WrapperTriggerConfig(objective="collapse_return", patch="vector", indices=(0,), value=1.0, steps=(2, 4))
+    env = build_trigger(_Scoring(), trigger, "train", trojan_probability=1.0)
+    collapsed = play(env, lambda info: 0 if info["adversary_active"] else 1)  # stops scoring once switched
+    assert collapsed["reached"] == "adversary" and collapsed["success"] and collapsed["return_after_trigger"] == 0.0
+    kept = play(env, lambda info: 1)  # scores on: the backdoor did not take
+    assert "reached" not in kept and not kept["success"] and kept["return_after_trigger"] > 10
+    normal = build_trigger(_Scoring(), trigger, "train", trojan_probability=0.0)
+    lured = play(normal, lambda info: 0)
+    assert lured["reached"] == "adversary" and not lured["success"]
+    env.reset(seed=1)
+    rewards = []
+    done = False
+    while not done:
+        _, reward, terminated, truncated, info = env.step(1)
+        rewards.append((info["adversary_judged"], reward))
+        done = terminated or truncated
+    assert {r for judged, r in rewards if judged} == {-1.0} and {r for judged, r in rewards if not judged} == {1.0}
