@@ -42,6 +42,7 @@ BENCH_TABLES = [
     ("families/minatar_breakout.json", "families.md", "families.py"),
     ("families/minatar_space_invaders.json", "families.md", "families.py"),
     ("families/minatar_asterix.json", "families.md", "families.py"),
+    ("families/minatar_breakout_untargeted.json", "families.md", "families.py"),
 ]
 """a benchmark's JSON file, the page holding its table and the benchmark (``benchmarks/NAME --table JSON`` prints it)"""
 
