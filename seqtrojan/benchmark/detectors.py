@@ -73,6 +73,23 @@ def _classifier() -> Any:
     return make_pipeline(StandardScaler(), LogisticRegression(C=0.1, max_iter=2000))
 
 
+def _finite(x: np.ndarray) -> np.ndarray:
+    return np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def _train_rows(
+    features: Callable[[Suspect], dict[str, float]], suspects: Sequence[Suspect], labels: Sequence[int]
+) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+    """The train split as a matrix: the names of the features every suspect has, their values (non-finite read as
+    0) and the labels."""
+    if not suspects:
+        raise SeqTrojanError("a detector needs train models to fit on")
+    rows = [features(s) for s in suspects]
+    names = tuple(sorted(set.intersection(*(set(r) for r in rows))))
+    x = _finite(np.array([[r[n] for n in names] for r in rows]).reshape(len(rows), len(names)))
+    return names, x, np.asarray(labels, dtype=np.int64)
+
+
 @dataclass(frozen=True)
 class FeatureModel:
     """A logistic regression on named features of a suspect (the features a fitted detector reads)."""
@@ -82,93 +99,68 @@ class FeatureModel:
     pipeline: Any
     constant: float | None = None
     """the train split's poisoned share, answered when it held one label only (nothing to learn)"""
+    transform: Callable[[np.ndarray], np.ndarray] | None = None
+    """what the features become before the regression reads them (:class:`Deviation`); None: read as they are"""
 
     def probability(self, suspect: Suspect) -> float:
         if self.constant is not None:
             return self.constant
         row = self.features(suspect)
         x = _finite(np.array([[row.get(n, 0.0) for n in self.names]]))
-        return float(self.pipeline.predict_proba(x)[0, 1])
+        return float(self.pipeline.predict_proba(x if self.transform is None else self.transform(x))[0, 1])
 
 
 def fit_features(
     features: Callable[[Suspect], dict[str, float]], suspects: Sequence[Suspect], labels: Sequence[int]
 ) -> FeatureModel:
     """A :class:`FeatureModel` on the features every train suspect has."""
-    if not suspects:
-        raise SeqTrojanError("a detector needs train models to fit on")
-    rows = [features(s) for s in suspects]
-    names = tuple(sorted(set.intersection(*(set(r) for r in rows))))
-    y = np.asarray(labels, dtype=np.int64)
+    names, x, y = _train_rows(features, suspects, labels)
     if len(set(y.tolist())) < 2 or not names:
         return FeatureModel(features, names, None, float(y.mean()))
-    x = _finite(np.array([[r[n] for n in names] for r in rows]))
     return FeatureModel(features, names, _classifier().fit(x, y))
-
-
-@dataclass(frozen=True)
-class DeviationModel:
-    """A logistic regression on how far a suspect's features lie from the train split's clean models', on either
-    side: per feature ``log(1 + z^2)``, z the feature's distance from the clean models' mean in units of their
-    spread. A feature pushed below every clean model's value is as suspect as one above."""
-
-    features: Callable[[Suspect], dict[str, float]]
-    names: tuple[str, ...]
-    clean_mean: np.ndarray
-    clean_sd: np.ndarray
-    pipeline: Any
-    constant: float | None = None
-
-    def probability(self, suspect: Suspect) -> float:
-        if self.constant is not None:
-            return self.constant
-        row = self.features(suspect)
-        x = _finite(np.array([[row.get(n, 0.0) for n in self.names]]))
-        return float(self.pipeline.predict_proba(_deviation(x, self.clean_mean, self.clean_sd))[0, 1])
 
 
 MIN_CLEAN_FOR_DEVIATION = 3
 """clean train models a :class:`DeviationModel` needs (each one's own deviation is measured against the others)"""
 
 
-def _finite(x: np.ndarray) -> np.ndarray:
-    return np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+@dataclass(frozen=True)
+class Deviation:
+    """How far features lie from the train split's clean models', on either side: per feature ``log(1 + z^2)``, z
+    the distance from the clean models' ``mean`` in units of their spread ``sd``. A feature pushed below every clean
+    model's value is as suspect as one above."""
 
+    mean: np.ndarray
+    sd: np.ndarray
 
-def _spread(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per column: the mean and the sample standard deviation, floored at 1% of the mean's size (plus 1e-6) so
-    that a feature on which the clean models agree exactly does not make every other value infinitely far."""
-    mean = x.mean(0)
-    return mean, np.maximum(x.std(0, ddof=1), 0.01 * np.abs(mean) + 1e-6)
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return np.log1p(((x - self.mean) / self.sd) ** 2)
 
-
-def _deviation(x: np.ndarray, mean: np.ndarray, sd: np.ndarray) -> np.ndarray:
-    return np.log1p(((x - mean) / sd) ** 2)
+    @staticmethod
+    def of(clean: np.ndarray) -> Deviation:
+        """From the clean models' feature rows: their mean and sample standard deviation, the latter floored at 1%
+        of the mean's size (plus 1e-6) so that a feature on which they agree exactly does not make every other
+        value infinitely far."""
+        mean = clean.mean(0)
+        return Deviation(mean, np.maximum(clean.std(0, ddof=1), 0.01 * np.abs(mean) + 1e-6))
 
 
 def fit_deviations(
     features: Callable[[Suspect], dict[str, float]], suspects: Sequence[Suspect], labels: Sequence[int]
-) -> DeviationModel:
-    """A :class:`DeviationModel` on the features every train suspect has. Each clean train model's deviation is
-    measured against the other clean models (leave one out), as a clean model the detector has never seen would be;
-    fewer than :data:`MIN_CLEAN_FOR_DEVIATION` clean train models, or one label only: it answers the train split's
-    poisoned share."""
-    if not suspects:
-        raise SeqTrojanError("a detector needs train models to fit on")
-    rows = [features(s) for s in suspects]
-    names = tuple(sorted(set.intersection(*(set(r) for r in rows))))
-    y = np.asarray(labels, dtype=np.int64)
+) -> FeatureModel:
+    """A :class:`FeatureModel` on the :class:`Deviation` of the features every train suspect has (the state probe
+    read on both sides). Each clean train model's deviation is measured against the other clean models (leave one
+    out), as a clean model the detector has never seen would be; fewer than :data:`MIN_CLEAN_FOR_DEVIATION` clean
+    train models, or one label only: it answers the train split's poisoned share."""
+    names, x, y = _train_rows(features, suspects, labels)
     clean = np.flatnonzero(y == 0)
-    empty = np.zeros(len(names))
     if len(set(y.tolist())) < 2 or not names or len(clean) < MIN_CLEAN_FOR_DEVIATION:
-        return DeviationModel(features, names, empty, empty, None, float(y.mean()))
-    x = _finite(np.array([[r[n] for n in names] for r in rows]))
-    mean, sd = _spread(x[clean])
-    z = _deviation(x, mean, sd)
+        return FeatureModel(features, names, None, float(y.mean()))
+    deviation = Deviation.of(x[clean])
+    z = deviation(x)
     for i in clean:
-        others_mean, others_sd = _spread(x[clean[clean != i]])
-        z[i] = _deviation(x[i : i + 1], others_mean, others_sd)[0]
-    return DeviationModel(features, names, mean, sd, _classifier().fit(z, y))
+        z[i] = Deviation.of(x[clean[clean != i]])(x[i : i + 1])[0]
+    return FeatureModel(features, names, _classifier().fit(z, y), transform=deviation)
 
 
 def metadata_features(suspect: Suspect) -> dict[str, float]:

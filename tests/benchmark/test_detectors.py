@@ -65,7 +65,7 @@ def test_a_clean_train_model_is_measured_against_the_other_clean_ones():
     seen = [deviation(v, np.delete(clean, i)) for i, v in enumerate(clean)] + [deviation(v, clean) for v in values[6:]]
     column = model.names.index("divergence")
     assert model.pipeline[0].mean_[column] == pytest.approx(np.mean(seen))
-    assert model.clean_mean[column] == pytest.approx(clean.mean())
+    assert model.transform.mean[column] == pytest.approx(clean.mean())  # type: ignore[union-attr]
     assert model.probability(Fake({"divergence": float(clean.max()), "noise": 0.0})) < 0.5  # type: ignore[arg-type]
 
 
