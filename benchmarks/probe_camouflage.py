@@ -182,8 +182,9 @@ def main() -> None:
         parser.error("--out is required to train and measure")
     torch.set_num_threads(1)
     names = args.detectors.split(",")
-    for name in names:
-        DETECTORS.get(name)  # an unknown name is refused before anything is trained
+    unknown = [name for name in names if name not in DETECTORS.names()]
+    if unknown:  # refused before anything is trained
+        parser.error(f"unknown detector {unknown[0]!r}; registered: {', '.join(DETECTORS.names())}")
     rates_of: dict[tuple[str, int], tuple[Rate, Rate]] = {}
     rows, suspects = [], {}
     for attack in ["clean", *args.attacks.split(",")]:

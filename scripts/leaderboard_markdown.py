@@ -70,6 +70,10 @@ def main() -> None:
         if unknown:
             raise SystemExit(f"{args.leaderboard} has no detector {unknown[0]!r}")
         detectors = [d for d in detectors if d["detector"] in wanted]
+    if args.by:
+        factors = {f for d in detectors for split in d["splits"] for f in split.get("by_factor", {})}
+        if args.by not in factors:
+            raise SystemExit(f"{args.leaderboard} has no breakdown by {args.by!r}; it has: {', '.join(sorted(factors))}")
     print("\n".join(factor_rows(detectors, args.by) if args.by else rows(detectors)))
 
 
