@@ -73,7 +73,8 @@ def main() -> None:
     if args.by:
         factors = {f for d in detectors for split in d["splits"] for f in split.get("by_factor", {})}
         if args.by not in factors:
-            raise SystemExit(f"{args.leaderboard} has no breakdown by {args.by!r}; it has: {', '.join(sorted(factors))}")
+            known = ", ".join(sorted(factors))
+            raise SystemExit(f"{args.leaderboard} has no breakdown by {args.by!r}; it has: {known}")
     print("\n".join(factor_rows(detectors, args.by) if args.by else rows(detectors)))
 
 
