@@ -121,7 +121,7 @@ def fit_features(
 
 
 MIN_CLEAN_FOR_DEVIATION = 3
-"""clean train models a :class:`DeviationModel` needs (each one's own deviation is measured against the others)"""
+"""clean train models :func:`fit_deviations` needs (each one's own deviation is measured against the others)"""
 
 
 @dataclass(frozen=True)
