@@ -193,7 +193,7 @@ def defense_table(results: dict[str, Any]) -> list[str]:
     headings = " | ".join(h for h, _ in DEFENSE_TABLE)
     out = [f"| preset | {headings} |", "|---|" + "---|" * len(DEFENSE_TABLE)]
     for preset, entry in results["presets"].items():
-        over = entry["backdoored"].get("defense_over_seeds")
+        over = entry.get("backdoored", {}).get("defense_over_seeds")  # a --roles clean run has none
         if over is None:
             continue
         cells = [_cell(over.get(name)) for _, name in DEFENSE_TABLE]
@@ -222,7 +222,7 @@ def main(argv: list[str] | None = None) -> None:
         results = json.loads(args.table.read_text())
         print("\n".join(table(results)))
         defended = defense_table(results)
-        if defended:
+        if len(defended) > 2:  # rows beyond the heading: a run with --defend
             print("\n" + "\n".join(defended))
         return
     if not args.presets:

@@ -43,6 +43,8 @@ BENCH_TABLES = [
     ("families/minatar_space_invaders.json", "families.md", "families.py"),
     ("families/minatar_asterix.json", "families.md", "families.py"),
     ("families/minatar_breakout_untargeted.json", "families.md", "families.py"),
+    ("families/minatar_space_invaders_clean_3m.json", "families.md", "families.py"),
+    ("families/minatar_asterix_clean_3m.json", "families.md", "families.py"),
 ]
 """a benchmark's JSON file, the page holding its table and the benchmark (``benchmarks/NAME --table JSON`` prints it)"""
 
@@ -72,7 +74,7 @@ def test_benchmark_tables_in_the_docs_are_the_data_printed(data, page, bench):
     printed = _printed(f"benchmarks/{bench}", "--table", str(DATA / data))
     text = (ROOT / "docs" / page).read_text()
     rows = [line for line in printed.splitlines() if line.startswith("| ")]
-    assert len(rows) >= 3  # the header and two rows at least
+    assert len(rows) >= 2  # the header and a row at least
     missing = [line for line in rows if line not in text]
     assert not missing, f"docs/{page} lacks {len(missing)} row(s) of {data}, e.g. {missing[0]}"
 
