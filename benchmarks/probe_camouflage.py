@@ -138,16 +138,17 @@ def fitted_detectors(rows: list[Measured], suspects: dict[int, Suspect], names: 
     if not attacks:
         return {}
     train = [r for r in rows if r.attack in ("clean", attacks[0])]
+    in_train = {id(r) for r in train}
 
-    def fit(among: list[Measured]):
+    def fit(detector, among: list[Measured]):
         return detector.fit([suspects[id(r)] for r in among], [int(r.attack != "clean") for r in among])
 
     result: dict = {"fitted_on": attacks[0], "attacks": {}}
     for name in names:
         detector = DETECTORS.get(name)
-        whole = fit(train)
-        without = {seed: fit([t for t in train if t.seed != seed]) for seed in {r.seed for r in train}}
-        scores = {id(r): (without[r.seed] if r in train else whole).probability(suspects[id(r)]) for r in rows}
+        whole = fit(detector, train)
+        without = {seed: fit(detector, [t for t in train if t.seed != seed]) for seed in {r.seed for r in train}}
+        scores = {id(r): (without[r.seed] if id(r) in in_train else whole).probability(suspects[id(r)]) for r in rows}
         print(f"  {name}: fitted and scored", flush=True)
         clean = [scores[id(r)] for r in rows if r.attack == "clean"]
         for attack in attacks:
