@@ -222,7 +222,7 @@ def main(argv: list[str] | None = None) -> None:
         results = json.loads(args.table.read_text())
         print("\n".join(table(results)))
         defended = defense_table(results)
-        if len(defended) > 2:  # rows beyond the heading: a run with --defend
+        if defended:
             print("\n" + "\n".join(defended))
         return
     if not args.presets:

@@ -211,10 +211,10 @@ def main() -> None:
                     "seed": r.seed,
                     "clean_success": r.clean_success,
                     "clean_success_ci95": list(rates_of[r.attack, r.seed][0].interval),
-                    "clean_success_rate": {"k": rates_of[r.attack, r.seed][0].k, "n": rates_of[r.attack, r.seed][0].n},
+                    "clean_success_rate": rates_of[r.attack, r.seed][0].serde_dump(),
                     "attack_success": r.attack_success,
                     "attack_success_ci95": list(rates_of[r.attack, r.seed][1].interval),
-                    "attack_success_rate": {"k": rates_of[r.attack, r.seed][1].k, "n": rates_of[r.attack, r.seed][1].n},
+                    "attack_success_rate": rates_of[r.attack, r.seed][1].serde_dump(),
                     "features": r.features,
                 }
                 for r in rows
