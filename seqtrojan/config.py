@@ -695,7 +695,8 @@ class StopConfig:
     (normal episodes; and trojan episodes for a backdoored agent) trigger a held-out check: ``confirm_episodes``
     fresh episodes per env type on the last stage's grid, sampled policy. If each reaches ``success`` too, training
     stops (``evaluation.json``: ``stopped_early``, ``env_steps``); if not, the count starts again. A resumed run
-    starts its count again."""
+    starts its count again. A backdoor whose attack follows a schedule over the run (the weight camouflage's
+    warm-up) trains its whole budget."""
 
     enabled: bool = False
     """stop early by this rule (off: train exactly ppo.total_steps)"""

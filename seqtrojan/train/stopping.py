@@ -26,6 +26,14 @@ class StopRule:
         self.confirmed: dict[str, float] = {}
         """the passing check's success per env type"""
 
+    @staticmethod
+    def applies(cfg: ExperimentConfig) -> bool:
+        """Whether ``cfg``'s run may stop early: ``stop.enabled``, unless its attack follows a schedule over the whole
+        budget (the weight camouflage's warm-up: the backdoor is planted, then hidden; a stop once it works would
+        cut the hiding short), which then trains every step."""
+        scheduled = cfg.backdoor.enabled and cfg.attack.weight_camouflage.enabled
+        return cfg.stop.enabled and not (scheduled and cfg.attack.weight_camouflage.warmup_steps > 0)
+
     def _meets_target(self, scalars: dict[str, Any], stage: int) -> bool:
         stop = self.cfg.stop
         for kind in self.kinds:

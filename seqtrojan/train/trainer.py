@@ -272,7 +272,7 @@ def _train_loop(
     start = time.perf_counter()
     next_checkpoint = (state.global_step // cfg.run.checkpoint_every + 1) * cfg.run.checkpoint_every
     progress = make_progress(cfg.run.progress)
-    stop_rule = StopRule(cfg, device) if cfg.stop.enabled else None
+    stop_rule = StopRule(cfg, device) if StopRule.applies(cfg) else None
     try:
         with _sigterm_flag() as stop, progress:
             task = progress.add_task("train", total=ppo.total_steps, completed=state.global_step, info="")

@@ -151,6 +151,11 @@ class ZooConfig:
     split holds, e.g. ``lstm_sizes: ["[48, 24]"]`` or ``attack: [sequence]`` (factors: env, cell, lstm_sizes,
     trigger_value, attack; see :mod:`seqtrojan.benchmark.splits`); a ``--holdout`` given to ``zoo detect`` replaces
     it"""
+    parts: tuple[ZooConfig, ...] = ()
+    """a zoo of several envs (a benchmark's env factor): each part is a zoo config of its own (its env, counts, seed,
+    budget and factors) whose models are the models that part would build as a zoo of its own, numbered on after
+    the previous part's; ``clean`` and ``backdoored`` must then be the parts' totals, the ``holdout`` is this
+    config's (a part has none), and the other fields of this config are unused. Empty: one env, this config"""
 
     def __post_init__(self) -> None:
         if self.clean < 0 or self.backdoored < 0 or self.clean + self.backdoored == 0:
@@ -179,9 +184,31 @@ class ZooConfig:
             raise ConfigError(f"zoo holdout must map factors {list(factors)} to values, got {self.holdout!r}")
         if isinstance(self.pretrain_steps, bool) or not isinstance(self.pretrain_steps, int) or self.pretrain_steps < 0:
             raise ConfigError(f"zoo pretrain_steps must be an integer >= 0, got {self.pretrain_steps!r}")
-        stray = [a for a in self.holdout.get("attack", ()) if a not in self.attacks]
+        if self.parts:
+            self._check_parts()
+        attacks = [a for part in self.parts or (self,) for a in part.attacks]
+        stray = [a for a in self.holdout.get("attack", ()) if a not in attacks]
         if stray:
-            raise ConfigError(f"zoo holdout attack {stray} must be among the zoo's attacks {list(self.attacks)}")
+            raise ConfigError(f"zoo holdout attack {stray} must be among the zoo's attacks {sorted(set(attacks))}")
+
+    def _check_parts(self) -> None:
+        """A zoo of parts: flat, its counts the parts' totals, the holdout its own, no two parts' training seeds
+        shared (model i of a part trains with its seed + i)."""
+        if not all(isinstance(p, ZooConfig) for p in self.parts):
+            raise ConfigError("zoo parts must be zoo configs")
+        nested = [i for i, p in enumerate(self.parts) if p.parts or p.holdout]
+        if nested:
+            raise ConfigError(f"zoo part(s) {nested} hold parts or a holdout of their own: a zoo's holdout is its own")
+        clean, backdoored = sum(p.clean for p in self.parts), sum(p.backdoored for p in self.parts)
+        if (self.clean, self.backdoored) != (clean, backdoored):
+            raise ConfigError(
+                f"a zoo of parts holds its parts' models: clean must be {clean} and backdoored {backdoored}, got "
+                f"{self.clean} and {self.backdoored}"
+            )
+        spans = sorted((p.seed, p.seed + p.size, i) for i, p in enumerate(self.parts))
+        for (_, end, a), (start, _, b) in zip(spans, spans[1:]):
+            if start < end:
+                raise ConfigError(f"zoo parts {a} and {b} share training seeds: give each part a seed range of its own")
 
     @property
     def size(self) -> int:
@@ -189,7 +216,7 @@ class ZooConfig:
 
     OPTIONAL: ClassVar[tuple[str, ...]] = (
         "cell", "window", "stop", "rollout_steps", "learning_rate", "env_preset", "trigger_objects", "trigger_colors",
-        "holdout", "cells", "attacks", "pretrain_steps",
+        "holdout", "cells", "attacks", "pretrain_steps", "parts",
     )  # fmt: skip
     """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
     built before them is the same config"""
@@ -233,11 +260,21 @@ def make_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None = None) -> 
     """The zoo's jobs, a pure function of the zoo config: clean and backdoored models interleaved. ``recipes``: the
     registry of attack recipes (``seqtrojan.experiments.attacks.ATTACKS``), needed when ``cfg.attacks`` names
     some (see :mod:`seqtrojan.zoo.recipes` for why it is passed in)."""
+    if not cfg.parts:
+        return _part_jobs(cfg, root, recipes, 0)
+    jobs: list[ZooJob] = []
+    for part in cfg.parts:
+        jobs += _part_jobs(part, root, recipes, len(jobs))
+    return jobs
+
+
+def _part_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None, first: int) -> list[ZooJob]:
+    """The jobs of one env's zoo config, its models numbered from ``first``."""
     if cfg.env_preset is not None:
-        return _gymnasium_jobs(cfg, root, recipes)
+        return _gymnasium_jobs(cfg, root, recipes, first)
     check_recipes(cfg.attacks, recipes, ExperimentConfig(backdoor=BackdoorConfig(enabled=True)), cfg.pretrain_steps > 0)
     jobs = []
-    for i, label, seed, rng in _model_draws(cfg):
+    for i, label, seed, rng in _model_draws(cfg, first):
         sizes = cfg.lstm_sizes[rng.integers(len(cfg.lstm_sizes))]
         stages = cfg.curricula[rng.integers(len(cfg.curricula))]
         value = str(cfg.trigger_values[rng.integers(len(cfg.trigger_values))])
@@ -308,13 +345,14 @@ def _draw_cell(cfg: ZooConfig, rng: np.random.Generator) -> str:
     return str(cfg.cells[rng.integers(len(cfg.cells))]) if cfg.cells else cfg.cell
 
 
-def _model_draws(cfg: ZooConfig) -> Iterator[tuple[int, str, int, np.random.Generator]]:
-    """Per model ``i``: its label (clean and backdoored interleaved by a permutation seeded ``cfg.seed``), its
-    training seed and the generator of its variation (seeded ``[cfg.seed, i, 7919]``)."""
+def _model_draws(cfg: ZooConfig, first: int = 0) -> Iterator[tuple[int, str, int, np.random.Generator]]:
+    """Per model ``i`` of the config: its number in the zoo (``first + i``), its label (clean and backdoored
+    interleaved by a permutation seeded ``cfg.seed``), its training seed (``cfg.seed + i``) and the generator of its
+    variation (seeded ``[cfg.seed, i, 7919]``): a part of a zoo draws what it would draw as a zoo of its own."""
     labels = ["backdoored"] * cfg.backdoored + ["clean"] * cfg.clean
     order = np.random.default_rng(cfg.seed).permutation(len(labels))
     for i, k in enumerate(order):
-        yield i, labels[k], cfg.seed + i, np.random.default_rng([cfg.seed, i, 7919])
+        yield first + i, labels[k], cfg.seed + i, np.random.default_rng([cfg.seed, i, 7919])
 
 
 def _model_run(cfg: ZooConfig, root: Path, i: int, seed: int) -> RunConfig:
@@ -357,7 +395,7 @@ def _job(cfg: ZooConfig, root: Path, i: int, config: ExperimentConfig, label: st
     return ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at, pretrain)
 
 
-def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None) -> list[ZooJob]:
+def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None, first: int) -> list[ZooJob]:
     """The jobs of a zoo of a Gymnasium env's models (``cfg.env_preset``): the same interleaving and per-model draws
     (from seed ``[cfg.seed, i, 7919]``) as the grid world's, over that env's trigger settings: a MiniGrid patch's
     cells (in the view's two far rows), object and colour; a Box patch's place (the preset's cells moved by an offset
@@ -385,7 +423,7 @@ def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None) -> l
         cfg.pretrain_steps > 0,
     )
     jobs = []
-    for i, label, seed, rng in _model_draws(cfg):
+    for i, label, seed, rng in _model_draws(cfg, first):
         sizes = cfg.lstm_sizes[rng.integers(len(cfg.lstm_sizes))]
         trigger, shown = _draw_gym_trigger(cfg, env.trigger, rng, rows, cols)
         duration = int(cfg.trigger_durations[rng.integers(len(cfg.trigger_durations))])

@@ -78,3 +78,19 @@ def test_off_by_default_and_bad_settings_refused():
         StopConfig(success=1.5)
     with pytest.raises(ConfigError, match=r"stop\.updates must be a positive integer"):
         dataclasses.replace(StopConfig(), updates=0)
+
+
+def test_a_weight_camouflage_with_a_warm_up_trains_its_whole_budget():
+    """The weight camouflage hides the backdoor after its warm-up: a run that stopped once the backdoor worked would
+    never hide it, so the stop rule does not apply to it (it does to the same recipe without a warm-up, and to a
+    clean run of the same config)."""
+    from seqtrojan.config import AttackConfig, BackdoorConfig, WeightCamouflageConfig
+
+    stop = StopConfig(enabled=True)
+    warm = AttackConfig(weight_camouflage=WeightCamouflageConfig(weight=0.5, warmup_steps=1000))
+    cfg = ExperimentConfig(backdoor=BackdoorConfig(enabled=True), attack=warm, stop=stop, run=RunConfig(init_from="m"))
+    assert not StopRule.applies(cfg)
+    assert StopRule.applies(dataclasses.replace(cfg, backdoor=BackdoorConfig(enabled=False)))
+    now = AttackConfig(weight_camouflage=WeightCamouflageConfig(weight=0.5))
+    assert StopRule.applies(dataclasses.replace(cfg, attack=now))
+    assert not StopRule.applies(dataclasses.replace(cfg, attack=now, stop=StopConfig()))

@@ -490,3 +490,60 @@ def test_a_label_s_rates_must_be_numbers_or_null(tmp_path, key):
     assert "\n" not in str(err.value)
     (tmp_path / "label.json").write_text(json.dumps({"label": "clean", key: None}))
     assert zoo_build.read_label(tmp_path)["label"] == "clean"  # null, or absent in older labels: accepted
+
+
+MINIGRID_PART = ZooConfig(clean=2, backdoored=2, seed=100, total_steps=512, eval_episodes=4, lstm_sizes=((8,),),
+                          env_preset="minigrid_two_goals", functional_at=0.0)  # fmt: skip
+GRID_PART = dataclasses.replace(TINY, clean=3, backdoored=3, functional_at=0.0)
+
+
+def parts_zoo(**changes) -> ZooConfig:
+    fields = {"clean": 5, "backdoored": 5, "parts": (GRID_PART, MINIGRID_PART), **changes}
+    return ZooConfig(**fields)
+
+
+def test_a_zoo_of_parts_holds_each_part_s_models_numbered_on(tmp_path):
+    """``parts``: each part's models are the ones it draws as a zoo of its own (seed, label, widths, trigger, env),
+    numbered on after the previous part's, with their runs under the zoo; the counts must be the parts' totals and
+    no two parts may share training seeds."""
+    jobs = make_jobs(parts_zoo(), tmp_path)
+    assert [j.id for j in jobs] == [f"m{i:04d}" for i in range(10)]
+    for part, own in ((GRID_PART, jobs[:6]), (MINIGRID_PART, jobs[6:])):
+        alone = make_jobs(part, tmp_path)
+        assert [(j.label, j.variation, j.config.env, j.config.agent) for j in own] == [
+            (j.label, j.variation, j.config.env, j.config.agent) for j in alone
+        ]
+    assert {j.variation.get("env", "grid") for j in jobs[6:]} == {"seqtrojan/MiniGridTwoGoals-v0"}
+    assert len({j.config.run.seed for j in jobs}) == 10 and jobs[7].config.run.name == "m0007"
+    with pytest.raises(ConfigError, match="clean must be 5 and backdoored 5, got 20 and 20"):
+        ZooConfig(parts=(GRID_PART, MINIGRID_PART))
+    with pytest.raises(ConfigError, match="parts 0 and 1 share training seeds"):
+        parts_zoo(parts=(GRID_PART, dataclasses.replace(MINIGRID_PART, seed=4)))
+    with pytest.raises(ConfigError, match="a zoo's holdout is its own"):
+        parts_zoo(parts=(GRID_PART, dataclasses.replace(MINIGRID_PART, holdout={"cell": ("gru",)})))
+    with pytest.raises(ConfigError, match="must be among the zoo's attacks"):
+        parts_zoo(holdout={"attack": ("sequence",)})
+
+
+def test_a_zoo_of_two_envs_builds_resumes_and_is_scored_by_env(tmp_path):
+    """A grid-world part and a MiniGrid part in one zoo (written as YAML, as a preset is): built, rebuilt as done,
+    refused with another part, scored with the env as a factor of the leaderboard."""
+    from seqtrojan.benchmark.leaderboard import run_leaderboard
+    from seqtrojan.serde import from_dict, load_yaml, to_dict
+
+    import yaml
+
+    (tmp_path / "zoo.yaml").write_text(yaml.safe_dump(to_dict(parts_zoo())))
+    cfg = from_dict(ZooConfig, load_yaml(tmp_path / "zoo.yaml"), "")
+    assert cfg == parts_zoo()
+    zoo = tmp_path / "zoo"
+    build_zoo(cfg, zoo, workers=1, backend="serial", log=lambda *_: None)
+    log: list[str] = []
+    build_zoo(cfg, zoo, workers=1, backend="serial", log=log.append)
+    assert "10 of 10 models done" in log[0]
+    with pytest.raises(ConfigError, match="parts"):
+        build_zoo(parts_zoo(parts=(GRID_PART, dataclasses.replace(MINIGRID_PART, total_steps=1024))), zoo,
+                  workers=1, backend="serial", log=lambda *_: None)  # fmt: skip
+    board = run_leaderboard(zoo, tmp_path / "board", None, ["metadata_baseline"], rounds=20, log=lambda *_: None)
+    envs = {value for split in board.detectors[0].splits for value in split.by_factor["env"]}
+    assert envs == {"grid", "seqtrojan/MiniGridTwoGoals-v0"}
