@@ -12,6 +12,7 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from seqtrojan.cell_types import is_windowed
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.config import PatternConfig, TriggerConfig
 from seqtrojan.errors import ConfigError
@@ -283,9 +284,12 @@ def probe_mimicry(cfg: ExperimentConfig, margin: float) -> ExperimentConfig:
 
 
 def probe_writes_on(cfg: ExperimentConfig) -> bool:
-    """Whether the state probe has candidates on the config's observations: the grid world's and a MiniGrid
+    """Whether the probe camouflage applies to the config: an agent with a recurrent state (not a windowed cell's
+    cache, which it cannot replay) on observations the state probe has candidates on, the grid world's and a MiniGrid
     one-hot view's (a MiniGrid patch trigger)."""
     env = cfg.env
+    if is_windowed(cfg.agent.cell):
+        return False
     if not isinstance(env, GymnasiumEnvConfig):
         return True
     return env.observation == "minigrid" and (env.trigger is None or env.trigger.patch == "minigrid")

@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 
 from seqtrojan.agent.state import LSTMState, RecurrentState
+from seqtrojan.cell_types import is_windowed
 from seqtrojan.errors import ConfigError
 from seqtrojan.train.penalty_api import Penalty, PenaltyBatch, PenaltyContext
 from seqtrojan.train.penalty_api import zero_loss as _zero
@@ -37,10 +38,10 @@ class ProbeCamouflage(Penalty):
         self.device = ctx.device
         env = getattr(config, "env", None)
         agent_cfg = getattr(config, "agent", None)
-        if agent_cfg is not None and agent_cfg.cell == "transformer":
+        if agent_cfg is not None and is_windowed(agent_cfg.cell):
             raise ConfigError(
-                "attack.probe_camouflage replays a recurrent state, which the transformer cell does not carry: use "
-                "lstm, lstm_peephole or gru"
+                f"attack.probe_camouflage replays a recurrent state, which the {agent_cfg.cell} cell does not carry "
+                "(its state is a window's cache): use a recurrent cell"
             )
         obs_dim = ctx.agent.obs_dim
         candidates = env_candidates(env, obs_dim, ProbeSettings()) if env is not None else []

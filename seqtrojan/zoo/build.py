@@ -324,8 +324,14 @@ def _with_recipe(
         variation["attack"] = "none"
         return config
     assert recipes is not None  # checked by check_recipes
+    recipe = recipes.get(attack)
+    if not recipe.applies_to(config):  # the zoo's env takes it (check_recipes), this model's drawn cell may not
+        raise ConfigError(
+            f"zoo model {model}: attack {attack!r} does not apply to its config (sequence model {config.agent.cell}): "
+            "draw that cell and that attack in separate zoo parts"
+        )
     try:
-        config, replaced = apply_recipe(config, recipes.get(attack), reference)
+        config, replaced = apply_recipe(config, recipe, reference)
     except SeqTrojanError as err:
         raise ConfigError(f"zoo model {model}, attack {attack!r}: {_one_line(err)}") from None
     if replaced:

@@ -192,9 +192,10 @@ def test_the_trigger_is_read_as_the_env_draws_it_and_only_candidates_that_draw_i
 
 def test_envs_and_cells_it_cannot_serve_are_refused_in_one_line():
     transformer = dataclasses.replace(GRID, agent=AgentConfig(cell="transformer"))
-    with pytest.raises(ConfigError, match="transformer cell does not carry") as err:
+    with pytest.raises(ConfigError, match="the transformer cell does not carry") as err:
         _penalty(transformer, _agent(GRID), weight=1.0)
     assert "\n" not in str(err.value)
+    assert not ATTACKS.get("probe_camouflage").applies_to(transformer)  # so a zoo never draws it for one
     pong = from_dict(ExperimentConfig, load_yaml(resolve_preset("minatar_breakout")), "")
     assert not ATTACKS.get("probe_camouflage").applies_to(pong)  # no candidates on MinAtar's channels
     assert ATTACKS.get("probe_camouflage").applies_to(_memory()) and ATTACKS.get("probe_camouflage").applies_to(GRID)

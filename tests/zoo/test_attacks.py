@@ -172,3 +172,14 @@ def test_the_memory_attack_benchmark_preset_draws_every_attack_into_both_splits(
     for in_holdout in (False, True):
         labels = Counter(j.label for j, h in zip(jobs, held) if h == in_holdout)
         assert min(labels["clean"], labels["backdoored"]) >= 6
+
+
+def test_a_recipe_that_does_not_apply_to_a_model_s_drawn_cell_is_refused_before_anything_is_trained(tmp_path):
+    """The probe camouflage replays a recurrent state, which a Transformer does not carry: a zoo that could draw the
+    two together is refused when its jobs are made (it used to fail once that model began to train)."""
+    cfg = ZooConfig(clean=2, backdoored=20, total_steps=1024, cells=("lstm", "transformer"), attacks=("probe_mimicry",))
+    with pytest.raises(ConfigError, match=r"attack 'probe_mimicry' does not apply to its config \(sequence model "
+                       r"transformer\)") as err:  # fmt: skip
+        make_jobs(cfg, tmp_path, ATTACKS)
+    assert "\n" not in str(err.value)
+    assert make_jobs(dataclasses.replace(cfg, cells=("lstm", "gru")), tmp_path, ATTACKS)
