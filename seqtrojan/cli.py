@@ -564,6 +564,9 @@ def _zoo(argv: list[str]) -> None:
         """the Ray cluster to run on, e.g. 10.0.0.5:6379 (none: a local Ray instance)"""
         threads: int | None = None
         """torch threads per model (default: the cores shared out among the workers; 1 on a Ray cluster)"""
+        limit: int | None = None
+        """train at most this many of the unfinished models, then stop (a long build in installments; a zoo of
+        parts trains its parts' models in turn, so a partial build holds every part); none: all of them"""
 
     @dataclasses.dataclass
     class ZooDetect:
@@ -598,7 +601,8 @@ def _zoo(argv: list[str]) -> None:
 
         args = _cli_with_config_file(ZooBuild, ZooConfig, argv[1:], "seqtrojan zoo build")
         manifest = build_zoo(args.config, args.out, workers=args.workers, backend=args.backend,
-                             ray_address=args.ray_address, threads=args.threads, recipes=ATTACKS)  # fmt: skip
+                             ray_address=args.ray_address, threads=args.threads, recipes=ATTACKS,
+                             limit=args.limit)  # fmt: skip
         print(f"wrote {manifest}")
         return
     args = _cli(ZooDetect, argv[1:], "seqtrojan zoo detect")

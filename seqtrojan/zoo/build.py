@@ -633,12 +633,18 @@ def build_zoo(
     threads: int | None = None,
     log: Callable[[str], None] = print,
     recipes: RecipeBook | None = None,
+    limit: int | None = None,
 ) -> Path:
     """Train every job not yet finished on the job backend ``backend`` (serial, pool or ray; 'local' is the pool's
     old name; see :class:`~seqtrojan.jobs.JobsConfig` for the other options); write ``manifest.json``; return its
     path (see the module docstring). Failed models are marked ``failed`` in the manifest, with their error, once
     the others have finished; then the build raises :class:`~seqtrojan.jobs.JobsFailed` naming them. ``recipes``:
-    as :func:`make_jobs` (a zoo whose ``attacks`` cannot be drawn is refused before anything is written)."""
+    as :func:`make_jobs` (a zoo whose ``attacks`` cannot be drawn is refused before anything is written).
+    ``limit``: train at most this many of the unfinished models now (a long build in installments); a zoo of parts
+    trains its parts' models in turn, in proportion to their sizes (:func:`_build_order`), so that a partial build
+    holds every part."""
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
+        raise ConfigError(f"a build's limit must be a positive number of models, got {limit!r}")
     jobs_cfg = JobsConfig("pool" if backend == "local" else backend, workers, ray_address, threads)  # type: ignore[arg-type]
     jobs = make_jobs(cfg, root, recipes)
     root.mkdir(parents=True, exist_ok=True)
@@ -661,11 +667,13 @@ def build_zoo(
                     log(f"  {job.model_id}: incomplete ({why}); training it again")
                 entries[job.model_id] = {"id": job.model_id, "label": job.label, "status": "pending"}
         write_json_atomic(manifest_path, [entries[j.model_id] for j in jobs])
-        todo = [j for j in jobs if entries[j.model_id]["status"] != "done"]
+        pending = [j for j in _build_order(cfg, jobs) if entries[j.model_id]["status"] != "done"]
+        todo = pending[:limit] if limit is not None else pending
         runner = make_backend(jobs_cfg, worker_lock=root / "workers.lock")
         log(
-            f"zoo: {len(jobs) - len(todo)} of {len(jobs)} models done; training {len(todo)} with {runner.name} "
+            f"zoo: {len(jobs) - len(pending)} of {len(jobs)} models done; training {len(todo)} with {runner.name} "
             "backend" + (f" ({runner.describe(len(todo))})" if todo else "")
+            + (f", {len(pending) - len(todo)} left for a later build (limit {limit})" if len(todo) < len(pending) else "")
         )
 
         def record(result: JobResult) -> None:
@@ -683,6 +691,20 @@ def build_zoo(
 
         raise_failures(runner.run(todo, record), "zoo model")
     return manifest_path
+
+
+def _build_order(cfg: ZooConfig, jobs: list[ZooJob]) -> list[ZooJob]:
+    """The order a build trains ``jobs`` in: the zoo's order, or for a zoo of parts their models in turn, each part's
+    k-th model at ``(k + 0.5) / size`` of the way through (ties in part order), so that any prefix of the build holds
+    each part in proportion to its size."""
+    if not cfg.parts:
+        return list(jobs)
+    keys, first = [], 0
+    for p, part in enumerate(cfg.parts):
+        keys += [((k + 0.5) / part.size, p) for k in range(part.size)]
+        first += part.size
+    assert first == len(jobs)
+    return [job for _, job in sorted(zip(keys, jobs), key=lambda pair: pair[0])]
 
 
 def _card_metrics(folder: Path) -> dict[str, Any]:

@@ -526,19 +526,26 @@ def test_a_zoo_of_parts_holds_each_part_s_models_numbered_on(tmp_path):
 
 
 def test_a_zoo_of_two_envs_builds_resumes_and_is_scored_by_env(tmp_path):
-    """A grid-world part and a MiniGrid part in one zoo (written as YAML, as a preset is): built, rebuilt as done,
-    refused with another part, scored with the env as a factor of the leaderboard."""
+    """A grid-world part and a MiniGrid part in one zoo (written as YAML, as a preset is): built in installments
+    that take the parts in turn, then whole, rebuilt as done, refused with another part, scored with the env as a
+    factor of the leaderboard."""
+    import yaml
+
     from seqtrojan.benchmark.leaderboard import run_leaderboard
     from seqtrojan.serde import from_dict, load_yaml, to_dict
-
-    import yaml
 
     (tmp_path / "zoo.yaml").write_text(yaml.safe_dump(to_dict(parts_zoo())))
     cfg = from_dict(ZooConfig, load_yaml(tmp_path / "zoo.yaml"), "")
     assert cfg == parts_zoo()
     zoo = tmp_path / "zoo"
-    build_zoo(cfg, zoo, workers=1, backend="serial", log=lambda *_: None)
     log: list[str] = []
+    build_zoo(cfg, zoo, workers=1, backend="serial", log=log.append, limit=4)  # an installment takes both parts
+    assert sorted(p.name for p in (zoo / "models").iterdir()) == ["m0000", "m0001", "m0006", "m0007"]
+    assert "training 4 with serial backend" in log[0] and "6 left for a later build (limit 4)" in log[0]
+    with pytest.raises(ConfigError, match="a build's limit must be a positive number of models, got 0"):
+        build_zoo(cfg, zoo, workers=1, backend="serial", log=lambda *_: None, limit=0)
+    build_zoo(cfg, zoo, workers=1, backend="serial", log=lambda *_: None)
+    log.clear()
     build_zoo(cfg, zoo, workers=1, backend="serial", log=log.append)
     assert "10 of 10 models done" in log[0]
     with pytest.raises(ConfigError, match="parts"):

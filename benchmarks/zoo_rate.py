@@ -1,0 +1,140 @@
+"""Print how fast a zoo builds, per part and sequence model, and how long the rest of it will take.
+
+    seqtrojan zoo build --config benchmark_paper --out Z --limit 16       # a first installment, alone
+    python benchmarks/zoo_rate.py --zoo Z --workers 2 --json rate.json    # its rates and the projection
+    python benchmarks/zoo_rate.py --table rate.json                       # the markdown table of a saved run
+
+Reads a zoo that is built or partly built (``zoo.json`` and ``manifest.json``; ``seqtrojan zoo build --limit N``
+builds one in installments, taking a zoo's parts in turn). Per part of the zoo (its env and the sequence model of
+each model) it prints the models done, their mean wall time per model in a worker (both stages of a two-stage
+model, its evaluation and its saving; the workers ran side by side, so what they cost each other is in it), the
+models per hour that makes with ``--workers`` workers, the poisoned models whose backdoor works and the mean clean
+success, and how many models are left with the hours they will take at that rate. A group with no model done yet is
+marked unmeasured and left out of the total. The projection assumes the models left cost what the done ones of
+their group did: a sample's drawn attacks and early stops make that a rough figure for a few models per group.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import statistics
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from seqtrojan.experiments.attacks import ATTACKS
+from seqtrojan.serde import from_dict
+from seqtrojan.zoo.build import MAX_MANIFEST_BYTES, MAX_ZOO_CONFIG_BYTES, ZooConfig, make_jobs, read_json_file
+
+
+@dataclass(frozen=True)
+class GroupRate:
+    part: int
+    env: str
+    cell: str
+    models: int
+    done: int
+    mean_seconds: float | None
+    """mean wall seconds per done model in a worker; None: none done"""
+    functional: int
+    poisoned: int
+    """done poisoned models, and those whose backdoor works (``functional_backdoor``)"""
+    clean_success: float | None
+    """mean normal-env success of the done models"""
+
+    def models_per_hour(self, workers: int) -> float | None:
+        return None if not self.mean_seconds else workers * 3600.0 / self.mean_seconds
+
+    def hours_left(self, workers: int) -> float | None:
+        if self.mean_seconds is None:
+            return None
+        return (self.models - self.done) * self.mean_seconds / workers / 3600.0
+
+
+def measure(zoo: Path) -> list[GroupRate]:
+    cfg = from_dict(ZooConfig, read_json_file(zoo / "zoo.json", MAX_ZOO_CONFIG_BYTES), "zoo.json")
+    manifest = {e["id"]: e for e in read_json_file(zoo / "manifest.json", MAX_MANIFEST_BYTES) if isinstance(e, dict)}
+    jobs = make_jobs(cfg, zoo, ATTACKS)
+    groups: dict[tuple[int, str, str], list[Any]] = {}
+    first = 0
+    for p, part in enumerate(cfg.parts or (cfg,)):
+        for job in jobs[first : first + part.size]:
+            key = (p, str(job.variation.get("env", "grid")), job.config.agent.cell)
+            groups.setdefault(key, []).append((job, manifest.get(job.id, {})))
+        first += part.size
+    rates = []
+    for (p, env, cell), members in groups.items():
+        done = [
+            (job, e) for job, e in members if e.get("status") == "done" and isinstance(e.get("seconds"), (int, float))
+        ]
+        poisoned = [e for job, e in done if job.label == "backdoored"]
+        clean = [e["metrics"]["normal_success"] for _, e in done if "normal_success" in e.get("metrics", {})]
+        functional = sum(1 for e in poisoned if e["metrics"].get("trojan_success", 0.0) >= _functional_at(cfg, p))
+        rates.append(GroupRate(
+            p, env, cell, len(members), len(done),
+            statistics.fmean(e["seconds"] for _, e in done) if done else None,
+            functional, len(poisoned), statistics.fmean(clean) if clean else None,
+        ))  # fmt: skip
+    return sorted(rates, key=lambda r: (r.part, r.cell))
+
+
+def _functional_at(cfg: ZooConfig, part: int) -> float:
+    return (cfg.parts[part] if cfg.parts else cfg).functional_at
+
+
+def table(data: dict) -> str:
+    workers = data["workers"]
+    rows = [
+        "| part | env | cell | models | done | s per model | models/h | backdoors working | clean success | "
+        "hours left |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for g in data["groups"]:
+        r = GroupRate(**g)
+        per_hour, left = r.models_per_hour(workers), r.hours_left(workers)
+        rows.append(
+            f"| {r.part} | {r.env} | {r.cell} | {r.models} | {r.done} | "
+            + (f"{r.mean_seconds:.0f} | {per_hour:.0f} | " if r.mean_seconds and per_hour else "unmeasured | | ")
+            + (f"{r.functional} of {r.poisoned} | " if r.poisoned else "none done | ")
+            + (f"{r.clean_success:.2f} | " if r.clean_success is not None else " | ")
+            + (f"{left:.1f} |" if left is not None else " |")
+        )
+    total = data["hours_left"]
+    rows.append(f"| all | | | {data['models']} | {data['done']} | | | | | {total:.1f} ({data['unmeasured']} "
+                f"models unmeasured) |")  # fmt: skip
+    return "\n".join(rows)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--zoo", type=Path, help="a built or partly built zoo")
+    parser.add_argument("--workers", type=int, default=2, help="workers the projection assumes (default 2)")
+    parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--table", type=Path, help="print the markdown table of a saved run (--json), and stop")
+    args = parser.parse_args()
+    if args.table is not None:
+        print(table(json.loads(args.table.read_text())))
+        return
+    if args.zoo is None or args.workers < 1:
+        parser.error("give --zoo and a positive --workers, or --table")
+    groups = measure(args.zoo)
+    measured = [g for g in groups if g.mean_seconds is not None]
+    data = {
+        "zoo": str(args.zoo), "date": datetime.date.today().isoformat(), "workers": args.workers,
+        "command": "python benchmarks/zoo_rate.py " + " ".join(sys.argv[1:]),
+        "models": sum(g.models for g in groups), "done": sum(g.done for g in groups),
+        "unmeasured": sum(g.models - g.done for g in groups if g.mean_seconds is None),
+        "hours_left": sum(g.hours_left(args.workers) or 0.0 for g in measured),
+        "groups": [g.__dict__ for g in groups],
+    }  # fmt: skip
+    print(table(data))
+    if args.json is not None:
+        args.json.write_text(json.dumps(data, indent=1) + "\n")
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
