@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import json
 import math
 import os
@@ -146,6 +147,11 @@ class ZooConfig:
     cell and draws), then ``total_steps`` from those weights (``run.init_from``): a poisoned model's backdoor is added
     to a trained clean agent, the two stages that MiniGrid's Memory task needs (docs/own_env.md), and a clean model
     trains on, clean, for as long, so that every model's budget and card look alike. 0: one stage from scratch"""
+    pretrain_stop: StopConfig = StopConfig()  # noqa: RUF009 (frozen, so one shared default is safe)
+    """early stopping of the clean first stage (``pretrain_steps``) alone, as ``stop:`` of a training run: that
+    stage is the same for both labels, so stopping it once the task is learned saves steps without telling the
+    labels apart (``stop`` stops the second stage too, where a poisoned model trains until its backdoor works and a
+    clean one, having learned already, stops at once: their budgets then differ by label)"""
     holdout: dict[str, tuple[str, ...]] = field(default_factory=dict)
     """as a detection benchmark (``seqtrojan zoo detect --out``): factor -> the values whose models only the holdout
     split holds, e.g. ``lstm_sizes: ["[48, 24]"]`` or ``attack: [sequence]`` (factors: env, cell, lstm_sizes,
@@ -184,6 +190,8 @@ class ZooConfig:
             raise ConfigError(f"zoo holdout must map factors {list(factors)} to values, got {self.holdout!r}")
         if isinstance(self.pretrain_steps, bool) or not isinstance(self.pretrain_steps, int) or self.pretrain_steps < 0:
             raise ConfigError(f"zoo pretrain_steps must be an integer >= 0, got {self.pretrain_steps!r}")
+        if self.pretrain_stop.enabled and not self.pretrain_steps:
+            raise ConfigError("zoo pretrain_stop stops the clean first stage early: set pretrain_steps as well")
         if self.parts:
             self._check_parts()
         attacks = [a for part in self.parts or (self,) for a in part.attacks]
@@ -206,7 +214,7 @@ class ZooConfig:
                 f"{self.clean} and {self.backdoored}"
             )
         spans = sorted((p.seed, p.seed + p.size, i) for i, p in enumerate(self.parts))
-        for (_, end, a), (start, _, b) in zip(spans, spans[1:]):
+        for (_, end, a), (start, _, b) in itertools.pairwise(spans):
             if start < end:
                 raise ConfigError(f"zoo parts {a} and {b} share training seeds: give each part a seed range of its own")
 
@@ -216,7 +224,7 @@ class ZooConfig:
 
     OPTIONAL: ClassVar[tuple[str, ...]] = (
         "cell", "window", "stop", "rollout_steps", "learning_rate", "env_preset", "trigger_objects", "trigger_colors",
-        "holdout", "cells", "attacks", "pretrain_steps", "parts",
+        "holdout", "cells", "attacks", "pretrain_steps", "parts", "pretrain_stop",
     )  # fmt: skip
     """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
     built before them is the same config"""
@@ -394,6 +402,7 @@ def _job(cfg: ZooConfig, root: Path, i: int, config: ExperimentConfig, label: st
         pretrain = dataclasses.replace(
             config, backdoor=dataclasses.replace(config.backdoor, enabled=False), attack=AttackConfig(),
             ppo=dataclasses.replace(config.ppo, total_steps=cfg.pretrain_steps),
+            stop=cfg.pretrain_stop if cfg.pretrain_stop.enabled else config.stop,
             run=dataclasses.replace(config.run, name=f"{config.run.name}_clean", init_from=None,
                                     checkpoint_every=max(cfg.pretrain_steps // 4, 1)),
         )  # fmt: skip
@@ -672,8 +681,9 @@ def build_zoo(
         runner = make_backend(jobs_cfg, worker_lock=root / "workers.lock")
         log(
             f"zoo: {len(jobs) - len(pending)} of {len(jobs)} models done; training {len(todo)} with {runner.name} "
-            "backend" + (f" ({runner.describe(len(todo))})" if todo else "")
-            + (f", {len(pending) - len(todo)} left for a later build (limit {limit})" if len(todo) < len(pending) else "")
+            "backend"
+            + (f" ({runner.describe(len(todo))})" if todo else "")
+            + (f", {len(pending) - len(todo)} left for a later build (limit {limit})" if todo != pending else "")
         )
 
         def record(result: JobResult) -> None:

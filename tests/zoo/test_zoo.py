@@ -554,3 +554,17 @@ def test_a_zoo_of_two_envs_builds_resumes_and_is_scored_by_env(tmp_path):
     board = run_leaderboard(zoo, tmp_path / "board", None, ["metadata_baseline"], rounds=20, log=lambda *_: None)
     envs = {value for split in board.detectors[0].splits for value in split.by_factor["env"]}
     assert envs == {"grid", "seqtrojan/MiniGridTwoGoals-v0"}
+
+
+def test_pretrain_stop_stops_only_the_clean_first_stage(tmp_path):
+    """``pretrain_stop``: the first stage (the same for both labels) stops once learned; the second keeps the zoo's
+    ``stop`` (off here: every model trains its whole second stage, whatever its label)."""
+    rule = StopConfig(enabled=True, success=0.95)
+    cfg = ZooConfig(**{**TINY.__dict__, "mixing": "fixed", "pretrain_steps": 1024, "pretrain_stop": rule})
+    jobs = make_jobs(cfg, tmp_path)
+    assert all(j.pretrain.stop == rule and j.config.stop == StopConfig() for j in jobs)
+    both = dataclasses.replace(cfg, pretrain_stop=StopConfig(), stop=rule)  # without it: the zoo's stop, both stages
+    assert all(j.pretrain.stop == rule and j.config.stop == rule for j in make_jobs(both, tmp_path))
+    assert "pretrain_stop" not in TINY.serde_dump() and cfg.serde_dump()["pretrain_stop"]["enabled"]
+    with pytest.raises(ConfigError, match="zoo pretrain_stop stops the clean first stage early: set pretrain_steps"):
+        ZooConfig(pretrain_stop=rule)
