@@ -602,7 +602,7 @@ def _zoo(argv: list[str]) -> None:
         args = _cli_with_config_file(ZooBuild, ZooConfig, argv[1:], "seqtrojan zoo build")
         manifest = build_zoo(args.config, args.out, workers=args.workers, backend=args.backend,
                              ray_address=args.ray_address, threads=args.threads, recipes=ATTACKS,
-                             limit=args.limit)  # fmt: skip
+                             limit=args.limit, progress=True)  # fmt: skip
         print(f"wrote {manifest}")
         return
     args = _cli(ZooDetect, argv[1:], "seqtrojan zoo detect")
@@ -643,7 +643,7 @@ def _zoo_leaderboard(
             raise ConfigError(f"--holdout takes FACTOR=VALUE pairs, got {pair!r}")
         held.setdefault(factor.strip(), []).append(value.strip())
     splits = SplitConfig(test_share, {k: tuple(v) for k, v in held.items()}, seed=seed)
-    board = run_leaderboard(zoo, out, splits, detectors or None, budget_s=budget_s)
+    board = run_leaderboard(zoo, out, splits, detectors or None, budget_s=budget_s, progress=True)
     print(f"benchmark leaderboard on {zoo}: train {board.models['train']}, test {board.models['test']}, holdout "
           f"{board.models['holdout']} models; ROC-AUC with Newcombe's interval, cross-entropy and Brier with 95% "
           "bootstrap intervals over models (the bootstrap's AUC interval is in leaderboard.json)")  # fmt: skip

@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from seqtrojan.benchmark.detectors import DETECTORS
 from seqtrojan.benchmark.scoring import BOOTSTRAP_ROUNDS, Scores, score, score_by_factor
@@ -38,6 +39,10 @@ from seqtrojan.benchmark.suspect import Suspect, load_suspect
 from seqtrojan.defense.results import Rejected
 from seqtrojan.errors import ConfigError, SeqTrojanError
 from seqtrojan.serde import from_dict, to_dict
+from seqtrojan.train.logger import make_progress
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
 
 LEADERBOARD_FILE = "leaderboard.json"
 SPLITS_FILE = "splits.json"
@@ -139,9 +144,11 @@ def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected], 
 def run_leaderboard(
     zoo: Path, out: Path, splits: SplitConfig | None = None, detectors: Sequence[str] | None = None,
     rounds: int = BOOTSTRAP_ROUNDS, log: Callable[[str], None] = print, budget_s: float | None = None,
+    progress: bool = False,
 ) -> Leaderboard:  # fmt: skip
     """Fit and score ``detectors`` (default: every registered one) on ``zoo``; see the module docstring.
-    ``budget_s``: seconds a detector may take per model (None: no limit)."""
+    ``budget_s``: seconds a detector may take per model (None: no limit). ``progress``: a progress bar per
+    detector (fitting, then the test and holdout models it scores)."""
     if budget_s is not None and not budget_s > 0:
         raise ConfigError(f"the per-model budget must be a positive number of seconds, got {budget_s!r}")
     names = list(detectors) if detectors is not None else DETECTORS.names()
@@ -159,9 +166,10 @@ def run_leaderboard(
     out.mkdir(parents=True, exist_ok=True)
     _write(out / SPLITS_FILE, assignment)
     results = []
-    for name in names:
-        answers = _predictions(name, entries, suspects, assignment, out, log)
-        results.append(_result(name, entries, _within_budget(answers, budget_s), cfg.seed, rounds))
+    with make_progress(progress) as bar:
+        for name in names:
+            answers = _predictions(name, entries, suspects, assignment, out, log, bar)
+            results.append(_result(name, entries, _within_budget(answers, budget_s), cfg.seed, rounds))
     counts = {split: sum(1 for s in assignment.values() if s == split) for split in ("train", "test", "holdout")}
     board = Leaderboard(str(zoo), counts, tuple(rejected), tuple(excluded), tuple(results))
     _write(out / LEADERBOARD_FILE, to_dict(board))
@@ -170,7 +178,7 @@ def run_leaderboard(
 
 def _predictions(
     name: str, entries: Sequence[ZooEntry], suspects: Sequence[Suspect], assignment: dict[str, str], out: Path,
-    log: Callable[[str], None],
+    log: Callable[[str], None], bar: Progress,
 ) -> DetectorPredictions:  # fmt: skip
     path = out / "predictions" / f"{name}.json"
     if path.is_file():
@@ -182,9 +190,11 @@ def _predictions(
             log(f"{name}: predictions found in {path}")
             return done
     train = [(s, e.label) for e, s in zip(entries, suspects) if assignment[e.model_id] == "train"]
+    task = bar.add_task(name, total=len(entries) - len(train), info=f"fitting on {len(train)} models")
     start = time.perf_counter()
     fitted = DETECTORS.get(name).fit([s for s, _ in train], [y for _, y in train])
     fit_seconds = time.perf_counter() - start
+    bar.update(task, info="scoring")
     answers = []
     for entry, suspect in zip(entries, suspects):
         split = assignment[entry.model_id]
@@ -196,6 +206,7 @@ def _predictions(
         if not 0.0 <= p <= 1.0:
             raise SeqTrojanError(f"detector {name!r} answered {p!r} for {entry.model_id}, not a probability")
         answers.append(ModelPrediction(entry.model_id, split, entry.label, p, seconds))
+        bar.advance(task)
     result = DetectorPredictions(name, dict(assignment), fit_seconds, tuple(answers))
     path.parent.mkdir(parents=True, exist_ok=True)
     _write(path, to_dict(result))

@@ -56,6 +56,7 @@ from seqtrojan.env.config import EnvConfig, GridSpec, TriggerConfig
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.jobs import JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 from seqtrojan.serde import dump_omitting_defaults, to_dict
+from seqtrojan.train.logger import make_progress
 from seqtrojan.zoo.recipes import RecipeBook, apply_recipe, check_recipes, grid_trigger_variation
 
 if TYPE_CHECKING:
@@ -643,6 +644,7 @@ def build_zoo(
     log: Callable[[str], None] = print,
     recipes: RecipeBook | None = None,
     limit: int | None = None,
+    progress: bool = False,
 ) -> Path:
     """Train every job not yet finished on the job backend ``backend`` (serial, pool or ray; 'local' is the pool's
     old name; see :class:`~seqtrojan.jobs.JobsConfig` for the other options); write ``manifest.json``; return its
@@ -651,7 +653,7 @@ def build_zoo(
     as :func:`make_jobs` (a zoo whose ``attacks`` cannot be drawn is refused before anything is written).
     ``limit``: train at most this many of the unfinished models now (a long build in installments); a zoo of parts
     trains its parts' models in turn, in proportion to their sizes (:func:`_build_order`), so that a partial build
-    holds every part."""
+    holds every part. ``progress``: a progress bar of the models (``log`` lines print above it)."""
     if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
         raise ConfigError(f"a build's limit must be a positive number of models, got {limit!r}")
     jobs_cfg = JobsConfig("pool" if backend == "local" else backend, workers, ray_address, threads)  # type: ignore[arg-type]
@@ -686,7 +688,11 @@ def build_zoo(
             + (f", {len(pending) - len(todo)} left for a later build (limit {limit})" if todo != pending else "")
         )
 
+        bar = make_progress(progress)
+        task = bar.add_task("zoo", total=len(todo), info="models")
+
         def record(result: JobResult) -> None:
+            bar.advance(task)
             job = by_id[result.id]
             if result.ok:
                 entry = {"id": job.id, "label": job.label, "status": "done", "seconds": result.seconds,
@@ -699,7 +705,9 @@ def build_zoo(
             entries[job.id] = entry
             write_json_atomic(manifest_path, [entries[j.model_id] for j in jobs])
 
-        raise_failures(runner.run(todo, record), "zoo model")
+        with bar:
+            results = runner.run(todo, record)
+        raise_failures(results, "zoo model")
     return manifest_path
 
 

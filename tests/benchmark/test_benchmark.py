@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import pickle
+import re
 from pathlib import Path
 
 import numpy as np
@@ -291,6 +292,7 @@ def test_benchmark_tiny_builds_and_every_registered_detector_is_scored(tmp_path,
     zoo, out = tmp_path / "Z", tmp_path / "S"
     assert main(["zoo", "build", "--config", "benchmark_tiny", "--out", str(zoo), "--backend", "serial"]) == 0
     assert len(list((zoo / "models").iterdir())) == 16
+    assert "16/16 models" in capsys.readouterr().out  # the build's progress bar, at its end
     assert main(["zoo", "detect", "--zoo", str(zoo), "--out", str(out)]) == 0
     board = json.loads((out / LEADERBOARD_FILE).read_text())
     splits = json.loads((out / SPLITS_FILE).read_text())
@@ -308,7 +310,10 @@ def test_benchmark_tiny_builds_and_every_registered_detector_is_scored(tmp_path,
         answers = json.loads((out / "predictions" / f"{name}.json").read_text())["predictions"]
         assert len(answers) == 16 - list(splits.values()).count("train")
         assert all(0.0 <= a["probability"] <= 1.0 for a in answers), name
-    assert "query_response" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "query_response" in printed
+    scored = 16 - list(splits.values()).count("train")
+    assert all(re.search(rf"{name} .* {scored}/{scored} scoring", printed) for name in DETECTORS.names())  # bars
 
 
 def test_the_state_probe_sees_the_backdoor_s_mark_persist_and_nothing_without_memory():
