@@ -45,6 +45,7 @@ BENCH_TABLES = [
     ("families/minatar_breakout_untargeted.json", "families.md", "families.py"),
     ("families/minatar_space_invaders_clean_3m.json", "families.md", "families.py"),
     ("families/minatar_asterix_clean_3m.json", "families.md", "families.py"),
+    ("benchmark/paper_rate_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
 ]
 """a benchmark's JSON file, the page holding its table and the benchmark (``benchmarks/NAME --table JSON`` prints it)"""
 

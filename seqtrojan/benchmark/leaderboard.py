@@ -6,9 +6,11 @@
    ``functional_at``) is left out and listed as excluded: a benchmark's poisoned models must be backdoored.
 2. The splits (:mod:`seqtrojan.benchmark.splits`) are written to ``S/splits.json``.
 3. Each detector of :data:`~seqtrojan.benchmark.detectors.DETECTORS` is fitted on the train split's suspects
-   (:mod:`seqtrojan.benchmark.suspect`: networks and clean envs only) and asked for every test and holdout model's
-   probability, timed per model; its predictions go to ``S/predictions/<detector>.json`` as soon as it is done, so
-   a stopped run resumes with the detectors it had not finished (and a changed split scores them again).
+   (:mod:`seqtrojan.benchmark.suspect`: networks and clean envs only), once per env (a zoo of several envs: each
+   env's models are answered by the fit on that env's train models, as a detector that is told the clean env would
+   specialise; an env the train split lacks by the fit on every train model), and asked for every test and holdout
+   model's probability, timed per model; its predictions go to ``S/predictions/<detector>.json`` as soon as it is
+   done, so a stopped run resumes with the detectors it had not finished (and a changed split scores them again).
    With a per-model time budget (``budget_s``), an answer that took longer counts as no opinion (probability one
    half; ``over_budget`` in its prediction and the count in the detector's result): a Python call cannot be
    stopped from outside without losing the process, so the budget is enforced on the answer, not the clock.
@@ -21,11 +23,11 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from seqtrojan.benchmark.detectors import DETECTORS
+from seqtrojan.benchmark.detectors import DETECTORS, FittedDetector
 from seqtrojan.benchmark.scoring import BOOTSTRAP_ROUNDS, Scores, score, score_by_factor
 from seqtrojan.benchmark.splits import (
     ATTACK_FACTORS,
@@ -68,6 +70,13 @@ class DetectorPredictions:
     """the split assignment they were made under (a resume checks it)"""
     fit_seconds: float
     predictions: tuple[ModelPrediction, ...]
+    fits: dict[str, int] = field(default_factory=dict)
+    """env -> the train models its fit learned from (:data:`ALL_ENVS`: the fit on every train model, which answers
+    the models of an env the train split does not hold); empty in predictions written before fits were per env"""
+
+
+ALL_ENVS = "*"
+"""the key of the fit on every env's train models in :attr:`DetectorPredictions.fits`"""
 
 
 @dataclass(frozen=True)
@@ -186,20 +195,35 @@ def _predictions(
             done = from_dict(DetectorPredictions, _read(path), "")
         except (ConfigError, ValueError):
             done = None
-        if done is not None and done.splits == assignment and done.detector == name:
+        one_env = len({e.factors["env"] for e in entries}) == 1  # fitted alike before and after fits were per env
+        if done is not None and done.splits == assignment and done.detector == name and (done.fits or one_env):
             log(f"{name}: predictions found in {path}")
             return done
-    train = [(s, e.label) for e, s in zip(entries, suspects) if assignment[e.model_id] == "train"]
+    train = [(e, s) for e, s in zip(entries, suspects) if assignment[e.model_id] == "train"]
     task = bar.add_task(name, total=len(entries) - len(train), info=f"fitting on {len(train)} models")
-    start = time.perf_counter()
-    fitted = DETECTORS.get(name).fit([s for s, _ in train], [y for _, y in train])
-    fit_seconds = time.perf_counter() - start
-    bar.update(task, info="scoring")
+    fits: dict[str, FittedDetector] = {}
+    fit_seconds = 0.0
+
+    def fitted_for(env: str) -> FittedDetector:
+        """The fit on the train models of ``env`` (on every train model when the train split holds none)."""
+        nonlocal fit_seconds
+        key = env if any(e.factors["env"] == env for e, _ in train) else ALL_ENVS
+        if key not in fits:
+            rows = [(e, s) for e, s in train if key in (ALL_ENVS, e.factors["env"])]
+            start = time.perf_counter()
+            fits[key] = DETECTORS.get(name).fit([s for _, s in rows], [e.label for e, _ in rows])
+            fit_seconds += time.perf_counter() - start
+            counts[key] = len(rows)
+        return fits[key]
+
+    counts: dict[str, int] = {}
     answers = []
     for entry, suspect in zip(entries, suspects):
         split = assignment[entry.model_id]
         if split == "train":
             continue
+        fitted = fitted_for(entry.factors["env"])
+        bar.update(task, info="scoring")
         start = time.perf_counter()
         p = float(fitted.probability(suspect))
         seconds = time.perf_counter() - start
@@ -207,10 +231,11 @@ def _predictions(
             raise SeqTrojanError(f"detector {name!r} answered {p!r} for {entry.model_id}, not a probability")
         answers.append(ModelPrediction(entry.model_id, split, entry.label, p, seconds))
         bar.advance(task)
-    result = DetectorPredictions(name, dict(assignment), fit_seconds, tuple(answers))
+    result = DetectorPredictions(name, dict(assignment), fit_seconds, tuple(answers), counts)
     path.parent.mkdir(parents=True, exist_ok=True)
     _write(path, to_dict(result))
-    log(f"{name}: fitted in {fit_seconds:.1f} s, {len(answers)} models scored")
+    per_env = f" (per env: {', '.join(f'{k} on {n} models' for k, n in counts.items())})" if len(counts) > 1 else ""
+    log(f"{name}: fitted in {fit_seconds:.1f} s{per_env}, {len(answers)} models scored")
     return result
 
 

@@ -556,6 +556,46 @@ def test_a_zoo_of_two_envs_builds_resumes_and_is_scored_by_env(tmp_path):
     assert envs == {"grid", "seqtrojan/MiniGridTwoGoals-v0"}
 
 
+def test_a_detector_is_fitted_per_env_on_a_zoo_of_two_envs(tmp_path, monkeypatch):
+    """Each env's test models are answered by the fit on that env's train models; an env the train split lacks (held
+    out) by the fit on every train model; the fits' sizes are written with the predictions."""
+    from seqtrojan.benchmark import detectors as benchmark_detectors
+    from seqtrojan.benchmark.leaderboard import ALL_ENVS, run_leaderboard
+    from seqtrojan.benchmark.splits import SplitConfig
+    from seqtrojan.env.config import EnvConfig
+
+    zoo = tmp_path / "zoo"
+    build_zoo(parts_zoo(), zoo, workers=1, backend="serial", log=lambda *_: None)
+
+    @dataclasses.dataclass(frozen=True)
+    class GridShare:  # answers the share of grid-world suspects among those it was fitted on
+        share: float
+
+        def probability(self, suspect) -> float:
+            return self.share
+
+    class Recorder:
+        def fit(self, suspects, labels):
+            return GridShare(sum(isinstance(s.env, EnvConfig) for s in suspects) / len(suspects))
+
+    registry = benchmark_detectors.DETECTORS
+    monkeypatch.setattr(registry, "_entries", dict(registry._entries))
+    registry.register("recorder", "records what it was fitted on", Recorder())
+    log: list[str] = []
+    run_leaderboard(zoo, tmp_path / "a", SplitConfig(test_share=0.34), ["recorder"], rounds=10, log=log.append)
+    answers = json.loads((tmp_path / "a" / "predictions" / "recorder.json").read_text())
+    env_of = {e["id"]: e["variation"].get("env", "grid") for e in manifest_of(zoo)}
+    assert answers["predictions"] and all(
+        a["probability"] == (1.0 if env_of[a["model_id"]] == "grid" else 0.0) for a in answers["predictions"]
+    )
+    assert set(answers["fits"]) == {"grid", "seqtrojan/MiniGridTwoGoals-v0"} and "per env: grid on" in log[-1]
+    held = SplitConfig(holdout={"env": ("seqtrojan/MiniGridTwoGoals-v0",)})
+    run_leaderboard(zoo, tmp_path / "b", held, ["recorder"], rounds=10, log=lambda *_: None)
+    answers = json.loads((tmp_path / "b" / "predictions" / "recorder.json").read_text())
+    assert answers["fits"] == {"grid": 2, ALL_ENVS: 2}  # the held-out env's models: the fit on every train model
+    assert {a["probability"] for a in answers["predictions"] if a["split"] == "holdout"} == {1.0}
+
+
 def test_pretrain_stop_stops_only_the_clean_first_stage(tmp_path):
     """``pretrain_stop``: the first stage (the same for both labels) stops once learned; the second keeps the zoo's
     ``stop`` (off here: every model trains its whole second stage, whatever its label)."""
