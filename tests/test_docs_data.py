@@ -37,6 +37,7 @@ BENCH_TABLES = [
     ("defenses/finetune_500k_2026-12-03.json", "defenses.md", "finetune.py"),
     ("defenses/probe_camouflage_2026-12-04.json", "defenses.md", "probe_camouflage.py"),
     ("defenses/decoys_vs_detectors_2026-12-04.json", "defenses.md", "probe_camouflage.py"),
+    ("defenses/offline_evasion_2026-12-04.json", "defenses.md", "probe_camouflage.py"),
     ("families/popgym_repeat_previous.json", "families.md", "families.py"),
     ("families/popgym_count_recall.json", "families.md", "families.py"),
     ("families/popgym_repeat_first.json", "families.md", "families.py"),
