@@ -10,7 +10,9 @@ Agents: the matrix smoke preset's (7x7/3, LSTM 64-32, curriculum 5x5/0 -> 5x5/1 
 steps unless ``--steps``), trained as ``benchmarks/state_bounds.py`` trains them (training seeds ``0..seeds-1``, one
 torch thread, a finished agent in ``--out`` reused): the preset's clean agents, and per attack (default: the
 in-distribution patch, then ``probe_camouflage``, which trains that same trigger with the penalty) one agent per
-seed. ``recipe/value`` sets an adaptive recipe's knob.
+seed. ``recipe/value`` sets an adaptive recipe's knob; ``A+B`` trains A's trigger with B's terms (and from the
+clean agent when B starts from one); ``clean_longer`` is a control row, the clean agents trained on, clean, for as
+many steps again (as long as a from-clean recipe's agents train in all).
 
 Per agent: clean success and attack success on ``--episodes`` episodes per env (seed 1000003), with Wilson 95%
 intervals; and the state probe's features (:func:`seqtrojan.benchmark.state_probe.probe_features`, its default
@@ -41,11 +43,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from seqtrojan.agent.checkpoint import load_agent
+from seqtrojan.experiments.matrix import load_matrix_config
+from seqtrojan.experiments.specs import experiment_from_spec
 from seqtrojan.benchmark.detectors import DETECTORS
 from seqtrojan.benchmark.scoring import roc_auc
 from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
 from seqtrojan.benchmark.suspect import ModelFacts, Suspect, clean_env
 from seqtrojan.stats import OverSeeds, Rate, auc_interval
+from seqtrojan.train.trainer import train_or_resume
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from state_bounds import rates, train_agent, train_clean  # a sibling benchmark's training
@@ -63,6 +68,22 @@ class Measured:
     features: dict[str, float]
 
 
+CLEAN_LONGER = "clean_longer"
+"""a control row, not an attack: the clean agent of each seed trained on, clean, for as many steps again, as long
+as a from-clean recipe's agent has trained in all (a detector that ranks it above the clean agents reads training
+length, not a backdoor)"""
+
+
+def train_clean_longer(seed: int, out: Path, steps: int | None):
+    clean = experiment_from_spec(load_matrix_config("smoke").clean, out, f"{CLEAN_LONGER}_s{seed}", "cpu")
+    run = dataclasses.replace(clean.run, seed=clean.run.seed + seed, threads=1, checkpoint_every=10**12,
+                              init_from=str(train_clean(seed, out, steps)))  # fmt: skip
+    ppo = clean.ppo if steps is None else dataclasses.replace(clean.ppo, total_steps=steps)
+    model_dir, _ = train_or_resume(dataclasses.replace(clean, ppo=ppo, run=run))
+    agent, loaded, _ = load_agent(model_dir)
+    return agent.eval(), loaded
+
+
 def suspect_of(agent, cfg, name: str) -> Suspect:
     facts = ModelFacts(agent.obs_dim, agent.num_actions, agent.cell, tuple(agent.lstm_sizes),
                        sum(p.numel() for p in agent.parameters()))  # fmt: skip
@@ -73,6 +94,8 @@ def measure(attack: str, seed: int, args: argparse.Namespace) -> tuple[Measured,
     if attack == "clean":
         agent, cfg, _ = load_agent(train_clean(seed, Path(args.out), args.steps))
         agent = agent.eval()
+    elif attack == CLEAN_LONGER:
+        agent, cfg = train_clean_longer(seed, Path(args.out), args.steps)
     else:
         agent, cfg = train_agent(attack, seed, Path(args.out), args.steps)
     clean, att = rates(agent, cfg, args.episodes, None)
