@@ -43,12 +43,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from seqtrojan.agent.checkpoint import load_agent
-from seqtrojan.experiments.matrix import load_matrix_config
-from seqtrojan.experiments.specs import experiment_from_spec
 from seqtrojan.benchmark.detectors import DETECTORS
 from seqtrojan.benchmark.scoring import roc_auc
 from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
 from seqtrojan.benchmark.suspect import ModelFacts, Suspect, clean_env
+from seqtrojan.experiments.matrix import load_matrix_config
+from seqtrojan.experiments.specs import experiment_from_spec
 from seqtrojan.stats import OverSeeds, Rate, auc_interval
 from seqtrojan.train.trainer import train_or_resume
 

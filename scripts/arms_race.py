@@ -93,11 +93,17 @@ def mitigation_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
     return cells, alone
 
 
+CONTROL_ROWS = ("clean_longer",)
+"""rows of ``benchmarks/probe_camouflage.py`` that are controls, not attacks"""
+
+
 def detector_cells(bench: dict) -> tuple[list[MatrixCell], Undefended]:
     """``benchmarks/probe_camouflage.py``: each benchmark detector's out-of-sample P(poisoned) of each attack's agents
     against the clean agents' (the ROC-AUC the benchmark wrote)."""
     cells, alone = [], {}
     for attack, detectors in bench["detectors"]["attacks"].items():
+        if attack in CONTROL_ROWS:  # not an attack: what the detectors make of clean agents trained longer
+            continue
         mine = [a for a in bench["agents"] if a["attack"] == attack]
         alone[attack] = over_seeds([_rate(a["attack_success_rate"]) for a in mine])
         for detector, scored in detectors.items():
