@@ -200,30 +200,14 @@ def _predictions(
             log(f"{name}: predictions found in {path}")
             return done
     train = [(e, s) for e, s in zip(entries, suspects) if assignment[e.model_id] == "train"]
-    task = bar.add_task(name, total=len(entries) - len(train), info=f"fitting on {len(train)} models")
-    fits: dict[str, FittedDetector] = {}
-    fit_seconds = 0.0
-
-    def fitted_for(env: str) -> FittedDetector:
-        """The fit on the train models of ``env`` (on every train model when the train split holds none)."""
-        nonlocal fit_seconds
-        key = env if any(e.factors["env"] == env for e, _ in train) else ALL_ENVS
-        if key not in fits:
-            rows = [(e, s) for e, s in train if key in (ALL_ENVS, e.factors["env"])]
-            start = time.perf_counter()
-            fits[key] = DETECTORS.get(name).fit([s for _, s in rows], [e.label for e, _ in rows])
-            fit_seconds += time.perf_counter() - start
-            counts[key] = len(rows)
-        return fits[key]
-
-    counts: dict[str, int] = {}
+    scored = [(e, s) for e, s in zip(entries, suspects) if assignment[e.model_id] != "train"]
+    task = bar.add_task(name, total=len(scored), info=f"fitting on {len(train)} models")
+    fits, counts, fit_seconds = _fit_per_env(name, train, {e.factors["env"] for e, _ in scored})
+    bar.update(task, info="scoring")
     answers = []
-    for entry, suspect in zip(entries, suspects):
+    for entry, suspect in scored:
         split = assignment[entry.model_id]
-        if split == "train":
-            continue
-        fitted = fitted_for(entry.factors["env"])
-        bar.update(task, info="scoring")
+        fitted = fits[entry.factors["env"]]
         start = time.perf_counter()
         p = float(fitted.probability(suspect))
         seconds = time.perf_counter() - start
@@ -237,6 +221,27 @@ def _predictions(
     per_env = f" (per env: {', '.join(f'{k} on {n} models' for k, n in counts.items())})" if len(counts) > 1 else ""
     log(f"{name}: fitted in {fit_seconds:.1f} s{per_env}, {len(answers)} models scored")
     return result
+
+
+def _fit_per_env(
+    name: str, train: Sequence[tuple[ZooEntry, Suspect]], envs: set[str]
+) -> tuple[dict[str, FittedDetector], dict[str, int], float]:
+    """Detector ``name`` fitted once per env of ``envs`` on that env's train models, or for an env the train split
+    lacks on every train model (:data:`ALL_ENVS`); each env's fit, each fit's train models and the seconds fitting
+    took."""
+    by_key: dict[str, FittedDetector] = {}
+    counts: dict[str, int] = {}
+    seconds = 0.0
+    train_envs = {e.factors["env"] for e, _ in train}
+    for env in sorted(envs):
+        key = env if env in train_envs else ALL_ENVS
+        if key not in by_key:
+            rows = [(e, s) for e, s in train if key in (ALL_ENVS, e.factors["env"])]
+            start = time.perf_counter()
+            by_key[key] = DETECTORS.get(name).fit([s for _, s in rows], [e.label for e, _ in rows])
+            seconds += time.perf_counter() - start
+            counts[key] = len(rows)
+    return {env: by_key[env if env in train_envs else ALL_ENVS] for env in envs}, counts, seconds
 
 
 def _within_budget(answers: DetectorPredictions, budget_s: float | None) -> DetectorPredictions:

@@ -717,11 +717,8 @@ def _build_order(cfg: ZooConfig, jobs: list[ZooJob]) -> list[ZooJob]:
     each part in proportion to its size."""
     if not cfg.parts:
         return list(jobs)
-    keys, first = [], 0
-    for p, part in enumerate(cfg.parts):
-        keys += [((k + 0.5) / part.size, p) for k in range(part.size)]
-        first += part.size
-    assert first == len(jobs)
+    keys = [((k + 0.5) / part.size, p) for p, part in enumerate(cfg.parts) for k in range(part.size)]
+    assert len(keys) == len(jobs)  # make_jobs numbers the parts' models in part order
     return [job for _, job in sorted(zip(keys, jobs), key=lambda pair: pair[0])]
 
 
