@@ -373,6 +373,42 @@ class QueryResponse:
         return fit_features(features, suspects, labels)
 
 
+@dataclass(frozen=True)
+class AllFeatures:
+    """One logistic regression on the features of four detectors together (weight statistics, the query response,
+    the state probe and trigger reconstruction, each name prefixed by its source): an attacker who evades one
+    reading must evade the others in the same model, and the regression weighs them on the train split. The state
+    probe's and trigger reconstruction's features are absent where they do not apply (the regression then reads the
+    features every train model has)."""
+
+    probe: ProbeSettings = field(default_factory=ProbeSettings)
+    reconstruction: ReconstructionSettings = field(default_factory=ReconstructionSettings)
+    episodes: int = 64
+    seed: int = 0
+
+    def parts(self) -> dict[str, Callable[[Suspect], dict[str, float]]]:
+        return {
+            "weights": weight_statistic_features,
+            "query": lambda suspect: query_response_features(suspect, self.episodes, self.seed),
+            "probe": lambda suspect: probe_features(suspect, self.probe),
+            "reconstruction": lambda suspect: reconstruction_features(suspect, self.reconstruction),
+        }
+
+    def features(self, suspect: Suspect) -> dict[str, float]:
+        return {f"{source}/{name}": value for source, compute in self.parts().items()
+                for name, value in compute(suspect).items()}  # fmt: skip
+
+    def fit(self, suspects: Sequence[Suspect], labels: Sequence[int]) -> FittedDetector:
+        cache: dict[int, dict[str, float]] = {}
+
+        def features(suspect: Suspect) -> dict[str, float]:  # each suspect's computed once
+            if id(suspect) not in cache:
+                cache[id(suspect)] = self.features(suspect)
+            return cache[id(suspect)]
+
+        return fit_features(features, suspects, labels)
+
+
 DETECTORS.register(
     "metadata_baseline", "architecture only (must score near 0.5: the splits leak nothing)", MetadataBaseline()
 )
@@ -399,4 +435,10 @@ DETECTORS.register(
     "trigger_reconstruction",
     "a small one-step view perturbation optimised to change the policy after it is gone (recurrent Neural Cleanse)",
     TriggerReconstruction(),
+)  # fmt: skip
+DETECTORS.register(
+    "all_features",
+    "one logistic regression on the weight statistics', query response's, state probe's and trigger "
+    "reconstruction's features together",
+    AllFeatures(),
 )  # fmt: skip

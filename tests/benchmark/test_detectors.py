@@ -79,3 +79,30 @@ def test_too_few_clean_train_models_or_one_label_answer_the_poisoned_share():
 def test_the_two_sided_probe_is_registered():
     assert "state_probe_deviation" in DETECTORS.names()
     assert "both sides" in DETECTORS.entry("state_probe_deviation").description
+
+
+def test_all_features_reads_every_part_s_features_under_its_name_and_learns_from_the_union():
+    """``all_features``: the union of its parts' features, each prefixed by its source, in one regression; an
+    attacker who flattens one part's signal (here the probe-like one) is still caught by another's (here a
+    weight-like one), which the single-part model cannot do."""
+    from seqtrojan.benchmark.detectors import AllFeatures
+
+    class TwoParts(AllFeatures):
+        def parts(self):
+            return {"probe": lambda s: {"divergence": s.features["divergence"]},
+                    "weights": lambda s: {"norm": s.features["norm"]}}  # fmt: skip
+
+    def model(divergence: float, norm: float) -> Fake:
+        return Fake({"divergence": divergence, "norm": norm})
+
+    rng = np.random.default_rng(1)
+    clean = [model(float(d), float(n)) for d, n in zip(rng.normal(0.25, 0.05, 6), rng.normal(1.0, 0.05, 6))]
+    plain = [model(float(d), float(n)) for d, n in zip(rng.normal(0.8, 0.05, 6), rng.normal(1.5, 0.05, 6))]
+    union = TwoParts()
+    assert union.features(model(0.3, 1.2)) == {"probe/divergence": 0.3, "weights/norm": 1.2}
+    fitted = union.fit(clean + plain, [0] * 6 + [1] * 6)
+    camouflaged = model(0.25, 1.5)  # the probe's reading flattened to the clean level, the weights not
+    probe_only = fit_features(lambda s: {"divergence": s.features["divergence"]}, clean + plain, [0] * 6 + [1] * 6)
+    assert fitted.probability(camouflaged) > max(fitted.probability(c) for c in clean)
+    assert probe_only.probability(camouflaged) < max(probe_only.probability(c) for c in clean)
+    assert "all_features" in DETECTORS.names()
