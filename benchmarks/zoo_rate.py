@@ -11,7 +11,9 @@ model, its evaluation and its saving; the workers ran side by side, so what they
 models per hour that makes with ``--workers`` workers, the poisoned models whose backdoor works and the mean clean
 success, and how many models are left with the hours they will take at that rate. A group with no model done yet is
 marked unmeasured and left out of the total. The projection assumes the models left cost what the done ones of
-their group did: a sample's drawn attacks and early stops make that a rough figure for a few models per group.
+their group did: a sample's drawn attacks and early stops make that a rough figure for a few models per group. For
+a zoo that draws attack recipes, a second table: per part and recipe, the done poisoned models, those whose
+backdoor works and their mean attack success.
 """
 
 from __future__ import annotations
@@ -52,6 +54,40 @@ class GroupRate:
         if self.mean_seconds is None:
             return None
         return (self.models - self.done) * self.mean_seconds / workers / 3600.0
+
+
+@dataclass(frozen=True)
+class RecipeRate:
+    """How often one part's recipe formed a working backdoor among its done poisoned models."""
+
+    part: int
+    env: str
+    attack: str
+    poisoned: int
+    functional: int
+    mean_attack_success: float
+
+
+def recipes(zoo: Path) -> list[RecipeRate]:
+    """Per part and attack recipe of a zoo that draws recipes: the done poisoned models, those whose backdoor works
+    (attack success at least the part's ``functional_at``) and their mean attack success."""
+    cfg = from_dict(ZooConfig, read_json_file(zoo / "zoo.json", MAX_ZOO_CONFIG_BYTES), "zoo.json")
+    manifest = {e["id"]: e for e in read_json_file(zoo / "manifest.json", MAX_MANIFEST_BYTES) if isinstance(e, dict)}
+    jobs = make_jobs(cfg, zoo, ATTACKS)
+    found: dict[tuple[int, str, str], list[float]] = {}
+    first = 0
+    for p, part in enumerate(cfg.parts or (cfg,)):
+        for job in jobs[first : first + part.size]:
+            entry = manifest.get(job.id, {})
+            success = entry.get("metrics", {}).get("trojan_success")
+            if job.label == "backdoored" and entry.get("status") == "done" and isinstance(success, (int, float)):
+                key = (p, str(job.variation.get("env", "grid")), str(job.variation.get("attack", "none")))
+                found.setdefault(key, []).append(float(success))
+        first += part.size
+    return [
+        RecipeRate(p, env, attack, len(v), sum(x >= _functional_at(cfg, p) for x in v), statistics.fmean(v))
+        for (p, env, attack), v in sorted(found.items())
+    ]
 
 
 def measure(zoo: Path) -> list[GroupRate]:
@@ -102,10 +138,20 @@ def table(data: dict) -> str:
             + (f"{r.clean_success:.2f} | " if r.clean_success is not None else " | ")
             + (f"{left:.1f} |" if left is not None else " |")
         )
+    if data.get("recipes"):
+        recipe_rows = [
+            "| part | env | recipe | poisoned models done | backdoors working | mean attack success |",
+            "|---|---|---|---|---|---|",
+        ]
+        recipe_rows += [
+            f"| {r['part']} | {r['env']} | {r['attack']} | {r['poisoned']} | {r['functional']} | "
+            f"{r['mean_attack_success']:.2f} |"
+            for r in data["recipes"]
+        ]
     total = data["hours_left"]
     rows.append(f"| all | | | {data['models']} | {data['done']} | | | | | {total:.1f} ({data['unmeasured']} "
                 f"models unmeasured) |")  # fmt: skip
-    return "\n".join(rows)
+    return "\n".join(rows + (["", *recipe_rows] if data.get("recipes") else []))
 
 
 def main() -> None:
@@ -129,6 +175,7 @@ def main() -> None:
         "unmeasured": sum(g.models - g.done for g in groups if g.mean_seconds is None),
         "hours_left": sum(g.hours_left(args.workers) or 0.0 for g in measured),
         "groups": [g.__dict__ for g in groups],
+        "recipes": [r.__dict__ for r in recipes(args.zoo)],
     }  # fmt: skip
     print(table(data))
     if args.json is not None:
