@@ -48,6 +48,7 @@ BENCH_TABLES = [
     ("families/minatar_space_invaders_clean_3m.json", "families.md", "families.py"),
     ("families/minatar_asterix_clean_3m.json", "families.md", "families.py"),
     ("benchmark/paper_rate_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
+    ("benchmark/paper_partial_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
 ]
 """a benchmark's JSON file, the page holding its table and the benchmark (``benchmarks/NAME --table JSON`` prints it)"""
 
@@ -138,6 +139,7 @@ LEADERBOARD_TABLES = [
     ("benchmark/leaderboard_minigrid_memory.json", "benchmark.md"),
     ("benchmark/leaderboard_minigrid_memory_attacks.json", "benchmark.md"),
     ("benchmark/leaderboard_minigrid_memory_attacks.json", "results.md"),
+    ("benchmark/leaderboard_paper_partial_2026-12-04.json", "benchmark.md"),
 ]
 """a leaderboard and the page holding its table as ``scripts/leaderboard_markdown.py`` prints it"""
 
@@ -146,6 +148,10 @@ LEADERBOARD_FACTOR_TABLES = [
     (
         "benchmark/leaderboard_minigrid_memory_attacks.json", "benchmark.md",
         ("--by", "attack", "--detectors", "weight_statistics,state_probe,query_response,trigger_reconstruction"),
+    ),
+    (
+        "benchmark/leaderboard_paper_partial_2026-12-04.json", "benchmark.md",
+        ("--by", "env", "--detectors", "state_probe_deviation,query_response,trigger_reconstruction,all_features"),
     ),
 ]  # fmt: skip
 """the same, for a breakdown by one factor (the script's options)"""
