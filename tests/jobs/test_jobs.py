@@ -185,7 +185,8 @@ def test_the_cli_and_the_reproduce_config_choose_the_backend(tmp_path, monkeypat
     assert cli.main(["zoo", "build", "--out", str(tmp_path), "--backend", "serial", "--workers", "1"]) == 0
     from seqtrojan.experiments.attacks import ATTACKS
 
-    assert seen["zoo"] == {"workers": 1, "backend": "serial", "ray_address": None, "threads": None, "recipes": ATTACKS}
+    assert seen["zoo"] == {"workers": 1, "backend": "serial", "ray_address": None, "threads": None, "recipes": ATTACKS,
+                           "limit": None, "progress": True}  # fmt: skip
     assert make_backend(JobsConfig(backend="serial")).name == "serial"
     assert (
         make_backend(JobsConfig(backend="ray", ray_address="10.0.0.5:6379"))
