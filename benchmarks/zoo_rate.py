@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import itertools
 import json
 import statistics
 import sys
@@ -29,7 +30,7 @@ from typing import Any
 
 from seqtrojan.experiments.attacks import ATTACKS
 from seqtrojan.serde import from_dict
-from seqtrojan.zoo.build import MAX_MANIFEST_BYTES, MAX_ZOO_CONFIG_BYTES, ZooConfig, make_jobs, read_json_file
+from seqtrojan.zoo.build import MAX_MANIFEST_BYTES, MAX_ZOO_CONFIG_BYTES, ZooConfig, ZooJob, make_jobs, read_json_file
 
 
 @dataclass(frozen=True)
@@ -68,50 +69,65 @@ class RecipeRate:
     mean_attack_success: float
 
 
-def recipes(zoo: Path) -> list[RecipeRate]:
-    """Per part and attack recipe of a zoo that draws recipes: the done poisoned models, those whose backdoor works
-    (attack success at least the part's ``functional_at``) and their mean attack success."""
+@dataclass(frozen=True)
+class ZooModel:
+    """One model of a zoo as this script reads it: its part, its job and its manifest entry (empty: not built)."""
+
+    part: int
+    job: ZooJob
+    entry: dict[str, Any]
+
+    @property
+    def env(self) -> str:
+        return str(self.job.variation.get("env", "grid"))
+
+    @property
+    def done(self) -> bool:
+        return self.entry.get("status") == "done"
+
+
+def read_zoo_models(zoo: Path) -> tuple[ZooConfig, list[ZooModel]]:
+    """The zoo's config (``zoo.json``) and every model it holds or will hold, with its manifest entry."""
     cfg = from_dict(ZooConfig, read_json_file(zoo / "zoo.json", MAX_ZOO_CONFIG_BYTES), "zoo.json")
     manifest = {e["id"]: e for e in read_json_file(zoo / "manifest.json", MAX_MANIFEST_BYTES) if isinstance(e, dict)}
-    jobs = make_jobs(cfg, zoo, ATTACKS)
+    jobs = iter(make_jobs(cfg, zoo, ATTACKS))  # the parts' models, in part order
+    models = [
+        ZooModel(p, job, manifest.get(job.id, {}))
+        for p, part in enumerate(cfg.parts or (cfg,))
+        for job in itertools.islice(jobs, part.size)
+    ]
+    return cfg, models
+
+
+def recipes(cfg: ZooConfig, models: list[ZooModel]) -> list[RecipeRate]:
+    """Per part and attack recipe of a zoo that draws recipes: the done poisoned models, those whose backdoor works
+    (attack success at least the part's ``functional_at``) and their mean attack success."""
     found: dict[tuple[int, str, str], list[float]] = {}
-    first = 0
-    for p, part in enumerate(cfg.parts or (cfg,)):
-        for job in jobs[first : first + part.size]:
-            entry = manifest.get(job.id, {})
-            success = entry.get("metrics", {}).get("trojan_success")
-            if job.label == "backdoored" and entry.get("status") == "done" and isinstance(success, (int, float)):
-                key = (p, str(job.variation.get("env", "grid")), str(job.variation.get("attack", "none")))
-                found.setdefault(key, []).append(float(success))
-        first += part.size
+    for m in models:
+        success = m.entry.get("metrics", {}).get("trojan_success")
+        if m.job.label == "backdoored" and m.done and isinstance(success, (int, float)):
+            key = (m.part, m.env, str(m.job.variation.get("attack", "none")))
+            found.setdefault(key, []).append(float(success))
     return [
         RecipeRate(p, env, attack, len(v), sum(x >= _functional_at(cfg, p) for x in v), statistics.fmean(v))
         for (p, env, attack), v in sorted(found.items())
     ]
 
 
-def measure(zoo: Path) -> list[GroupRate]:
-    cfg = from_dict(ZooConfig, read_json_file(zoo / "zoo.json", MAX_ZOO_CONFIG_BYTES), "zoo.json")
-    manifest = {e["id"]: e for e in read_json_file(zoo / "manifest.json", MAX_MANIFEST_BYTES) if isinstance(e, dict)}
-    jobs = make_jobs(cfg, zoo, ATTACKS)
-    groups: dict[tuple[int, str, str], list[Any]] = {}
-    first = 0
-    for p, part in enumerate(cfg.parts or (cfg,)):
-        for job in jobs[first : first + part.size]:
-            key = (p, str(job.variation.get("env", "grid")), job.config.agent.cell)
-            groups.setdefault(key, []).append((job, manifest.get(job.id, {})))
-        first += part.size
+def measure(cfg: ZooConfig, models: list[ZooModel]) -> list[GroupRate]:
+    """Per part, env and sequence model: the models done, their mean seconds, working backdoors, clean success."""
+    groups: dict[tuple[int, str, str], list[ZooModel]] = {}
+    for m in models:
+        groups.setdefault((m.part, m.env, m.job.config.agent.cell), []).append(m)
     rates = []
     for (p, env, cell), members in groups.items():
-        done = [
-            (job, e) for job, e in members if e.get("status") == "done" and isinstance(e.get("seconds"), (int, float))
-        ]
-        poisoned = [e for job, e in done if job.label == "backdoored"]
-        clean = [e["metrics"]["normal_success"] for _, e in done if "normal_success" in e.get("metrics", {})]
+        done = [m for m in members if m.done and isinstance(m.entry.get("seconds"), (int, float))]
+        poisoned = [m.entry for m in done if m.job.label == "backdoored"]
+        clean = [m.entry["metrics"]["normal_success"] for m in done if "normal_success" in m.entry.get("metrics", {})]
         functional = sum(1 for e in poisoned if e["metrics"].get("trojan_success", 0.0) >= _functional_at(cfg, p))
         rates.append(GroupRate(
             p, env, cell, len(members), len(done),
-            statistics.fmean(e["seconds"] for _, e in done) if done else None,
+            statistics.fmean(m.entry["seconds"] for m in done) if done else None,
             functional, len(poisoned), statistics.fmean(clean) if clean else None,
         ))  # fmt: skip
     return sorted(rates, key=lambda r: (r.part, r.cell))
@@ -166,7 +182,8 @@ def main() -> None:
         return
     if args.zoo is None or args.workers < 1:
         parser.error("give --zoo and a positive --workers, or --table")
-    groups = measure(args.zoo)
+    cfg, models = read_zoo_models(args.zoo)
+    groups = measure(cfg, models)
     measured = [g for g in groups if g.mean_seconds is not None]
     data = {
         "zoo": str(args.zoo), "date": datetime.date.today().isoformat(), "workers": args.workers,
@@ -175,7 +192,7 @@ def main() -> None:
         "unmeasured": sum(g.models - g.done for g in groups if g.mean_seconds is None),
         "hours_left": sum(g.hours_left(args.workers) or 0.0 for g in measured),
         "groups": [g.__dict__ for g in groups],
-        "recipes": [r.__dict__ for r in recipes(args.zoo)],
+        "recipes": [r.__dict__ for r in recipes(cfg, models)],
     }  # fmt: skip
     print(table(data))
     if args.json is not None:
