@@ -47,10 +47,7 @@ from seqtrojan.benchmark.detectors import DETECTORS
 from seqtrojan.benchmark.scoring import roc_auc
 from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
 from seqtrojan.benchmark.suspect import ModelFacts, Suspect, clean_env
-from seqtrojan.experiments.matrix import load_matrix_config
-from seqtrojan.experiments.specs import experiment_from_spec
 from seqtrojan.stats import OverSeeds, Rate, auc_interval
-from seqtrojan.train.trainer import train_or_resume
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from state_bounds import rates, train_agent, train_clean  # a sibling benchmark's training
@@ -75,11 +72,7 @@ length, not a backdoor)"""
 
 
 def train_clean_longer(seed: int, out: Path, steps: int | None):
-    clean = experiment_from_spec(load_matrix_config("smoke").clean, out, f"{CLEAN_LONGER}_s{seed}", "cpu")
-    run = dataclasses.replace(clean.run, seed=clean.run.seed + seed, threads=1, checkpoint_every=10**12,
-                              init_from=str(train_clean(seed, out, steps)))  # fmt: skip
-    ppo = clean.ppo if steps is None else dataclasses.replace(clean.ppo, total_steps=steps)
-    model_dir, _ = train_or_resume(dataclasses.replace(clean, ppo=ppo, run=run))
+    model_dir = train_clean(seed, out, steps, name=CLEAN_LONGER, init_from=train_clean(seed, out, steps))
     agent, loaded, _ = load_agent(model_dir)
     return agent.eval(), loaded
 

@@ -70,11 +70,12 @@ def setting_name(cfg: StateBoundsConfig) -> str:
     return f"q={cfg.quantile:g} m={cfg.margin:g} {''.join(cfg.parts)}"
 
 
-def train_clean(seed: int, out: Path, steps: int | None) -> Path:
-    """The matrix smoke preset's clean agent of training seed ``seed`` (trained into ``out/clean_s<seed>`` unless
-    finished there); its model folder."""
-    clean = experiment_from_spec(load_matrix_config("smoke").clean, out, f"clean_s{seed}", "cpu")
-    run = dataclasses.replace(clean.run, seed=clean.run.seed + seed, threads=1, checkpoint_every=10**12)
+def train_clean(seed: int, out: Path, steps: int | None, name: str = "clean", init_from: Path | None = None) -> Path:
+    """The matrix smoke preset's clean agent of training seed ``seed`` (trained into ``out/<name>_s<seed>`` unless
+    finished there, from ``init_from``'s weights when given); its model folder."""
+    clean = experiment_from_spec(load_matrix_config("smoke").clean, out, f"{name}_s{seed}", "cpu")
+    run = dataclasses.replace(clean.run, seed=clean.run.seed + seed, threads=1, checkpoint_every=10**12,
+                              init_from=None if init_from is None else str(init_from))  # fmt: skip
     ppo = clean.ppo if steps is None else dataclasses.replace(clean.ppo, total_steps=steps)
     model_dir, _ = train_or_resume(dataclasses.replace(clean, ppo=ppo, run=run))
     return model_dir

@@ -399,14 +399,7 @@ class AllFeatures:
                 for name, value in compute(suspect).items()}  # fmt: skip
 
     def fit(self, suspects: Sequence[Suspect], labels: Sequence[int]) -> FittedDetector:
-        cache: dict[int, dict[str, float]] = {}
-
-        def features(suspect: Suspect) -> dict[str, float]:  # each suspect's computed once
-            if id(suspect) not in cache:
-                cache[id(suspect)] = self.features(suspect)
-            return cache[id(suspect)]
-
-        return fit_features(features, suspects, labels)
+        return _fit_abstaining(self.features, suspects, labels)  # never abstains: weight statistics always apply
 
 
 DETECTORS.register(
