@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from seqtrojan.experiments.attacks import ATTACKS
+from seqtrojan.experiments.attacks import RECIPES
 from seqtrojan.serde import from_dict
 from seqtrojan.zoo.build import MAX_MANIFEST_BYTES, MAX_ZOO_CONFIG_BYTES, ZooConfig, ZooJob, make_jobs, read_json_file
 
@@ -90,7 +90,7 @@ def read_zoo_models(zoo: Path) -> tuple[ZooConfig, list[ZooModel]]:
     """The zoo's config (``zoo.json``) and every model it holds or will hold, with its manifest entry."""
     cfg = from_dict(ZooConfig, read_json_file(zoo / "zoo.json", MAX_ZOO_CONFIG_BYTES), "zoo.json")
     manifest = {e["id"]: e for e in read_json_file(zoo / "manifest.json", MAX_MANIFEST_BYTES) if isinstance(e, dict)}
-    jobs = iter(make_jobs(cfg, zoo, ATTACKS))  # the parts' models, in part order
+    jobs = iter(make_jobs(cfg, zoo, RECIPES))  # the parts' models, in part order
     models = [
         ZooModel(p, job, manifest.get(job.id, {}))
         for p, part in enumerate(cfg.parts or (cfg,))

@@ -597,11 +597,11 @@ def _zoo(argv: list[str]) -> None:
         print("usage: seqtrojan zoo {build,detect} [options]   (seqtrojan zoo build --help)", file=sys.stderr)
         raise SystemExit(2)
     if argv[0] == "build":
-        from seqtrojan.experiments.attacks import ATTACKS
+        from seqtrojan.experiments.attacks import RECIPES
 
         args = _cli_with_config_file(ZooBuild, ZooConfig, argv[1:], "seqtrojan zoo build")
         manifest = build_zoo(args.config, args.out, workers=args.workers, backend=args.backend,
-                             ray_address=args.ray_address, threads=args.threads, recipes=ATTACKS,
+                             ray_address=args.ray_address, threads=args.threads, recipes=RECIPES,
                              limit=args.limit, progress=True)  # fmt: skip
         print(f"wrote {manifest}")
         return

@@ -18,6 +18,7 @@ from seqtrojan.env.config import PatternConfig, TriggerConfig
 from seqtrojan.errors import ConfigError
 from seqtrojan.registry import Registry
 from seqtrojan.world.config import GymnasiumEnvConfig
+from seqtrojan.zoo.recipes import KNOB_SEPARATOR
 
 
 @dataclass(frozen=True)
@@ -65,9 +66,6 @@ class Attack:
 
 ATTACKS: Registry[Attack] = Registry("attack", "attack")
 """The attacks ``seqtrojan matrix`` runs (``matrix.attacks`` names a subset)."""
-
-KNOB_SEPARATOR = "/"
-"""``recipe/value``: a registered recipe with its knob at ``value`` (``weight_camouflage/2``)"""
 
 
 @dataclass(frozen=True)
@@ -122,6 +120,21 @@ def resolve_attack(name: str) -> KnobbedAttack:
         return knob.apply(configure(cfg), value)
 
     return KnobbedAttack(name, recipe, dataclasses.replace(attack, configure=at_value), value)
+
+
+class _RecipeBook:
+    """The registered attacks as a zoo draws them (:class:`seqtrojan.zoo.recipes.RecipeBook`): by name, or at another
+    strength (``recipe/value``, :func:`resolve_attack`)."""
+
+    def names(self) -> tuple[str, ...]:
+        return ATTACKS.names()
+
+    def get(self, name: str) -> Attack:
+        return resolve_attack(name).attack
+
+
+RECIPES = _RecipeBook()
+"""What ``seqtrojan zoo build`` passes a zoo as its recipes (``recipes=RECIPES``)."""
 
 
 def with_trigger(cfg: ExperimentConfig, **changes: object) -> ExperimentConfig:

@@ -31,6 +31,7 @@ import itertools
 import json
 import math
 import os
+import re
 import shutil
 import time
 from collections.abc import Callable, Iterator
@@ -75,6 +76,8 @@ MAX_LABEL_BYTES = 64 << 10
 """largest ``label.json`` read (a real one is a few hundred bytes)"""
 MAX_ZOO_CONFIG_BYTES = 1 << 20
 """largest ``zoo.json`` read (a real one is a few KiB)"""
+_RECIPE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(/[0-9]+(\.[0-9]+)?(e-?[0-9]+)?)?")
+"""a zoo's attack: a recipe's name, or ``recipe/value`` (its knob at a number, read by the recipe book)"""
 MAX_MANIFEST_BYTES = 256 << 20
 """largest ``manifest.json`` read (about 1 KiB per model); a larger or malformed one is rebuilt from the models"""
 _MANIFEST_ITEMS = 1 << 22
@@ -179,12 +182,16 @@ class ZooConfig:
             raise ConfigError(f"zoo rollout_steps must be a positive integer, got {self.rollout_steps!r}")
         if not 0.0 < self.learning_rate < 1.0:
             raise ConfigError(f"zoo learning_rate must be in (0, 1), got {self.learning_rate!r}")
+        if isinstance(self.functional_at, bool) or not 0.0 <= self.functional_at <= 1.0:
+            raise ConfigError(f"zoo functional_at must be in [0, 1], got {self.functional_at!r}")
         lo, hi = self.trigger_cells
         if not 1 <= lo <= hi <= 9:
             raise ConfigError(f"trigger_cells={self.trigger_cells} must be a range within 1..9")
-        if not all(isinstance(a, str) and a.isidentifier() for a in self.attacks):
-            raise ConfigError(f"zoo attacks must be recipe names, got {self.attacks!r}")
-        if len(set(self.attacks)) != len(self.attacks):
+        if not all(isinstance(a, str) and _RECIPE_NAME.fullmatch(a) for a in self.attacks):
+            raise ConfigError(f"zoo attacks must be recipe names (or recipe/value), got {self.attacks!r}")
+        split = (a.partition("/") for a in self.attacks)
+        drawn = {(recipe, float(value) if value else None) for recipe, _, value in split}
+        if len(drawn) != len(self.attacks):  # ewc/3 and ewc/3.0 are one recipe at one strength
             raise ConfigError(f"zoo attacks name a recipe twice (each is drawn as often as the others): {self.attacks}")
         factors = ("env", "cell", "lstm_sizes", "trigger_value", "attack")
         if not isinstance(self.holdout, dict) or any(k not in factors for k in self.holdout):
@@ -577,8 +584,9 @@ def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
 
 
 def _finished(job: ZooJob, folder: Path) -> tuple[dict[str, Any] | None, str]:
-    """(card, '') when ``folder`` holds the job's complete model, else (None, why not). Rewrites a missing or
-    malformed ``label.json`` of a complete model from the job (it is a function of the job and the card)."""
+    """(card, '') when ``folder`` holds the job's complete model, else (None, why not). Rewrites a missing,
+    malformed or outdated ``label.json`` of a complete model from the job (it is a function of the job and the card:
+    a rerun with another ``functional_at`` relabels)."""
     if not folder.is_dir():
         return None, "missing"
     try:
@@ -588,12 +596,13 @@ def _finished(job: ZooJob, folder: Path) -> tuple[dict[str, Any] | None, str]:
     ours = (job.label, job.config.run.seed, tuple(job.config.agent.lstm_sizes))
     if (card.get("label"), cfg.run.seed, tuple(cfg.agent.lstm_sizes)) != ours:
         return None, f"it holds another model (label {card.get('label')!r}, seed {cfg.run.seed})"
+    truth = _truth(job, card.get("metrics", {}))
     try:
-        label_ok = read_label(folder)["label"] == job.label
+        label_ok = read_label(folder) == json.loads(json.dumps(truth))
     except CheckpointError:
         label_ok = False
     if not label_ok:
-        write_json_atomic(folder / "label.json", _truth(job, card.get("metrics", {})))
+        write_json_atomic(folder / "label.json", truth)
     return card, ""
 
 
@@ -663,7 +672,7 @@ def build_zoo(
     by_id = {job.id: job for job in jobs}
     manifest_path = root / "manifest.json"
     with _build_lock(root, log):
-        _check_zoo_config(cfg, root)
+        _check_zoo_config(cfg, root, log)
         models.mkdir(exist_ok=True)
         previous = _read_manifest(manifest_path, log)
         entries: dict[str, dict[str, Any]] = {}
@@ -737,8 +746,24 @@ WORKERS_EXIT_S = 30.0
 """how long a build waits for the workers of an earlier, killed build to exit"""
 
 
-def _check_zoo_config(cfg: ZooConfig, root: Path) -> None:
-    """Store the zoo config in ``zoo.json`` on the first build; refuse a rerun with another config."""
+SCORING_FIELDS = ("functional_at",)
+"""zoo config fields that decide how a finished model is labelled, never how it is trained: a rerun may change them
+(each finished model's ``label.json`` is then rewritten from its card)"""
+
+
+def _training_fields(spec: Any) -> Any:
+    """A stored or current ``zoo.json`` without :data:`SCORING_FIELDS` (its parts' too)."""
+    if not isinstance(spec, dict):
+        return spec
+    out = {k: v for k, v in spec.items() if k not in SCORING_FIELDS}
+    if isinstance(out.get("parts"), list):
+        out["parts"] = [_training_fields(part) for part in out["parts"]]
+    return out
+
+
+def _check_zoo_config(cfg: ZooConfig, root: Path, log: Callable[[str], None] = print) -> None:
+    """Store the zoo config in ``zoo.json`` on the first build; refuse a rerun with another config, unless only
+    its scoring fields (:data:`SCORING_FIELDS`) differ: those are then stored anew."""
     path = root / "zoo.json"
     current = json.loads(json.dumps(to_dict(cfg)))
     if not path.exists():
@@ -754,6 +779,11 @@ def _check_zoo_config(cfg: ZooConfig, root: Path) -> None:
                 f"{str(path)!r} is not a zoo config, so the config this zoo was built with is unknown: restore it, "
                 "or build into a new folder"
             )
+        write_json_atomic(path, current)
+        return
+    if stored != current and _training_fields(stored) == _training_fields(current):
+        log(f"zoo: {path.name} differs from this config in how models are labelled only ({', '.join(SCORING_FIELDS)}): "
+            "stored anew; finished models' labels are rewritten")  # fmt: skip
         write_json_atomic(path, current)
         return
     differing = sorted(k for k in stored.keys() | current.keys() if stored.get(k, _ABSENT) != current.get(k, _ABSENT))

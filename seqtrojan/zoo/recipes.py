@@ -2,8 +2,9 @@
 
 The recipes are registered in :mod:`seqtrojan.experiments.attacks` (``ATTACKS``), a package above this one (its
 studies build zoos), so the zoo cannot import them: whoever builds a zoo that draws recipes passes the registry in
-(``seqtrojan zoo build`` does), and this module reads it only through :class:`RecipeBook`. Reading a zoo back
-(``zoo.json``, the labels, the leaderboard) needs no registry, so a zoo stays readable after a recipe is renamed.
+(``seqtrojan zoo build`` passes ``RECIPES``, which also reads ``recipe/value``: a recipe at another strength), and
+this module reads it only through :class:`RecipeBook`. Reading a zoo back (``zoo.json``, the labels, the
+leaderboard) needs no registry, so a zoo stays readable after a recipe is renamed.
 
 How a recipe meets the model's drawn trigger patch (:func:`apply_recipe`): a recipe that draws a trigger of its own
 -- applied to a config with a reference trigger (the grid world's default; a Gymnasium zoo's preset trigger), it
@@ -20,9 +21,11 @@ from typing import Any, Protocol
 
 from seqtrojan.config import ExperimentConfig
 from seqtrojan.env.config import TriggerConfig
-from seqtrojan.errors import ConfigError
+from seqtrojan.errors import ConfigError, SeqTrojanError
 from seqtrojan.world.config import GymnasiumEnvConfig
 
+KNOB_SEPARATOR = "/"
+"""``recipe/value``: a registered recipe with its strength (its knob) at ``value``, as the matrix writes it"""
 GRID_PATTERN = ("cells", "value", "values", "sequence")
 """the grid-world trigger fields that say where and what it draws (a recipe that changes one brings its own)"""
 GYM_PATTERN = ("patch", "cells", "object", "color", "value", "key", "indices")
@@ -44,7 +47,8 @@ class Recipe(Protocol):
 
 
 class RecipeBook(Protocol):
-    """The registry of recipes (``ATTACKS``): names in order and the recipe of a name."""
+    """The registry of recipes (``RECIPES``): the registered names in order, and the recipe of a name, registered
+    or at another strength (``recipe/value``)."""
 
     def names(self) -> tuple[str, ...]: ...
 
@@ -64,13 +68,18 @@ def check_recipes(
         return
     if recipes is None:
         raise ConfigError(
-            f"zoo attacks {list(names)} are registered recipes (seqtrojan.experiments.attacks.ATTACKS), which this "
-            "build was not given: build it with `seqtrojan zoo build`, or pass recipes=ATTACKS"
+            f"zoo attacks {list(names)} are registered recipes (seqtrojan.experiments.attacks.RECIPES), which this "
+            "build was not given: build it with `seqtrojan zoo build`, or pass recipes=RECIPES"
         )
     registered = recipes.names()
-    unknown = [n for n in names if n not in registered]
+    unknown = [n for n in names if n.partition(KNOB_SEPARATOR)[0] not in registered]
     if unknown:
         raise ConfigError(f"zoo attacks: unknown recipe(s) {unknown}; registered: {', '.join(registered)}")
+    for name in names:  # a recipe at another strength (recipe/value): its knob and value checked here
+        try:
+            recipes.get(name)
+        except SeqTrojanError as err:
+            raise ConfigError(f"zoo attacks: {err}") from None
     from_clean = [n for n in names if recipes.get(n).from_clean]
     if from_clean and not pretrained:
         raise ConfigError(

@@ -13,7 +13,7 @@ from seqtrojan.config import ExperimentConfig
 from seqtrojan.env import GridSpec
 from seqtrojan.env.config import TriggerConfig
 from seqtrojan.errors import ConfigError
-from seqtrojan.experiments.attacks import ATTACKS
+from seqtrojan.experiments.attacks import ATTACKS, RECIPES
 from seqtrojan.zoo.build import ZooConfig, build_zoo, make_jobs
 from seqtrojan.zoo.recipes import GRID_PATTERN
 
@@ -83,11 +83,40 @@ def test_recipes_a_zoo_cannot_draw_are_refused_in_one_line(tmp_path):
     with pytest.raises(ConfigError, match="not given"):  # refused before anything is written
         build_zoo(ZooConfig(attacks=("sequence",)), tmp_path / "zoo", log=lambda *_: None)
     assert not (tmp_path / "zoo").exists()
-    for bad, message in ((("sequence", "sequence"), "name a recipe twice"), (("two words",), "must be recipe names")):
+    twice, wrong = "name a recipe twice", "must be recipe names"
+    for bad, message in ((("sequence", "sequence"), twice), (("ewc/3", "ewc/3.0"), twice), (("two words",), wrong)):
         with pytest.raises(ConfigError, match=message):
             ZooConfig(attacks=bad)
     with pytest.raises(ConfigError, match=r"holdout attack \['combined'\] must be among the zoo's attacks"):
         ZooConfig(attacks=("sequence",), holdout={"attack": ("combined",)})
+
+
+def test_a_zoo_draws_recipes_at_other_strengths(tmp_path):
+    """``recipe/value`` (the matrix's notation): the recipe with its knob at that value, recorded under that name;
+    a value the knob cannot take, or a recipe without a knob, refused in one line."""
+    attacks = ("state_camouflage/1.5", "mahalanobis_camouflage")
+    cfg = ZooConfig(clean=2, backdoored=10, total_steps=1024, attacks=attacks)
+    jobs = make_jobs(cfg, tmp_path, RECIPES)
+    drawn = {j.variation["attack"]: j.config.attack for j in jobs if j.label == "backdoored"}
+    assert set(drawn) == {"state_camouflage/1.5", "mahalanobis_camouflage"}
+    assert drawn["state_camouflage/1.5"].state_camouflage.margin == 1.5
+    assert drawn["state_camouflage/1.5"].state_camouflage.weight == 5.0  # the recipe's other settings kept
+    assert drawn["mahalanobis_camouflage"].mahalanobis_camouflage.weight == 5.0
+    assert make_jobs(dataclasses.replace(cfg, attacks=("state_camouflage",)), tmp_path, RECIPES) == make_jobs(
+        dataclasses.replace(cfg, attacks=("state_camouflage",)), tmp_path, ATTACKS
+    )  # a plain name draws what the registry draws
+    for attacks, message in (
+        (("sequence/2",), r"zoo attacks: attack 'sequence/2': sequence has no knob to set"),
+        (("sequenc/2",), r"unknown recipe\(s\) \['sequenc/2'\]"),
+        (("state_camouflage/1.5",), r"unknown attack 'state_camouflage/1.5'"),  # ATTACKS reads no strengths
+    ):
+        recipes = ATTACKS if attacks == ("state_camouflage/1.5",) else RECIPES
+        with pytest.raises(ConfigError, match=message) as err:
+            make_jobs(dataclasses.replace(cfg, attacks=attacks), tmp_path, recipes)
+        assert "\n" not in str(err.value)
+    for bad in ("state_camouflage/", "state_camouflage/-1", "state_camouflage/x", "../state_camouflage/1"):
+        with pytest.raises(ConfigError, match="must be recipe names"):
+            ZooConfig(attacks=(bad,))
 
 
 def test_a_gymnasium_zoo_draws_the_recipes_that_apply_to_it(tmp_path):

@@ -162,6 +162,32 @@ def test_a_rerun_with_another_config_is_refused(built, tmp_path):
         build_zoo(TINY, zoo, workers=1, log=lambda *_: None)
 
 
+def test_a_rerun_with_another_functional_threshold_relabels_without_training(built, tmp_path):
+    """functional_at decides a finished model's label, never its training: a rerun that changes only it (at the top
+    or in a part) stores it and rewrites each poisoned model's functional_backdoor; nothing is trained again."""
+    zoo = copy_of(built, tmp_path)
+    weights = {p: p.read_bytes() for p in zoo.glob("models/*/model.safetensors")}
+
+    def labels() -> list[dict]:
+        found = [json.loads(p.read_text()) for p in sorted(zoo.glob("models/*/label.json"))]
+        return [t for t in found if t["label"] == "backdoored"]
+
+    assert any(t["attack_success"] < 1.0 for t in labels())  # so the threshold 1 relabels some model
+    for at in (0.0, 1.0):
+        logs: list[str] = []
+        build_zoo(dataclasses.replace(TINY, functional_at=at), zoo, workers=1, log=logs.append)
+        assert any("how models are labelled only (functional_at)" in line for line in logs)
+        assert any(line.startswith("zoo: 4 of 4 models done; training 0") for line in logs)
+        assert json.loads((zoo / "zoo.json").read_text())["functional_at"] == at
+        assert [t["functional_backdoor"] for t in labels()] == [t["attack_success"] >= at for t in labels()]
+    assert {p: p.read_bytes() for p in zoo.glob("models/*/model.safetensors")} == weights
+    with pytest.raises(ConfigError, match=r"different config: eval_episodes"):  # with a training field: refused
+        build_zoo(dataclasses.replace(TINY, functional_at=0.5, eval_episodes=8), zoo, workers=1, log=lambda *_: None)
+    for bad in (-0.1, 1.5, True):
+        with pytest.raises(ConfigError, match="zoo functional_at must be in"):
+            dataclasses.replace(TINY, functional_at=bad)
+
+
 def test_incomplete_model_folders_are_trained_again_and_cores_are_not_oversubscribed(built, tmp_path, monkeypatch):
     zoo = copy_of(built, tmp_path)
     weights = zoo / "models" / "m0001" / "model.safetensors"
