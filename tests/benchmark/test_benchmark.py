@@ -380,24 +380,30 @@ def test_an_answer_over_the_per_model_budget_counts_as_no_opinion(tmp_path):
 
 def test_benchmark_paper_draws_900_models_in_four_parts_split_about_300_each(tmp_path):
     """The paper-scale benchmark as docs/benchmark.md describes it, from its drawn jobs (nothing is trained): half of
-    its 900 models poisoned in every part; every listed recipe drawn; the probe camouflages never on a Transformer;
-    the splits 296 / 298 / 306, and the MiniGrid Memory models of the holdout split of both labels."""
+    its 900 models poisoned in every part; every listed recipe drawn, at the strengths listed (the Memory part's
+    own); the probe camouflages never on a Transformer; the Memory part's threshold above chance; the splits
+    296 / 296 / 308, and the MiniGrid Memory models of the holdout split of both labels."""
     from collections import Counter
 
+    from seqtrojan.experiments.attacks import RECIPES
     from seqtrojan.presets import resolve_preset
     from seqtrojan.serde import from_dict, load_yaml
     from seqtrojan.zoo.build import ZooConfig, make_jobs
 
     cfg = from_dict(ZooConfig, load_yaml(resolve_preset("benchmark_paper")), "")
-    jobs = make_jobs(cfg, tmp_path, ATTACKS)
-    assert len(jobs) == 900 and [p.size for p in cfg.parts] == [220, 80, 150, 450]
+    jobs = make_jobs(cfg, tmp_path, RECIPES)
+    assert len(jobs) == 900 and [p.size for p in cfg.parts] == [300, 100, 200, 300]
     assert all(p.clean == p.backdoored for p in cfg.parts)
     drawn = {j.variation["attack"] for j in jobs if j.label == "backdoored"}
-    assert drawn == {a for p in cfg.parts for a in p.attacks} and len(drawn) == 17
+    assert drawn == {a for p in cfg.parts for a in p.attacks} and len(drawn) == 19
+    memory = [j for j in jobs if j.id >= "m0600"]
+    assert {j.config.agent.cell for j in memory} == {"gru"} and {j.functional_at for j in memory} == {0.9}
+    ewc = [j for j in memory if j.variation.get("attack") == "ewc/10"]
+    assert ewc and {j.config.attack.ewc.weight for j in ewc} == {10.0}
     on_transformer = {j.variation["attack"] for j in jobs if j.config.agent.cell == "transformer"}
     assert on_transformer.isdisjoint({"probe_camouflage", "probe_mimicry"}) and "none" in on_transformer
     entries = [ZooEntry(j.id, tmp_path, int(j.label == "backdoored"), model_factors(j.__dict__)) for j in jobs]
     splits = assign_splits(entries, SplitConfig(holdout={k: tuple(v) for k, v in cfg.holdout.items()}))
-    assert Counter(splits.values()) == {"train": 296, "test": 298, "holdout": 306}
-    memory = Counter(e.label for e in entries if e.factors["env"] != "grid" and splits[e.model_id] == "holdout")
-    assert memory == {0: 78, 1: 92}
+    assert Counter(splits.values()) == {"train": 296, "test": 296, "holdout": 308}
+    held = Counter(e.label for e in entries if e.factors["env"] != "grid" and splits[e.model_id] == "holdout")
+    assert held == {0: 63, 1: 63}
