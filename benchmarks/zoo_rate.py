@@ -13,7 +13,8 @@ success, and how many models are left with the hours they will take at that rate
 marked unmeasured and left out of the total. The projection assumes the models left cost what the done ones of
 their group did: a sample's drawn attacks and early stops make that a rough figure for a few models per group. For
 a zoo that draws attack recipes, a second table: per part and recipe, the done poisoned models, those whose
-backdoor works and their mean attack success.
+backdoor works, their mean attack success and their mean clean success (a recipe that costs the agent its task
+shows there).
 """
 
 from __future__ import annotations
@@ -67,6 +68,8 @@ class RecipeRate:
     poisoned: int
     functional: int
     mean_attack_success: float
+    mean_clean_success: float | None = None
+    """their mean normal-env success: below the task's own, the recipe cost the agent its task (None: not read)"""
 
 
 @dataclass(frozen=True)
@@ -102,16 +105,29 @@ def read_zoo_models(zoo: Path) -> tuple[ZooConfig, list[ZooModel]]:
 def recipes(cfg: ZooConfig, models: list[ZooModel]) -> list[RecipeRate]:
     """Per part and attack recipe of a zoo that draws recipes: the done poisoned models, those whose backdoor works
     (attack success at least the part's ``functional_at``) and their mean attack success."""
-    found: dict[tuple[int, str, str], list[float]] = {}
+    found: dict[tuple[int, str, str], list[tuple[float, float]]] = {}
     for m in models:
-        success = m.entry.get("metrics", {}).get("trojan_success")
+        metrics = m.entry.get("metrics", {})
+        success, clean = metrics.get("trojan_success"), metrics.get("normal_success")
         if m.job.label == "backdoored" and m.done and isinstance(success, (int, float)):
             key = (m.part, m.env, str(m.job.variation.get("attack", "none")))
-            found.setdefault(key, []).append(float(success))
+            found.setdefault(key, []).append((float(success), float(clean) if _is_number(clean) else float("nan")))
     return [
-        RecipeRate(p, env, attack, len(v), sum(x >= _functional_at(cfg, p) for x in v), statistics.fmean(v))
+        RecipeRate(
+            p,
+            env,
+            attack,
+            len(v),
+            sum(a >= _functional_at(cfg, p) for a, _ in v),
+            statistics.fmean(a for a, _ in v),
+            statistics.fmean(c for _, c in v),
+        )
         for (p, env, attack), v in sorted(found.items())
     ]
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def measure(cfg: ZooConfig, models: list[ZooModel]) -> list[GroupRate]:
@@ -156,12 +172,14 @@ def table(data: dict) -> str:
         )
     if data.get("recipes"):
         recipe_rows = [
-            "| part | env | recipe | poisoned models done | backdoors working | mean attack success |",
-            "|---|---|---|---|---|---|",
+            "| part | env | recipe | poisoned models done | backdoors working | mean attack success | "
+            "mean clean success |",
+            "|---|---|---|---|---|---|---|",
         ]
         recipe_rows += [
             f"| {r['part']} | {r['env']} | {r['attack']} | {r['poisoned']} | {r['functional']} | "
-            f"{r['mean_attack_success']:.2f} |"
+            f"{r['mean_attack_success']:.2f} | "
+            + (f"{r['mean_clean_success']:.2f} |" if r.get("mean_clean_success") is not None else " |")
             for r in data["recipes"]
         ]
     total = data["hours_left"]

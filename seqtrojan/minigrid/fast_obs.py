@@ -6,10 +6,10 @@ that grid ``agent_dir + 1`` times (a new ``Grid`` each time), running the occlus
 encoding the result cell by cell: about 85% of an env step on the Memory task. :func:`fast_gen_obs` reads the
 view's cells from the grid's list directly through a cached index map (per grid size, view size, direction and
 agent cell: one ``itemgetter`` call picks the whole rotated view), runs the same occlusion pass over plain lists
-(cached per pattern of see-through cells: a task's walls repeat, and the pass was 40% of this function on the Memory
-task) and encodes each visible object once, straight into bytes (walls and empty cells from constants). Objects are still
-asked ``see_behind()`` and ``encode()``, so doors, carried objects and user-defined objects behave as in MiniGrid;
-the tests compare the two step by step on several MiniGrid envs.
+(cached per pattern of see-through cells: a task's walls repeat, and the pass was 40% of this function on the
+Memory task) and encodes each visible object once, straight into bytes (walls and empty cells from constants).
+Objects are still asked ``see_behind()`` and ``encode()``, so doors, carried objects and user-defined objects behave
+as in MiniGrid; the tests compare the two step by step on several MiniGrid envs.
 
 :func:`use_fast_observation` installs it on one env instance, and only where the env's class keeps MiniGrid's own
 ``gen_obs``, ``gen_obs_grid`` and ``get_view_exts``; a grid of another class than ``Grid`` falls back to
