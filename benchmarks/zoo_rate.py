@@ -31,7 +31,15 @@ from typing import Any
 
 from seqtrojan.experiments.attacks import RECIPES
 from seqtrojan.serde import from_dict
-from seqtrojan.zoo.build import MAX_MANIFEST_BYTES, MAX_ZOO_CONFIG_BYTES, ZooConfig, ZooJob, make_jobs, read_json_file
+from seqtrojan.stats import reaches
+from seqtrojan.zoo.build import (
+    MAX_MANIFEST_BYTES,
+    MAX_ZOO_CONFIG_BYTES,
+    ZooConfig,
+    ZooJob,
+    make_jobs,
+    read_json_file,
+)
 
 
 @dataclass(frozen=True)
@@ -118,7 +126,7 @@ def recipes(cfg: ZooConfig, models: list[ZooModel]) -> list[RecipeRate]:
             env,
             attack,
             len(v),
-            sum(a >= _functional_at(cfg, p) for a, _ in v),
+            sum(reaches(a, _functional_at(cfg, p)) for a, _ in v),
             statistics.fmean(a for a, _ in v),
             statistics.fmean(c for _, c in v),
         )
@@ -140,7 +148,8 @@ def measure(cfg: ZooConfig, models: list[ZooModel]) -> list[GroupRate]:
         done = [m for m in members if m.done and isinstance(m.entry.get("seconds"), (int, float))]
         poisoned = [m.entry for m in done if m.job.label == "backdoored"]
         clean = [m.entry["metrics"]["normal_success"] for m in done if "normal_success" in m.entry.get("metrics", {})]
-        functional = sum(1 for e in poisoned if e["metrics"].get("trojan_success", 0.0) >= _functional_at(cfg, p))
+        at = _functional_at(cfg, p)
+        functional = sum(1 for e in poisoned if reaches(e["metrics"].get("trojan_success", 0.0), at))
         rates.append(GroupRate(
             p, env, cell, len(members), len(done),
             statistics.fmean(m.entry["seconds"] for m in done) if done else None,

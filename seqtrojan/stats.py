@@ -257,3 +257,13 @@ class Mean:
         if isinstance(data["n"], bool) or not isinstance(data["n"], int) or data["n"] < 1 or data["sd"] < 0:
             raise ConfigError(f"{where}.n must be an integer >= 1 and .sd >= 0")
         return cls(float(data["mean"]), float(data["sd"]), data["n"])
+
+
+RATE_TOLERANCE = 1e-6
+"""how far below a threshold a success rate may read and still reach it: the rates are float32 means (90 of 100
+episodes reads 0.8999999762), and a threshold of 0.9 means 90 of 100"""
+
+
+def reaches(success: float, threshold: float) -> bool:
+    """Whether a success rate (a card's float32 mean) reaches ``threshold`` (``functional_at``)."""
+    return success >= threshold - RATE_TOLERANCE

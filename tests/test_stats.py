@@ -9,7 +9,7 @@ import pytest
 
 from seqtrojan.errors import ConfigError
 from seqtrojan.serde import to_dict
-from seqtrojan.stats import OverSeeds, auc_interval
+from seqtrojan.stats import OverSeeds, auc_interval, reaches
 
 
 def hanley_mcneil(auc: float, m: int, n: int) -> tuple[float, float]:
@@ -79,3 +79,11 @@ def test_rates_over_seeds_pool_their_episodes():
     assert pooled(rates) == Rate(60, 120)
     values, pool = over_seeds(rates)
     assert values.values == (0.9, 0.1, 0.5) and pool == Rate(60, 120)
+
+
+def test_a_rate_read_in_float32_reaches_the_threshold_it_equals():
+    """90 of 100 episodes, averaged in float32 as a card's rates are, reads 0.8999999762: it reaches 0.9; 89 does
+    not (a zoo's functional_at would otherwise drop a model whose backdoor works exactly at the threshold)."""
+    ninety, eighty_nine = float(np.float32(90) / np.float32(100)), float(np.float32(89) / np.float32(100))
+    assert ninety < 0.9 and reaches(ninety, 0.9)
+    assert not reaches(eighty_nine, 0.9) and reaches(1.0, 0.9) and not reaches(0.0, 0.5)

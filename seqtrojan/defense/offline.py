@@ -39,6 +39,7 @@ from seqtrojan.defense.results import (
 )
 from seqtrojan.errors import CheckpointError, SeqTrojanError
 from seqtrojan.registry import Registry
+from seqtrojan.stats import reaches
 
 
 class OfflineDetector(Protocol):
@@ -267,7 +268,7 @@ def _functional_split(models: list[ZooModel], predictions: Sequence[Prediction],
 
     clean = [p.p_backdoored for m, p in zip(models, predictions) if m.label == 0]
     counts, aucs = {}, {}
-    for name, keep in (("functional", lambda a: a >= at), ("not_functional", lambda a: a < at)):
+    for name, keep in (("functional", lambda a: reaches(a, at)), ("not_functional", lambda a: not reaches(a, at))):
         probs = [p.p_backdoored for m, p in zip(models, predictions)
                  if m.label == 1 and m.attack_success is not None and keep(m.attack_success)]  # fmt: skip
         counts[name] = len(probs)

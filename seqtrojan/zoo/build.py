@@ -57,6 +57,7 @@ from seqtrojan.env.config import EnvConfig, GridSpec, TriggerConfig
 from seqtrojan.errors import CheckpointError, ConfigError, SeqTrojanError
 from seqtrojan.jobs import JobResult, JobsConfig, TrainJob, make_backend, raise_failures
 from seqtrojan.serde import dump_omitting_defaults, to_dict
+from seqtrojan.stats import reaches
 from seqtrojan.train.logger import make_progress
 from seqtrojan.zoo.recipes import RecipeBook, apply_recipe, check_recipes, grid_trigger_variation
 
@@ -579,7 +580,7 @@ def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
         if not isinstance(trigger.get("value"), str):  # a Gymnasium trigger: its object, by name (label.json's value)
             trigger["value"] = str(job.variation.get("trigger_value", ""))
         truth.update(trigger=trigger, attack_success=attack,
-                     functional_backdoor=attack is not None and attack >= job.functional_at)  # fmt: skip
+                     functional_backdoor=attack is not None and reaches(attack, job.functional_at))  # fmt: skip
     return truth
 
 
