@@ -183,9 +183,9 @@ def test_the_cli_and_the_reproduce_config_choose_the_backend(tmp_path, monkeypat
     assert seen["jobs"] == JobsConfig(threads=1)  # the scale file's pool of 2, one thread each
     monkeypatch.setattr(zoo_build, "build_zoo", lambda cfg, out, **kw: seen.update(zoo=kw) or out / "manifest.json")
     assert cli.main(["zoo", "build", "--out", str(tmp_path), "--backend", "serial", "--workers", "1"]) == 0
-    from seqtrojan.experiments.attacks import ATTACKS
+    from seqtrojan.experiments.attacks import RECIPES
 
-    assert seen["zoo"] == {"workers": 1, "backend": "serial", "ray_address": None, "threads": None, "recipes": ATTACKS,
+    assert seen["zoo"] == {"workers": 1, "backend": "serial", "ray_address": None, "threads": None, "recipes": RECIPES,
                            "limit": None, "progress": True}  # fmt: skip
     assert make_backend(JobsConfig(backend="serial")).name == "serial"
     assert (
