@@ -49,6 +49,7 @@ BENCH_TABLES = [
     ("families/minatar_asterix_clean_3m.json", "families.md", "families.py"),
     ("benchmark/paper_rate_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
     ("benchmark/paper_partial_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
+    ("benchmark/paper2_rate_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
     ("benchmark/memory_strength_sweep_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
     ("benchmark/grid_strength_sweep_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
 ]
