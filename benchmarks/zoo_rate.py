@@ -13,8 +13,10 @@ success, and how many models are left with the hours they will take at that rate
 marked unmeasured and left out of the total. The projection assumes the models left cost what the done ones of
 their group did: a sample's drawn attacks and early stops make that a rough figure for a few models per group. For
 a zoo that draws attack recipes, a second table: per part and recipe, the done poisoned models, those whose
-backdoor works, their mean attack success and their mean clean success (a recipe that costs the agent its task
-shows there).
+backdoor works, their mean attack success, their mean clean success (a recipe that costs the agent its task shows
+there) and, from the training curves a zoo keeps (``curves/<id>.jsonl``), how many formed their backdoor during
+training (normal and trojan success of an update's rollouts both at least 0.9) and the median env steps that took:
+what a part's budget must cover.
 """
 
 from __future__ import annotations
@@ -78,6 +80,11 @@ class RecipeRate:
     mean_attack_success: float
     mean_clean_success: float | None = None
     """their mean normal-env success: below the task's own, the recipe cost the agent its task (None: not read)"""
+    curves: int = 0
+    """how many of them have a training curve (``curves/<id>.jsonl``; zoos built before 2026-12-04 have none)"""
+    formed: int = 0
+    median_steps_to_form: float | None = None
+    """of those curves, how many show the backdoor forming (:func:`steps_to_form`), and the median env steps it took"""
 
 
 @dataclass(frozen=True)
@@ -110,28 +117,49 @@ def read_zoo_models(zoo: Path) -> tuple[ZooConfig, list[ZooModel]]:
     return cfg, models
 
 
-def recipes(cfg: ZooConfig, models: list[ZooModel]) -> list[RecipeRate]:
+FORMED_AT = 0.9
+"""a backdoor has formed at the first update whose training rollouts succeed this often in both envs"""
+
+
+def steps_to_form(curve: Path) -> int | None:
+    """The env steps at which a model's training curve first shows its backdoor formed (normal and trojan success
+    of the update's rollouts both at least :data:`FORMED_AT`); None: never, or no readable curve."""
+    try:
+        lines = curve.read_text().splitlines()
+    except OSError:
+        return None
+    for line in lines:
+        try:
+            row = json.loads(line)
+            normal, trojan = row["episodes/normal_success"], row["episodes/trojan_success"]
+            if normal >= FORMED_AT and trojan >= FORMED_AT:
+                return int(row["env_steps"])
+        except (json.JSONDecodeError, KeyError, TypeError):
+            continue
+    return None
+
+
+def recipes(cfg: ZooConfig, models: list[ZooModel], zoo: Path) -> list[RecipeRate]:
     """Per part and attack recipe of a zoo that draws recipes: the done poisoned models, those whose backdoor works
     (attack success at least the part's ``functional_at``) and their mean attack success."""
-    found: dict[tuple[int, str, str], list[tuple[float, float]]] = {}
+    found: dict[tuple[int, str, str], list[tuple[float, float, Path]]] = {}
     for m in models:
         metrics = m.entry.get("metrics", {})
         success, clean = metrics.get("trojan_success"), metrics.get("normal_success")
         if m.job.label == "backdoored" and m.done and isinstance(success, (int, float)):
             key = (m.part, m.env, str(m.job.variation.get("attack", "none")))
-            found.setdefault(key, []).append((float(success), float(clean) if _is_number(clean) else float("nan")))
-    return [
-        RecipeRate(
-            p,
-            env,
-            attack,
-            len(v),
-            sum(reaches(a, _functional_at(cfg, p)) for a, _ in v),
-            statistics.fmean(a for a, _ in v),
-            statistics.fmean(c for _, c in v),
-        )
-        for (p, env, attack), v in sorted(found.items())
-    ]
+            clean_value = float(clean) if _is_number(clean) else float("nan")
+            found.setdefault(key, []).append((float(success), clean_value, zoo / "curves" / f"{m.job.id}.jsonl"))
+    rates = []
+    for (p, env, attack), v in sorted(found.items()):
+        curves = [c for _, _, c in v if c.is_file()]
+        formed = [n for n in map(steps_to_form, curves) if n is not None]
+        rates.append(RecipeRate(
+            p, env, attack, len(v), sum(reaches(a, _functional_at(cfg, p)) for a, _, _ in v),
+            statistics.fmean(a for a, _, _ in v), statistics.fmean(c for _, c, _ in v),
+            len(curves), len(formed), statistics.median(formed) if formed else None,
+        ))  # fmt: skip
+    return rates
 
 
 def _is_number(value: Any) -> bool:
@@ -182,19 +210,28 @@ def table(data: dict) -> str:
     if data.get("recipes"):
         recipe_rows = [
             "| part | env | recipe | poisoned models done | backdoors working | mean attack success | "
-            "mean clean success |",
-            "|---|---|---|---|---|---|---|",
+            "mean clean success | formed in training (median steps) |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         recipe_rows += [
             f"| {r['part']} | {r['env']} | {r['attack']} | {r['poisoned']} | {r['functional']} | "
             f"{r['mean_attack_success']:.2f} | "
             + (f"{r['mean_clean_success']:.2f} |" if r.get("mean_clean_success") is not None else " |")
+            + _formation(r)
             for r in data["recipes"]
         ]
     total = data["hours_left"]
     rows.append(f"| all | | | {data['models']} | {data['done']} | | | | | {total:.1f} ({data['unmeasured']} "
                 f"models unmeasured) |")  # fmt: skip
     return "\n".join(rows + (["", *recipe_rows] if data.get("recipes") else []))
+
+
+def _formation(rate: dict) -> str:
+    """The recipe's formation cell: ``3 of 4 curves (301k)``; empty without curves."""
+    if not rate.get("curves"):
+        return " |"
+    median = rate.get("median_steps_to_form")
+    return f" {rate['formed']} of {rate['curves']} curves" + (f" ({median / 1000:.0f}k) |" if median else " |")
 
 
 def main() -> None:
@@ -219,7 +256,7 @@ def main() -> None:
         "unmeasured": sum(g.models - g.done for g in groups if g.mean_seconds is None),
         "hours_left": sum(g.hours_left(args.workers) or 0.0 for g in measured),
         "groups": [g.__dict__ for g in groups],
-        "recipes": [r.__dict__ for r in recipes(cfg, models)],
+        "recipes": [r.__dict__ for r in recipes(cfg, models, args.zoo)],
     }  # fmt: skip
     print(table(data))
     if args.json is not None:

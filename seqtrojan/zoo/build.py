@@ -10,17 +10,21 @@ folder holds::
                                                success and whether the backdoor is functional; scoring only
     manifest.json                              every job: id, label, status, variation, time, worker (host:pid)
     zoo.json                                   the zoo config the zoo was built with
+    curves/<id>.jsonl, curves/<id>_clean.jsonl each model's training curve (its second stage, and its clean first
+                                               stage): per update the env steps and the training rollouts' normal
+                                               and trojan success; outside the model folder, which a detector reads
     work/                                      runs in progress (checkpoints), removed as models finish
     build.lock, workers.lock                   held by a running build and by its local worker processes
 
 A stopped build, even one killed with ``kill -9``, continues where it stopped: the model folders are the truth. A
-folder whose card and weights verify is done (its ``label.json`` is written again from the job if it is missing or
-malformed); any other model is trained again, from its last checkpoint when there is one. A model only appears in
-``models/`` once complete (it is staged under ``work/`` and moved in with one rename). ``manifest.json`` is written
-atomically and rebuilt from the model folders when it is corrupt. A rerun with a config other than the one in
-``zoo.json`` is refused. Local worker processes die with the build (on Linux the kernel kills them when it dies;
-elsewhere they watch for it), and a build refuses to start while another build or an earlier build's workers still
-run on the same folder. Workers never oversubscribe the cores: workers x torch threads <= the cores available.
+folder whose card and weights verify is done (its ``label.json`` is written again from the job if it is missing,
+malformed or outdated); any other model is trained again, from its last checkpoint when there is one. A model only
+appears in ``models/`` once complete (it is staged under ``work/`` and moved in with one rename). ``manifest.json``
+is written atomically and rebuilt from the model folders when it is corrupt. A rerun with a config other than the
+one in ``zoo.json`` is refused, unless only how models are labelled changed (``functional_at``). Local worker
+processes die with the build (on Linux the kernel kills them when it dies; elsewhere they watch for it), and a build
+refuses to start while another build or an earlier build's workers still run on the same folder. Workers never
+oversubscribe the cores: workers x torch threads <= the cores available.
 """
 
 from __future__ import annotations
@@ -625,6 +629,11 @@ def _train_zoo_model(job: ZooJob) -> Path:
         shutil.rmtree(run_dir, ignore_errors=True)
         model_dir, _ = train_or_resume(job.config)
         _, _, card = load_zoo_agent(model_dir)
+    curves = Path(job.models).parent / "curves"
+    _keep_curve(run_dir / "metrics.jsonl", curves / f"{job.id}.jsonl")
+    if job.pretrain is not None:
+        _keep_curve(Path(job.pretrain.run.out_dir) / str(job.pretrain.run.name) / "metrics.jsonl",
+                    curves / f"{job.id}_clean.jsonl")  # fmt: skip
     staging = run_dir.with_name(run_dir.name + ".staging")
     shutil.rmtree(staging, ignore_errors=True)
     shutil.copytree(model_dir, staging)
@@ -638,6 +647,29 @@ def _train_zoo_model(job: ZooJob) -> Path:
     if job.pretrain is not None:
         shutil.rmtree(Path(job.pretrain.run.out_dir) / str(job.pretrain.run.name), ignore_errors=True)
     return target
+
+
+CURVE_FIELDS = ("env_steps", "episodes/normal_success", "episodes/trojan_success")
+"""what a zoo keeps of a run's ``metrics.jsonl`` per update (all of it would be about 1 MB per Memory agent)"""
+
+
+def _keep_curve(metrics: Path, target: Path) -> None:
+    """The run's training curve, :data:`CURVE_FIELDS` of each update of its ``metrics.jsonl``, written to ``target``
+    (atomically); nothing when the run left no metrics (a run resumed from a finished checkpoint keeps its file)."""
+    if not metrics.is_file():
+        return
+    rows = []
+    for line in metrics.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:  # a line cut short by a killed run
+            continue
+        if isinstance(row, dict):
+            rows.append(json.dumps({k: row[k] for k in CURVE_FIELDS if k in row}))
+    target.parent.mkdir(parents=True, exist_ok=True)
+    partial = target.with_name(target.name + ".partial")
+    partial.write_text("".join(r + "\n" for r in rows))
+    os.replace(partial, target)
 
 
 # ---------------------------------------------------------------------- building

@@ -490,6 +490,15 @@ def test_pretrained_models_add_their_backdoor_to_their_own_clean_stage(tmp_path,
         card = json.loads((tmp_path / "models" / job.id / "card.json").read_text())
         assert card["config"]["run"]["init_from"] == job.config.run.init_from
     assert not (tmp_path / "work" / f"{jobs[0].id}_clean").exists()
+    for job in jobs:  # both stages' training curves kept outside the model folder, CURVE_FIELDS only
+        for name, steps in ((job.id, job.config.ppo.total_steps), (f"{job.id}_clean", 1024)):
+            rows = [json.loads(line) for line in (tmp_path / "curves" / f"{name}.jsonl").read_text().splitlines()]
+            trojan = name == job.id and job.label == "backdoored"
+            fields = zoo_build.CURVE_FIELDS if trojan else zoo_build.CURVE_FIELDS[:2]
+            assert rows and all(tuple(r) == fields for r in rows)  # a clean run has no trojan episodes
+            assert [r["env_steps"] for r in rows] == sorted(r["env_steps"] for r in rows)
+            assert rows[-1]["env_steps"] >= steps
+        assert not [p.name for p in job.model_dir.iterdir() if p.suffix == ".jsonl"]  # a detector never reads it
     # a build stopped after a model's clean stage: the rerun reuses that stage and trains only the model's own
     other = make_jobs(cfg, tmp_path / "stopped")[0]
     original(other.pretrain)
