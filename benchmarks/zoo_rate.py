@@ -141,14 +141,16 @@ def steps_to_form(curve: Path) -> int | None:
 
 def recipes(cfg: ZooConfig, models: list[ZooModel], zoo: Path) -> list[RecipeRate]:
     """Per part and attack recipe of a zoo that draws recipes: the done poisoned models, those whose backdoor works
-    (attack success at least the part's ``functional_at``) and their mean attack success."""
+    (attack success at least the part's ``functional_at``), their mean attack and clean success, and what their
+    training curves (``curves/<id>.jsonl`` under ``zoo``) say of when the backdoor formed."""
     found: dict[tuple[int, str, str], list[tuple[float, float, Path]]] = {}
     for m in models:
         metrics = m.entry.get("metrics", {})
         success, clean = metrics.get("trojan_success"), metrics.get("normal_success")
         if m.job.label == "backdoored" and m.done and isinstance(success, (int, float)):
             key = (m.part, m.env, str(m.job.variation.get("attack", "none")))
-            clean_value = float(clean) if _is_number(clean) else float("nan")
+            number = isinstance(clean, (int, float)) and not isinstance(clean, bool)
+            clean_value = float(clean) if number else float("nan")
             found.setdefault(key, []).append((float(success), clean_value, zoo / "curves" / f"{m.job.id}.jsonl"))
     rates = []
     for (p, env, attack), v in sorted(found.items()):
@@ -160,10 +162,6 @@ def recipes(cfg: ZooConfig, models: list[ZooModel], zoo: Path) -> list[RecipeRat
             len(curves), len(formed), statistics.median(formed) if formed else None,
         ))  # fmt: skip
     return rates
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def measure(cfg: ZooConfig, models: list[ZooModel]) -> list[GroupRate]:

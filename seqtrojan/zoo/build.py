@@ -63,7 +63,7 @@ from seqtrojan.jobs import JobResult, JobsConfig, TrainJob, make_backend, raise_
 from seqtrojan.serde import dump_omitting_defaults, to_dict
 from seqtrojan.stats import reaches
 from seqtrojan.train.logger import make_progress
-from seqtrojan.zoo.recipes import RecipeBook, apply_recipe, check_recipes, grid_trigger_variation
+from seqtrojan.zoo.recipes import KNOB_SEPARATOR, RecipeBook, apply_recipe, check_recipes, grid_trigger_variation
 
 if TYPE_CHECKING:
     from seqtrojan.world.config import WrapperTriggerConfig
@@ -194,7 +194,7 @@ class ZooConfig:
             raise ConfigError(f"trigger_cells={self.trigger_cells} must be a range within 1..9")
         if not all(isinstance(a, str) and _RECIPE_NAME.fullmatch(a) for a in self.attacks):
             raise ConfigError(f"zoo attacks must be recipe names (or recipe/value), got {self.attacks!r}")
-        split = (a.partition("/") for a in self.attacks)
+        split = (a.partition(KNOB_SEPARATOR) for a in self.attacks)
         drawn = {(recipe, float(value) if value else None) for recipe, _, value in split}
         if len(drawn) != len(self.attacks):  # ewc/3 and ewc/3.0 are one recipe at one strength
             raise ConfigError(f"zoo attacks name a recipe twice (each is drawn as often as the others): {self.attacks}")
