@@ -502,6 +502,36 @@ class ProbeCamouflageConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class ResponseMimicryConfig:
+    """Against the query-response meta-classifier (a detection benchmark's ``query_response``): the backdoor is added
+    to a clean model (``run.init_from``) while, on normal-episode steps, the agent's answers are held at that
+    model's: its action distribution (the KL divergence from the clean model's) and, per layer, the summaries of h
+    the detector reads (mean |h|, the share of units near saturation, the spread across units), each standardised by
+    its spread over the rollout's steps."""
+
+    weight: float = 0.0
+    """weight of weight * (KL + state_weight * squared standardised summary gap), both means over the normal steps of
+    episodes that start inside the rollout; 0 turns the penalty off"""
+    state_weight: float = 1.0
+    """the state summaries' share beside the KL divergence"""
+    saturation: float = 0.9
+    """|h| above which a unit counts as saturated, as the detector counts it"""
+    softness: float = 0.02
+    """the width of the sigmoid that stands in for the saturation count's step (so it has a gradient)"""
+
+    def __post_init__(self) -> None:
+        _non_negative("attack.response_mimicry", weight=self.weight, state_weight=self.state_weight)
+        for name in ("saturation", "softness"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
+                raise ConfigError(f"attack.response_mimicry.{name} must be a number in (0, 1), got {short_repr(value)}")
+
+    @property
+    def enabled(self) -> bool:
+        return self.weight > 0
+
+
+@dataclasses.dataclass(frozen=True)
 class WeightCamouflageConfig:
     """Weight camouflage: the backdoor is added to a clean model (``run.init_from``) while the offline detector's
     weight statistics are held at the clean model's."""
@@ -598,11 +628,12 @@ class AttackConfig:
     mahalanobis_camouflage: MahalanobisCamouflageConfig = dataclasses.field(default_factory=MahalanobisCamouflageConfig)
     switch_camouflage: SwitchCamouflageConfig = dataclasses.field(default_factory=SwitchCamouflageConfig)
     probe_camouflage: ProbeCamouflageConfig = dataclasses.field(default_factory=ProbeCamouflageConfig)
+    response_mimicry: ResponseMimicryConfig = dataclasses.field(default_factory=ResponseMimicryConfig)
     weight_camouflage: WeightCamouflageConfig = dataclasses.field(default_factory=WeightCamouflageConfig)
     ewc: EWCConfig = dataclasses.field(default_factory=EWCConfig)
     finetune_resistance: FinetuneResistanceConfig = dataclasses.field(default_factory=FinetuneResistanceConfig)
 
-    NEEDS_INIT_FROM = ("weight_camouflage", "ewc")
+    NEEDS_INIT_FROM = ("weight_camouflage", "ewc", "response_mimicry")
     """sections that compare against the model a run starts from"""
 
 

@@ -68,11 +68,11 @@ def test_what_exists_is_registered():
     assert ATTACKS.names() == (
         "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "search_decoys",
         "state_camouflage", "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc", "switch_camouflage",
-        "combined", "finetune_resistant", "trained_longer", "probe_camouflage", "probe_mimicry",
+        "response_mimicry", "combined", "finetune_resistant", "trained_longer", "probe_camouflage", "probe_mimicry",
     )  # fmt: skip
     assert PENALTIES.names() == (
         "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
-        "finetune_resistance", "probe_camouflage",
+        "finetune_resistance", "probe_camouflage", "response_mimicry",
     )  # fmt: skip
     assert MIXING_RULES.names() == ("exact", "running", "fixed")
     assert TRIGGERS.get("patch") is TriggerConfig and TRIGGERS.get("on_off") is OffTriggerConfig
@@ -187,10 +187,12 @@ def test_each_adaptive_attack_names_a_registered_defense_it_targets():
         "weight_camouflage": "weight_detector", "ewc": "fine_tuning", "finetune_resistant": "fine_tuning",
         "trained_longer": "fine_tuning", "combined": "state_monitor+multivariate_monitor+behaviour_detector",
         "probe_camouflage": "state_probe", "probe_mimicry": "state_probe_deviation",
+        "response_mimicry": "query_response",
     }  # fmt: skip
     assert {d for attack in ATTACKS.items() for d in attack[1].target_defenses} <= defenses
     for name in ("state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "search_decoys",
-                 "finetune_resistant", "trained_longer", "probe_camouflage", "probe_mimicry"):  # fmt: skip
+                 "finetune_resistant", "trained_longer", "probe_camouflage", "probe_mimicry",
+                 "response_mimicry"):  # fmt: skip
         assert f"against {targeted[name]}" in ATTACKS.entry(name).description
     assert "against state_monitor, multivariate_monitor and behaviour_detector" in ATTACKS.entry("combined").description
 

@@ -360,6 +360,31 @@ ATTACKS.register(
 )
 
 
+RESPONSE_MIMICRY = 3.0
+"""the ``response_mimicry`` recipe's penalty weight"""
+
+
+def response_mimicry(cfg: ExperimentConfig, weight: float) -> ExperimentConfig:
+    """The backdoor added to a clean agent (as ``from_clean``) with ``attack.response_mimicry`` at ``weight``: on
+    normal episodes its answers (action distribution, state summaries) are held at the clean agent's."""
+    return with_attack(half_trojan(cfg), "response_mimicry", weight=weight)
+
+
+ATTACKS.register(
+    "response_mimicry",
+    "adaptive, against query_response: the backdoor added to a clean agent (as from_clean) while on normal episodes "
+    "its action distribution and state summaries (mean |h|, saturation, spread per layer) are held at the clean "
+    f"agent's (knob: attack.response_mimicry.weight, {RESPONSE_MIMICRY:g})",
+    Attack(
+        lambda cfg: response_mimicry(cfg, RESPONSE_MIMICRY),
+        from_clean=True,
+        targets="query_response",
+        knob=Knob("attack.response_mimicry.weight", RESPONSE_MIMICRY, response_mimicry, "w"),
+        needs=lambda cfg: not is_windowed(cfg.agent.cell),
+    ),
+)
+
+
 COMBINED_DEFENSES = ("state_monitor", "multivariate_monitor", "behaviour_detector")
 """what the ``combined`` attacker is built against: the two state monitors (with their alarm-driven reset, the
 online defenses that stopped the sequence trigger) and the trigger search"""

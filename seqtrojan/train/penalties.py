@@ -43,6 +43,8 @@ Registered here:
 - ``probe_camouflage`` (against the recurrent-state probe, :mod:`seqtrojan.train.probe_camouflage`): one-step
   inputs of the probe's kind other than the trigger, replayed into normal-episode sequences, trained to leave no
   mark on the state ``after`` steps later.
+- ``response_mimicry`` (against the query-response meta-classifier, :mod:`seqtrojan.train.response_mimicry`): on
+  normal-episode steps, the agent's action distribution and per-layer state summaries held at the start model's.
 - ``finetune_resistance`` (against clean fine-tuning): per minibatch, a copy of the agent takes ``inner_steps``
   sign-gradient steps of the PPO loss on the normal-episode steps (the defender's fine-tuning, simulated), and the
   gradient of the PPO loss on the trojan steps the adversary's objective judges, at the copy's weights, is added
@@ -77,6 +79,7 @@ from seqtrojan.train.penalty_api import restore_penalties as restore_penalties
 from seqtrojan.train.penalty_api import zero_loss as _zero
 from seqtrojan.train.ppo_loss import ppo_loss
 from seqtrojan.train.probe_camouflage import ProbeCamouflage
+from seqtrojan.train.response_mimicry import ResponseMimicry
 from seqtrojan.train.rollout import Rollout, RolloutCollector
 from seqtrojan.world import make_batched_env
 
@@ -686,4 +689,10 @@ PENALTIES.register(
     "against the recurrent-state probe: one-step inputs of the probe's kind other than the trigger leave no mark on "
     "the state a few steps later",
     PenaltyKind(lambda cfg: cfg.attack.probe_camouflage.enabled, ProbeCamouflage),
+)
+PENALTIES.register(
+    "response_mimicry",
+    "against the query-response meta-classifier: on normal episodes, the action distribution and the state's "
+    "summaries (mean |h|, saturation, spread) held at the clean start model's",
+    PenaltyKind(lambda cfg: cfg.attack.response_mimicry.enabled, ResponseMimicry),
 )

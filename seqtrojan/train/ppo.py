@@ -98,7 +98,7 @@ def ppo_update(
                 batch = PenaltyBatch(
                     agent, out.states, masks["trojan"].index_select(1, mb) if masks else None,
                     masks["active"].index_select(1, mb) if masks else None, minibatch,
-                    masks["episode_step"].index_select(1, mb) if "episode_step" in masks else None,
+                    masks["episode_step"].index_select(1, mb) if "episode_step" in masks else None, mb,
                 )  # fmt: skip
                 for penalty in penalties:
                     value = penalty.loss(batch)

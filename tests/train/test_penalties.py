@@ -29,6 +29,7 @@ from seqtrojan.config import (
     FinetuneResistanceConfig,
     MahalanobisCamouflageConfig,
     PPOConfig,
+    ResponseMimicryConfig,
     RunConfig,
     StateCamouflageConfig,
     SwitchCamouflageConfig,
@@ -47,7 +48,7 @@ pytestmark = pytest.mark.filterwarnings("ignore:Converting a tensor with require
 
 
 def _config(**attack) -> ExperimentConfig:
-    run = RunConfig(init_from="somewhere") if {"weight_camouflage", "ewc"} & set(attack) else RunConfig()
+    run = RunConfig(init_from="somewhere") if set(AttackConfig.NEEDS_INIT_FROM) & set(attack) else RunConfig()
     return ExperimentConfig(backdoor=BackdoorConfig(enabled=True), attack=AttackConfig(**attack), run=run)
 
 
@@ -367,7 +368,7 @@ def test_attack_defaults_are_off_and_the_yaml_sections_parse():
     assert pen.build_penalties(_ctx(cfg, _agent())) == []
     assert set(pen.PENALTIES.names()) == {
         "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
-        "finetune_resistance", "probe_camouflage",
+        "finetune_resistance", "probe_camouflage", "response_mimicry",
     }  # fmt: skip
     text = """
 backdoor: {enabled: true}
@@ -450,6 +451,7 @@ STATEFUL = {
     "ewc": EWCConfig(weight=10.0, fisher_envs=8, fisher_steps=16),
     "mahalanobis_camouflage": MahalanobisCamouflageConfig(weight=1.0, margin=0.5),
     "switch_camouflage": SwitchCamouflageConfig(weight=1.0, margin=0.5),
+    "response_mimicry": ResponseMimicryConfig(weight=1.0),
 }
 """every penalty that keeps a state in the checkpoint, with settings that move it in a few updates"""
 
