@@ -10,9 +10,10 @@ Agents: the matrix smoke preset's (7x7/3, LSTM 64-32, curriculum 5x5/0 -> 5x5/1 
 steps unless ``--steps``), trained as ``benchmarks/state_bounds.py`` trains them (training seeds ``0..seeds-1``, one
 torch thread, a finished agent in ``--out`` reused): the preset's clean agents, and per attack (default: the
 in-distribution patch, then ``probe_camouflage``, which trains that same trigger with the penalty) one agent per
-seed. ``recipe/value`` sets an adaptive recipe's knob; ``A+B`` trains A's trigger with B's terms (and from the
-clean agent when B starts from one); ``clean_longer`` is a control row, the clean agents trained on, clean, for as
-many steps again (as long as a from-clean recipe's agents train in all).
+seed. ``recipe/value`` sets an adaptive recipe's knob (of the last recipe named); ``A+B`` trains A's trigger with
+B's terms, ``A+B+C`` with B's and C's (from the clean agent when one of them starts from one); ``clean_longer`` is a
+control row, the clean agents trained on, clean, for as many steps again (as long as a from-clean recipe's agents
+train in all).
 
 Per agent: clean success and attack success on ``--episodes`` episodes per env (seed 1000003), with Wilson 95%
 intervals; and the state probe's features (:func:`seqtrojan.benchmark.state_probe.probe_features`, its default

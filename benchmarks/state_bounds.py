@@ -83,17 +83,19 @@ def train_clean(seed: int, out: Path, steps: int | None, name: str = "clean", in
 
 def train_agent(attack: str, seed: int, out: Path, steps: int | None):
     mcfg = load_matrix_config("smoke")
-    trigger, _, attack = attack.rpartition("+")  # "in_distribution_patch+mahalanobis_camouflage/5": both recipes
+    # "in_distribution_patch+mahalanobis_camouflage/5": the recipes in order, the last one's knob set
+    *firsts, attack = attack.split("+")
     row = resolve_attack(attack)  # "recipe/value": the recipe with its knob at value (as the matrix names it)
-    name = f"{trigger}_{row.folder}_s{seed}" if trigger else f"{row.folder}_s{seed}"
+    name = "_".join([*firsts, f"{row.folder}_s{seed}"])
     base = experiment_from_spec(mcfg.backdoor, out, name, "cpu")
     ppo = base.ppo if steps is None else dataclasses.replace(base.ppo, total_steps=steps)
     run = dataclasses.replace(base.run, seed=base.run.seed + seed, threads=1, checkpoint_every=10**12)
     cfg = dataclasses.replace(base, ppo=ppo, run=run)
-    if row.attack.from_clean:  # the backdoor is added to the clean agent of the same training seed
+    if row.attack.from_clean or any(ATTACKS.get(first).from_clean for first in firsts):
+        # the backdoor is added to the clean agent of the same training seed
         cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, init_from=str(train_clean(seed, out, steps))))
-    if trigger:  # another recipe's trigger first (an adaptive recipe changes only the training terms)
-        cfg = ATTACKS.get(trigger).configure(cfg)
+    for first in firsts:  # the other recipes first: the first one's trigger, every one's training terms
+        cfg = ATTACKS.get(first).configure(cfg)
     cfg = row.attack.configure(cfg)  # with another knob value: the attacker who knows the defense
     model_dir, _ = train_or_resume(cfg)
     agent, loaded, _ = load_agent(model_dir)
