@@ -38,9 +38,10 @@ from pathlib import Path
 
 from seqtrojan.agent.checkpoint import load_agent
 from seqtrojan.agent.state import Intervention
+from seqtrojan.config import ExperimentConfig
 from seqtrojan.defense.state_bounds import StateBoundsConfig, clean_trace, fit_trace
 from seqtrojan.evaluation.episodes import evaluate_agent, outcome_rate
-from seqtrojan.experiments.attacks import ATTACKS, resolve_attack
+from seqtrojan.experiments.attacks import ATTACKS, KnobbedAttack, resolve_attack
 from seqtrojan.experiments.matrix import load_matrix_config
 from seqtrojan.experiments.specs import experiment_from_spec
 from seqtrojan.stats import OverSeeds, Rate, pooled
@@ -81,22 +82,45 @@ def train_clean(seed: int, out: Path, steps: int | None, name: str = "clean", in
     return model_dir
 
 
+@dataclass(frozen=True)
+class Composition:
+    """``A+B+C``: registered recipes applied in order (the first one's trigger, every one's training terms), the
+    last one written ``recipe/value`` to set its knob (``in_distribution_patch+mahalanobis_camouflage/5``)."""
+
+    firsts: tuple[str, ...]
+    last: KnobbedAttack
+
+    @classmethod
+    def parse(cls, text: str) -> Composition:
+        *firsts, last = text.split("+")
+        for first in firsts:
+            ATTACKS.get(first)  # an unknown name: one line
+        return cls(tuple(firsts), resolve_attack(last))
+
+    def folder(self, seed: int) -> str:
+        return "_".join([*self.firsts, f"{self.last.folder}_s{seed}"])
+
+    @property
+    def from_clean(self) -> bool:
+        """One of the recipes adds the backdoor to a trained clean agent."""
+        return self.last.attack.from_clean or any(ATTACKS.get(first).from_clean for first in self.firsts)
+
+    def configure(self, cfg: ExperimentConfig) -> ExperimentConfig:
+        for first in self.firsts:
+            cfg = ATTACKS.get(first).configure(cfg)
+        return self.last.attack.configure(cfg)
+
+
 def train_agent(attack: str, seed: int, out: Path, steps: int | None):
     mcfg = load_matrix_config("smoke")
-    # "in_distribution_patch+mahalanobis_camouflage/5": the recipes in order, the last one's knob set
-    *firsts, attack = attack.split("+")
-    row = resolve_attack(attack)  # "recipe/value": the recipe with its knob at value (as the matrix names it)
-    name = "_".join([*firsts, f"{row.folder}_s{seed}"])
-    base = experiment_from_spec(mcfg.backdoor, out, name, "cpu")
+    composition = Composition.parse(attack)
+    base = experiment_from_spec(mcfg.backdoor, out, composition.folder(seed), "cpu")
     ppo = base.ppo if steps is None else dataclasses.replace(base.ppo, total_steps=steps)
     run = dataclasses.replace(base.run, seed=base.run.seed + seed, threads=1, checkpoint_every=10**12)
     cfg = dataclasses.replace(base, ppo=ppo, run=run)
-    if row.attack.from_clean or any(ATTACKS.get(first).from_clean for first in firsts):
-        # the backdoor is added to the clean agent of the same training seed
+    if composition.from_clean:  # the backdoor is added to the clean agent of the same training seed
         cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, init_from=str(train_clean(seed, out, steps))))
-    for first in firsts:  # the other recipes first: the first one's trigger, every one's training terms
-        cfg = ATTACKS.get(first).configure(cfg)
-    cfg = row.attack.configure(cfg)  # with another knob value: the attacker who knows the defense
+    cfg = composition.configure(cfg)  # with another knob value: the attacker who knows the defense
     model_dir, _ = train_or_resume(cfg)
     agent, loaded, _ = load_agent(model_dir)
     return agent.eval(), loaded
