@@ -426,9 +426,18 @@ class MahalanobisCamouflageConfig:
     """(decayed) clean steps a step's mean needs; from the first step with fewer, the previous step's mean is used"""
     shrinkage: float = 0.1
     """the scaled identity's weight in the standardised residuals' covariance (the monitor uses Ledoit-Wolf's)"""
+    warmup_steps: int = 0
+    """env steps of the run before the penalty applies (the clean statistics are gathered from the start): a
+    backdoor added to a clean agent is planted first, then hidden (held in the clean range from its first update,
+    it did not form, docs/defenses.md)"""
 
     def __post_init__(self) -> None:
         _check_running_statistics_penalty("attack.mahalanobis_camouflage", self, min_max_step=1)
+        if isinstance(self.warmup_steps, bool) or not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
+            raise ConfigError(
+                "attack.mahalanobis_camouflage.warmup_steps must be an integer >= 0, got "
+                f"{short_repr(self.warmup_steps)}"
+            )
 
     @property
     def enabled(self) -> bool:

@@ -309,6 +309,8 @@ class MahalanobisCamouflage(Penalty):
         self.means = RunningStepMeans(self.cfg.max_step, self.width, self.cfg.min_count, ctx.device)
         self.second = torch.zeros(self.width, self.width, dtype=torch.float64, device=ctx.device)  # sum r r'
         self.rows = torch.zeros((), dtype=torch.float64, device=ctx.device)  # its (decayed) row count
+        self.steps_seen = torch.zeros((), dtype=torch.int64)
+        """env steps of the rollouts observed so far (the warm-up counts them)"""
         self._derive()
 
     @property
@@ -336,6 +338,7 @@ class MahalanobisCamouflage(Penalty):
     def observe(self, rollout: Rollout) -> None:
         if rollout.states is None or rollout.trojan is None or rollout.episode_step is None:
             raise ValueError("Mahalanobis camouflage needs a rollout recorded with its states and episode steps")
+        self.steps_seen += rollout.actions.numel()
         clean = ~rollout.trojan  # (T, B)
         if not bool(clean.any()):
             return
@@ -353,6 +356,8 @@ class MahalanobisCamouflage(Penalty):
         mask = batch.trojan if self.cfg.steps == "trojan" else batch.adversary_active
         if int(self.updates) == 0 or batch.states is None or mask is None or batch.episode_step is None:
             return _zero(self.device)
+        if int(self.steps_seen) <= self.cfg.warmup_steps and self.cfg.warmup_steps:  # from the rollout passing it
+            return _zero(self.device)
         if not bool(mask.any()):
             return _zero(self.device)
         d = self.distance(self.vectors(batch.states)[mask], batch.episode_step[mask])
@@ -361,7 +366,7 @@ class MahalanobisCamouflage(Penalty):
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         return {"updates": self.updates.clone(), **self.means.state_dict(), "second": self.second.cpu(),
-                "rows": self.rows.cpu()}  # fmt: skip
+                "rows": self.rows.cpu(), "steps_seen": self.steps_seen.clone()}  # fmt: skip
 
     def load_state_dict(self, tensors: dict[str, torch.Tensor]) -> None:
         if not tensors:  # turned on at a resume: the statistics start with the next rollout
@@ -369,6 +374,9 @@ class MahalanobisCamouflage(Penalty):
         self.updates = tensors["updates"].clone()
         self.means.load_state_dict(tensors)
         self.second, self.rows = tensors["second"].to(self.device), tensors["rows"].to(self.device)
+        # a checkpoint written before the warm-up existed: only warmup_steps 0 ran then, for which the count is moot
+        seen = tensors.get("steps_seen")
+        self.steps_seen = seen.clone() if seen is not None else torch.zeros((), dtype=torch.int64)
         self._derive()
 
 

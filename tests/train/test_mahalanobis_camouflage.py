@@ -161,6 +161,27 @@ def test_its_statistics_decay_and_come_back_from_a_checkpoint():
     assert torch.equal(restored.distance(q, t), penalty.distance(q, t))
 
 
+def test_its_warm_up_waits_for_the_env_steps_then_holds_and_a_checkpoint_keeps_the_count():
+    """With ``warmup_steps`` the term is 0 until the rollouts observed pass that many env steps (the statistics are
+    gathered from the start), then as without a warm-up; the count comes back from a checkpoint."""
+    rollout = _rollout()  # 60 steps x 80 envs = 4800 env steps per rollout
+    assert rollout.states is not None and rollout.trojan is not None
+    batch = pen.PenaltyBatch(None, rollout.states, rollout.trojan, rollout.trojan, None, rollout.episode_step)  # type: ignore[arg-type]
+    plain, waiting = _penalty(weight=2.0, margin=0.0), _penalty(weight=2.0, margin=0.0, warmup_steps=5000)
+    for penalty in (plain, waiting):
+        penalty.observe(rollout)
+    assert float(plain.loss(batch)) > 0 and float(waiting.loss(batch)) == 0.0  # 4800 steps seen: still waiting
+    restored = _penalty(weight=2.0, margin=0.0, warmup_steps=5000)
+    restored.load_state_dict({k: v.clone() for k, v in waiting.state_dict().items()})
+    assert int(restored.steps_seen) == 4800 and float(restored.loss(batch)) == 0.0
+    for penalty in (plain, waiting, restored):
+        penalty.observe(rollout)  # 9600 steps seen: past it
+    assert float(waiting.loss(batch)) == pytest.approx(float(plain.loss(batch)), rel=1e-6)
+    assert float(restored.loss(batch)) == pytest.approx(float(plain.loss(batch)), rel=1e-6)
+    with pytest.raises(ConfigError, match=r"warmup_steps must be an integer >= 0"):
+        MahalanobisCamouflageConfig(warmup_steps=-1)
+
+
 def test_the_rollout_records_each_steps_index_in_its_episode():
     from seqtrojan.train.trainer import _set_up
 
