@@ -68,7 +68,8 @@ def test_what_exists_is_registered():
     assert ATTACKS.names() == (
         "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "search_decoys",
         "state_camouflage", "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc", "switch_camouflage",
-        "response_mimicry", "combined", "finetune_resistant", "trained_longer", "probe_camouflage", "probe_mimicry",
+        "response_mimicry", "combined", "combined_all", "finetune_resistant", "trained_longer", "probe_camouflage",
+        "probe_mimicry",
     )  # fmt: skip
     assert PENALTIES.names() == (
         "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
@@ -188,6 +189,7 @@ def test_each_adaptive_attack_names_a_registered_defense_it_targets():
         "trained_longer": "fine_tuning", "combined": "state_monitor+multivariate_monitor+behaviour_detector",
         "probe_camouflage": "state_probe", "probe_mimicry": "state_probe_deviation",
         "response_mimicry": "query_response",
+        "combined_all": "all_features+behaviour_search+multivariate_monitor",
     }  # fmt: skip
     assert {d for attack in ATTACKS.items() for d in attack[1].target_defenses} <= defenses
     for name in ("state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "search_decoys",
@@ -195,6 +197,8 @@ def test_each_adaptive_attack_names_a_registered_defense_it_targets():
                  "response_mimicry"):  # fmt: skip
         assert f"against {targeted[name]}" in ATTACKS.entry(name).description
     assert "against state_monitor, multivariate_monitor and behaviour_detector" in ATTACKS.entry("combined").description
+    every = "against all_features, behaviour_search and multivariate_monitor"
+    assert every in ATTACKS.entry("combined_all").description
 
 
 def test_each_adaptive_attack_has_a_knob_that_changes_its_config():

@@ -171,6 +171,12 @@ def test_its_recipe_adds_the_backdoor_to_a_clean_agent_and_bad_settings_are_refu
     assert "\n" not in str(err.value)
     with pytest.raises(ConfigError, match=r"attack\.response_mimicry compare"):
         dataclasses.replace(GRID, attack=AttackConfig(response_mimicry=Settings(weight=1.0)), run=RunConfig())
+    combined = ATTACKS.get("combined_all")  # with the decoys, the weight camouflage and the Mahalanobis camouflage
+    every = combined.configure(dataclasses.replace(GRID, ppo=PPOConfig(total_steps=1_000_000)))
+    assert combined.from_clean and every.attack.response_mimicry.weight == RESPONSE_MIMICRY
+    assert every.env.trigger.sequence and every.env.trigger.decoys.probability > 0
+    assert every.attack.weight_camouflage.warmup_steps == every.attack.mahalanobis_camouflage.warmup_steps == 500_000
+    assert combined.knob.apply(every, 1.0).attack.mahalanobis_camouflage.weight == 1.0
     for bad in ({"weight": -1.0}, {"state_weight": float("nan")}, {"saturation": 1.0}, {"softness": 0}):
         with pytest.raises(ConfigError, match=r"attack\.response_mimicry\."):
             Settings(**bad)
