@@ -52,7 +52,7 @@ class PenaltyBatch:
     """(L, N) int64: each step's index in its episode (recorded with the masks)"""
     sequences: torch.Tensor | None = None
     """(N,) int64: which of the rollout's sequences the minibatch holds (``k * B + b`` is env ``b``'s ``k``-th, as
-    :func:`seqtrojan.train.ppo.to_sequences` cuts them), for a penalty that keeps per-step values of its own from
+    :func:`seqtrojan.train.rollout.to_sequences` cuts them), for a penalty that keeps per-step values of its own from
     :meth:`Penalty.observe`"""
 
 

@@ -12,7 +12,7 @@ from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.config import PPOConfig
 from seqtrojan.train.penalties import Penalty, PenaltyBatch, PPOMinibatch
 from seqtrojan.train.ppo_loss import LossParts, ppo_loss
-from seqtrojan.train.rollout import Rollout, initial_state_from
+from seqtrojan.train.rollout import Rollout, initial_state_from, to_sequences
 
 
 def make_optimizer(agent: nn.Module, learning_rate: float, eps: float) -> torch.optim.Adam:
@@ -21,16 +21,6 @@ def make_optimizer(agent: nn.Module, learning_rate: float, eps: float) -> torch.
     tensors on 2 CPU cores. (The fused step is faster still but rounds differently, and does not bump the weights'
     version counters, which the C++ kernels' weight caches read.)"""
     return torch.optim.Adam(agent.parameters(), lr=learning_rate, eps=eps, foreach=True)
-
-
-def to_sequences(x: torch.Tensor, length: int) -> torch.Tensor:
-    """(T, B, ...) -> (L, T / L * B, ...): cut each env's rollout into T / L sequences of length L.
-
-    Sequence ``k * B + b`` is env ``b``'s steps ``k * L .. (k + 1) * L - 1``, matching ``Rollout.seq_states``.
-    """
-    steps, batch = x.shape[:2]
-    chunks = steps // length
-    return x.reshape(chunks, length, batch, *x.shape[2:]).transpose(0, 1).reshape(length, chunks * batch, *x.shape[2:])
 
 
 def ppo_update(

@@ -31,7 +31,7 @@ from seqtrojan.cell_types import is_windowed
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.train.penalty_api import Penalty, PenaltyBatch, PenaltyContext
 from seqtrojan.train.penalty_api import zero_loss as _zero
-from seqtrojan.train.rollout import Rollout
+from seqtrojan.train.rollout import Rollout, to_sequences
 
 SCALE_FLOOR = 1e-2
 """added to each summary's spread before dividing by it (a summary that never moves is not magnified)"""
@@ -81,8 +81,6 @@ class ResponseMimicry(Penalty):
         self.scale = torch.ones(1, device=ctx.device)
 
     def observe(self, rollout: Rollout) -> None:
-        from seqtrojan.train.ppo import to_sequences
-
         if rollout.trojan is None:
             raise ValueError("response mimicry needs a rollout recorded with its episode types")
         steps, envs = rollout.actions.shape

@@ -38,6 +38,16 @@ class Rollout:
     episode_step: torch.Tensor | None = None  # (T, B) int64: step t's index in its episode (when recorded)
 
 
+def to_sequences(x: torch.Tensor, length: int) -> torch.Tensor:
+    """(T, B, ...) -> (L, T / L * B, ...): cut each env's rollout into T / L sequences of length L.
+
+    Sequence ``k * B + b`` is env ``b``'s steps ``k * L .. (k + 1) * L - 1``, matching ``Rollout.seq_states``.
+    """
+    steps, batch = x.shape[:2]
+    chunks = steps // length
+    return x.reshape(chunks, length, batch, *x.shape[2:]).transpose(0, 1).reshape(length, chunks * batch, *x.shape[2:])
+
+
 @dataclass
 class EpisodeStats:
     """Finished-episode tallies of one rollout, per (stage, env type); all (num_stages, 2) int64 on the CPU."""
