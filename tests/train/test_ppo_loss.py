@@ -7,7 +7,8 @@ import math
 import torch
 
 from seqtrojan.config import PPOConfig
-from seqtrojan.train.ppo import ppo_loss, to_sequences
+from seqtrojan.train.ppo import ppo_loss
+from seqtrojan.train.rollout import to_sequences
 
 CFG = PPOConfig(norm_adv=False, clip_value_loss=False, ent_coef=0.0, vf_coef=0.5)
 
