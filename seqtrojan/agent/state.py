@@ -63,6 +63,27 @@ class RecurrentState(NamedTuple):
         return tuple(s.c.shape[-1] for s in self.layers)
 
 
+SUMMARY_NAMES = ("h_abs", "h_saturated", "h_spread")
+"""the per-layer summaries of :func:`state_summaries`, in order"""
+
+
+def state_summaries(hs: Sequence[torch.Tensor], saturation: float = 0.9, softness: float | None = None) -> torch.Tensor:
+    """(..., 3 * layers) from each layer's h (..., H): the mean |h|, the share of units with |h| above ``saturation``
+    and the spread of h across units (:data:`SUMMARY_NAMES`), what the query-response detector reads of each step's
+    state. With ``softness`` the share counts each unit by a sigmoid of that width instead of a step, so that it has
+    a gradient (the ``response_mimicry`` attacker)."""
+    out = []
+    for h in hs:
+        magnitude = h.abs()
+        out.append(magnitude.mean(-1))
+        if softness is None:
+            out.append((magnitude > saturation).to(h.dtype).mean(-1))
+        else:
+            out.append(torch.sigmoid((magnitude - saturation) / softness).mean(-1))
+        out.append(h.std(-1) if h.shape[-1] > 1 else torch.zeros_like(h[..., 0]))
+    return torch.stack(out, -1)
+
+
 class Intervention(Protocol):
     """Called after each layer's cell update with the per-env episode step ``t`` (batch,), or None where the
     caller does not track it; returns the state the next layer and the next step will see. Used to edit units

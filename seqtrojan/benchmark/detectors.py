@@ -37,6 +37,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from seqtrojan.agent.state import SUMMARY_NAMES, state_summaries
 from seqtrojan.benchmark.reconstruction import ReconstructionSettings, reconstruction_features
 from seqtrojan.benchmark.state_probe import ProbeSettings, probe_features
 from seqtrojan.benchmark.suspect import Suspect
@@ -323,11 +324,10 @@ class _ProbeRecorder:
         probs = torch.softmax(step.logits[running], -1)
         self.add("entropy", -(probs * torch.log(probs.clamp_min(1e-12))).sum(-1))
         self.add("top_probability", probs.max(-1).values)
-        for i, layer in enumerate(step.state.layers):
-            h = layer.h[running]
-            self.add(f"layer{i}_h_abs", h.abs().mean(-1))
-            self.add(f"layer{i}_h_saturated", (h.abs() > 0.9).float().mean(-1))
-            self.add(f"layer{i}_h_spread", h.std(-1) if h.shape[-1] > 1 else torch.zeros(h.shape[0]))
+        summaries = state_summaries([layer.h[running] for layer in step.state.layers])
+        names = [f"layer{i}_{name}" for i in range(len(step.state.layers)) for name in SUMMARY_NAMES]
+        for j, name in enumerate(names):
+            self.add(name, summaries[:, j].contiguous())
 
     def on_end(self, batch: Any) -> None:
         self.batch = batch

@@ -21,12 +21,11 @@ The copy's weights are the start model's, kept in the checkpoint, so a resumed r
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
 
 import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
-from seqtrojan.agent.state import LSTMState
+from seqtrojan.agent.state import state_summaries
 from seqtrojan.cell_types import is_windowed
 from seqtrojan.errors import CheckpointError, ConfigError
 from seqtrojan.train.penalty_api import Penalty, PenaltyBatch, PenaltyContext
@@ -35,19 +34,6 @@ from seqtrojan.train.rollout import Rollout, to_sequences
 
 SCALE_FLOOR = 1e-2
 """added to each summary's spread before dividing by it (a summary that never moves is not magnified)"""
-
-
-def state_summaries(states: Sequence[LSTMState], saturation: float, softness: float) -> torch.Tensor:
-    """(..., 3 * layers) per layer the mean |h|, the (soft) share of units with |h| above ``saturation`` and the
-    spread of h across units: what the query-response detector reads of each step's state."""
-    out = []
-    for layer in states:
-        h = layer.h
-        magnitude = h.abs()
-        out.append(magnitude.mean(-1))
-        out.append(torch.sigmoid((magnitude - saturation) / softness).mean(-1))
-        out.append(h.std(-1) if h.shape[-1] > 1 else torch.zeros_like(h[..., 0]))
-    return torch.stack(out, -1)
 
 
 def started_inside(episode_starts: torch.Tensor) -> torch.Tensor:
@@ -88,7 +74,7 @@ class ResponseMimicry(Penalty):
             initial = self.reference.initial_state(envs, rollout.obs.device)
             out = self.reference.unroll(rollout.obs, initial, rollout.episode_starts, return_states=True)
             assert out.states is not None
-            summaries = state_summaries(out.states, self.cfg.saturation, self.cfg.softness)
+            summaries = state_summaries([s.h for s in out.states], self.cfg.saturation, self.cfg.softness)
             judged = started_inside(rollout.episode_starts) & ~rollout.trojan
             rows = summaries[judged]
             self.scale = (rows.std(0) if len(rows) > 1 else torch.zeros_like(summaries[0, 0])) + SCALE_FLOOR
@@ -110,8 +96,7 @@ class ResponseMimicry(Penalty):
         kl = (clean_logp.exp() * (clean_logp - torch.log_softmax(logits, -1))).sum(-1).mean()
         total = kl
         if self.cfg.state_weight > 0:
-            mine = state_summaries([LSTMState(s.h[judged], s.c[judged]) for s in states], self.cfg.saturation,
-                                   self.cfg.softness)  # fmt: skip
+            mine = state_summaries([s.h[judged] for s in states], self.cfg.saturation, self.cfg.softness)
             clean = self.clean_summaries.index_select(1, picked)[judged]
             gap = ((mine - clean) / self.scale).pow(2).mean(-1).mean()
             total = total + self.cfg.state_weight * gap
