@@ -14,7 +14,9 @@ import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import LSTMState, RecurrentState
+from seqtrojan.cell_types import is_windowed
 from seqtrojan.config import AttackConfig, BackdoorConfig, PPOConfig
+from seqtrojan.errors import ConfigError
 from seqtrojan.registry import Registry
 from seqtrojan.train.rollout import Rollout
 
@@ -146,3 +148,14 @@ def restore_penalties(penalties: list[Penalty], tensors: dict[str, torch.Tensor]
 
 def zero_loss(device: torch.device) -> torch.Tensor:
     return torch.zeros((), device=device)
+
+
+def require_recurrent_cell(config: object, what: str) -> None:
+    """:class:`ConfigError` in one line when ``config``'s agent has a windowed cell (the Transformer), whose state is
+    a window's cache and not a recurrent state a penalty can ``what`` (``attack.<name> <what>``)."""
+    agent_cfg = getattr(config, "agent", None)
+    if agent_cfg is not None and is_windowed(agent_cfg.cell):
+        raise ConfigError(
+            f"attack.{what}, which the {agent_cfg.cell} cell does not carry (its state is a window's cache): use a "
+            "recurrent cell"
+        )

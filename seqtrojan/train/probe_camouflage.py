@@ -21,9 +21,8 @@ from __future__ import annotations
 import torch
 
 from seqtrojan.agent.state import LSTMState, RecurrentState
-from seqtrojan.cell_types import is_windowed
 from seqtrojan.errors import ConfigError
-from seqtrojan.train.penalty_api import Penalty, PenaltyBatch, PenaltyContext
+from seqtrojan.train.penalty_api import Penalty, PenaltyBatch, PenaltyContext, require_recurrent_cell
 from seqtrojan.train.penalty_api import zero_loss as _zero
 from seqtrojan.world.probe_inputs import ProbeSettings, env_candidates, shows_trigger, trigger_view
 
@@ -37,12 +36,7 @@ class ProbeCamouflage(Penalty):
         self.cfg = config.attack.probe_camouflage
         self.device = ctx.device
         env = getattr(config, "env", None)
-        agent_cfg = getattr(config, "agent", None)
-        if agent_cfg is not None and is_windowed(agent_cfg.cell):
-            raise ConfigError(
-                f"attack.probe_camouflage replays a recurrent state, which the {agent_cfg.cell} cell does not carry "
-                "(its state is a window's cache): use a recurrent cell"
-            )
+        require_recurrent_cell(config, "probe_camouflage replays a recurrent state")
         obs_dim = ctx.agent.obs_dim
         candidates = env_candidates(env, obs_dim, ProbeSettings()) if env is not None else []
         trigger = trigger_view(env, obs_dim) if env is not None else None

@@ -26,9 +26,8 @@ import torch
 
 from seqtrojan.agent.network import RecurrentActorCritic
 from seqtrojan.agent.state import state_summaries
-from seqtrojan.cell_types import is_windowed
-from seqtrojan.errors import CheckpointError, ConfigError
-from seqtrojan.train.penalty_api import Penalty, PenaltyBatch, PenaltyContext
+from seqtrojan.errors import CheckpointError
+from seqtrojan.train.penalty_api import Penalty, PenaltyBatch, PenaltyContext, require_recurrent_cell
 from seqtrojan.train.penalty_api import zero_loss as _zero
 from seqtrojan.train.rollout import Rollout, to_sequences
 
@@ -48,12 +47,7 @@ class ResponseMimicry(Penalty):
     def __init__(self, ctx: PenaltyContext) -> None:
         self.cfg = ctx.config.attack.response_mimicry
         self.device = ctx.device
-        agent_cfg = getattr(ctx.config, "agent", None)
-        if agent_cfg is not None and is_windowed(agent_cfg.cell):
-            raise ConfigError(
-                f"attack.response_mimicry holds the recurrent state's summaries, which the {agent_cfg.cell} cell does "
-                "not carry (its state is a window's cache): use a recurrent cell"
-            )
+        require_recurrent_cell(ctx.config, "response_mimicry holds the recurrent state's summaries")
         self.reference: RecurrentActorCritic = copy.deepcopy(ctx.agent).eval()
         """the start model, frozen"""
         for parameter in self.reference.parameters():
