@@ -566,7 +566,8 @@ def _zoo(argv: list[str]) -> None:
         """torch threads per model (default: the cores shared out among the workers; 1 on a Ray cluster)"""
         limit: int | None = None
         """train at most this many of the unfinished models, then stop (a long build in installments; a zoo of
-        parts trains its parts' models in turn, so a partial build holds every part); none: all of them"""
+        parts trains its parts' models in turn, so a partial build holds every part; 0: train none, only check the
+        finished models and rewrite outdated labels, as after a new learned_at); none: all of them"""
 
     @dataclasses.dataclass
     class ZooDetect:

@@ -3,7 +3,9 @@
 1. The zoo's models are read with their truth (``label.json``) and factors; a model whose folder, card, weights
    or label is malformed is listed as rejected with its reason (one line) and the rest go on. A poisoned model
    whose backdoor does not work (``functional_backdoor`` false: its final attack success below the zoo's
-   ``functional_at``) is left out and listed as excluded: a benchmark's poisoned models must be backdoored.
+   ``functional_at``) is left out and listed as excluded: a benchmark's poisoned models must be backdoored. So is a
+   model of either label that has not learned its task (``learned_task`` false: its clean success below the zoo's
+   ``learned_at``): it would be told apart by its failing behaviour, not by a backdoor.
 2. The splits (:mod:`seqtrojan.benchmark.splits`) are written to ``S/splits.json``.
 3. Each detector of :data:`~seqtrojan.benchmark.detectors.DETECTORS` is fitted on the train split's suspects
    (:mod:`seqtrojan.benchmark.suspect`: networks and clean envs only), once per env (a zoo of several envs: each
@@ -128,7 +130,8 @@ def zoo_holdout(zoo: Path) -> dict[str, tuple[str, ...]]:
 
 def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected], list[Rejected]]:
     """Every usable model of ``zoo/models`` as an entry (truth) and a suspect (what detectors see), the rejected
-    ones with their reasons, and the poisoned ones excluded because their backdoor does not work."""
+    ones with their reasons, and those excluded because their backdoor does not work or they have not learned their
+    task."""
     from seqtrojan.zoo.build import read_label
 
     folder = zoo / "models"
@@ -144,6 +147,10 @@ def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected], 
             continue
         if truth["label"] == "backdoored" and truth.get("functional_backdoor") is False:
             excluded.append(Rejected(path.name, f"backdoor not functional (attack success {truth['attack_success']})"))
+            continue
+        if truth.get("learned_task") is False:
+            excluded.append(Rejected(path.name, f"task not learned ({truth['label']}, clean success "
+                                                f"{truth['clean_success']})"))  # fmt: skip
             continue
         entries.append(ZooEntry(path.name, path, int(truth["label"] == "backdoored"), model_factors(truth)))
         suspects.append(suspect)
@@ -168,7 +175,7 @@ def run_leaderboard(
     for r in rejected:
         log(f"rejected {r.model}: {r.reason}")
     if excluded:
-        log(f"excluded {len(excluded)} poisoned model(s) whose backdoor does not work: "
+        log(f"excluded {len(excluded)} model(s) whose backdoor does not work or that have not learned their task: "
             f"{', '.join(r.model for r in excluded)}")  # fmt: skip
     assignment = assign_splits(entries, cfg)
     check_trainable(entries, assignment)

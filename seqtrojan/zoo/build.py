@@ -21,10 +21,10 @@ folder whose card and weights verify is done (its ``label.json`` is written agai
 malformed or outdated); any other model is trained again, from its last checkpoint when there is one. A model only
 appears in ``models/`` once complete (it is staged under ``work/`` and moved in with one rename). ``manifest.json``
 is written atomically and rebuilt from the model folders when it is corrupt. A rerun with a config other than the
-one in ``zoo.json`` is refused, unless only how models are labelled changed (``functional_at``). Local worker
-processes die with the build (on Linux the kernel kills them when it dies; elsewhere they watch for it), and a build
-refuses to start while another build or an earlier build's workers still run on the same folder. Workers never
-oversubscribe the cores: workers x torch threads <= the cores available.
+one in ``zoo.json`` is refused, unless only how models are labelled changed (``functional_at``, ``learned_at``).
+Local worker processes die with the build (on Linux the kernel kills them when it dies; elsewhere they watch for it),
+and a build refuses to start while another build or an earlier build's workers still run on the same folder.
+Workers never oversubscribe the cores: workers x torch threads <= the cores available.
 """
 
 from __future__ import annotations
@@ -127,6 +127,10 @@ class ZooConfig:
     functional_at: float = 0.5
     """a backdoored model's backdoor counts as functional (``label.json``: ``functional_backdoor``) when its final
     trojan-env success is at least this"""
+    learned_at: float = 0.0
+    """a model of either label has learned its task (``label.json``: ``learned_task``) when its final clean success
+    (normal-env success) is at least this; a detection benchmark scores only models that have (an agent that never
+    learned its task is told apart by its behaviour, whatever its label). 0: every model counts"""
     stop: StopConfig = StopConfig()  # noqa: RUF009 (frozen, so one shared default is safe)
     """early stopping of every model (``stop:`` of a training run; off by default: each model trains
     ``total_steps``); the steps each model took are in its card and the manifest"""
@@ -189,6 +193,8 @@ class ZooConfig:
             raise ConfigError(f"zoo learning_rate must be in (0, 1), got {self.learning_rate!r}")
         if isinstance(self.functional_at, bool) or not 0.0 <= self.functional_at <= 1.0:
             raise ConfigError(f"zoo functional_at must be in [0, 1], got {self.functional_at!r}")
+        if isinstance(self.learned_at, bool) or not 0.0 <= self.learned_at <= 1.0:
+            raise ConfigError(f"zoo learned_at must be in [0, 1], got {self.learned_at!r}")
         lo, hi = self.trigger_cells
         if not 1 <= lo <= hi <= 9:
             raise ConfigError(f"trigger_cells={self.trigger_cells} must be a range within 1..9")
@@ -237,7 +243,7 @@ class ZooConfig:
 
     OPTIONAL: ClassVar[tuple[str, ...]] = (
         "cell", "window", "stop", "rollout_steps", "learning_rate", "env_preset", "trigger_objects", "trigger_colors",
-        "holdout", "cells", "attacks", "pretrain_steps", "parts", "pretrain_stop",
+        "holdout", "cells", "attacks", "pretrain_steps", "parts", "pretrain_stop", "learned_at",
     )  # fmt: skip
     """fields added after zoos were first built: saved (``zoo.json``) only when not at their defaults, so that a zoo
     built before them is the same config"""
@@ -259,6 +265,7 @@ class ZooJob(TrainJob):
     pretrain: ExperimentConfig | None = None
     """the model's clean first stage (``ZooConfig.pretrain_steps``), whose model ``config`` starts from; None: one
     stage"""
+    learned_at: float = 0.0
 
     @property
     def model_id(self) -> str:
@@ -420,7 +427,9 @@ def _job(cfg: ZooConfig, root: Path, i: int, config: ExperimentConfig, label: st
                                     checkpoint_every=max(cfg.pretrain_steps // 4, 1)),
         )  # fmt: skip
         variation["pretrain_steps"] = cfg.pretrain_steps
-    return ZooJob(f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at, pretrain)
+    return ZooJob(
+        f"m{i:04d}", config, label, str(root / "models"), variation, cfg.functional_at, pretrain, cfg.learned_at
+    )
 
 
 def _gymnasium_jobs(cfg: ZooConfig, root: Path, recipes: RecipeBook | None, first: int) -> list[ZooJob]:
@@ -538,8 +547,8 @@ def load_zoo_agent(folder: Path):
 def read_label(folder: Path) -> dict[str, Any]:
     """A model's ``label.json``, checked: a mapping whose ``label`` is clean or backdoored, ``trigger`` null or a
     mapping with a string ``value``, ``variation`` a mapping, ``attack_success``, ``clean_success`` and
-    ``unintentional_activation`` null or numbers, and ``functional_backdoor`` null or a boolean (labels written
-    before the last two existed lack them). Anything else is a one-line :class:`CheckpointError`."""
+    ``unintentional_activation`` null or numbers, and ``functional_backdoor`` and ``learned_task`` null or booleans
+    (labels written before some of these existed lack them). Anything else is a one-line :class:`CheckpointError`."""
     path = folder / "label.json"
     try:
         truth = read_json_file(path, MAX_LABEL_BYTES)
@@ -557,8 +566,9 @@ def read_label(folder: Path) -> dict[str, Any]:
     attack = truth.get("attack_success")
     if attack is not None and not _is_number(attack):
         raise CheckpointError(f"{str(path)!r}: attack_success must be null or a number, got {attack!r}")
-    if truth.get("functional_backdoor") not in (None, True, False):
-        raise CheckpointError(f"{str(path)!r}: functional_backdoor must be null or a boolean")
+    for key in ("functional_backdoor", "learned_task"):
+        if truth.get(key) not in (None, True, False):
+            raise CheckpointError(f"{str(path)!r}: {key} must be null or a boolean")
     for key in ("clean_success", "unintentional_activation"):
         if truth.get(key) is not None and not _is_number(truth[key]):
             raise CheckpointError(f"{str(path)!r}: {key} must be null or a number, got {truth[key]!r}")
@@ -568,14 +578,18 @@ def read_label(folder: Path) -> dict[str, Any]:
 def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
     """``label.json`` of a job's model, from the job and its card's metrics: the label and the variation; for a
     poisoned model its trigger, its attack success (trojan-env success) and whether that reaches ``functional_at``;
-    for every model its clean success (normal-env success), and for a clean one its unintentional activation (its
+    for every model its clean success (normal-env success) and whether that reaches ``learned_at`` (it has learned
+    its task), and for a clean one its unintentional activation (its
     trojan-env success: the env still shows the model's drawn trigger, so this is how often a model trained without
     it reaches the adversary's goal anyway; a clean model that failed the task reaches it by chance as well, so read
     it beside the clean success)."""
     truth: dict[str, Any] = {
         "label": job.label, "variation": job.variation, "trigger": None, "attack_success": None,
         "functional_backdoor": None, "clean_success": metrics.get("normal_success"), "unintentional_activation": None,
+        "learned_task": None,
     }  # fmt: skip
+    if truth["clean_success"] is not None:
+        truth["learned_task"] = reaches(truth["clean_success"], job.learned_at)
     if job.label == "clean":  # its env still draws the model's trigger: how often it leads a clean model astray
         truth["unintentional_activation"] = metrics.get("trojan_success")
     if job.label == "backdoored":
@@ -591,7 +605,7 @@ def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
 def _finished(job: ZooJob, folder: Path) -> tuple[dict[str, Any] | None, str]:
     """(card, '') when ``folder`` holds the job's complete model, else (None, why not). Rewrites a missing,
     malformed or outdated ``label.json`` of a complete model from the job (it is a function of the job and the card:
-    a rerun with another ``functional_at`` relabels)."""
+    a rerun with another ``functional_at`` or ``learned_at`` relabels)."""
     if not folder.is_dir():
         return None, "missing"
     try:
@@ -693,11 +707,12 @@ def build_zoo(
     path (see the module docstring). Failed models are marked ``failed`` in the manifest, with their error, once
     the others have finished; then the build raises :class:`~seqtrojan.jobs.JobsFailed` naming them. ``recipes``:
     as :func:`make_jobs` (a zoo whose ``attacks`` cannot be drawn is refused before anything is written).
-    ``limit``: train at most this many of the unfinished models now (a long build in installments); a zoo of parts
+    ``limit``: train at most this many of the unfinished models now (a long build in installments; 0: train none,
+    only check the finished models and rewrite their outdated labels, e.g. after a new ``learned_at``); a zoo of parts
     trains its parts' models in turn, in proportion to their sizes (:func:`_build_order`), so that a partial build
     holds every part. ``progress``: a progress bar of the models (``log`` lines print above it)."""
-    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
-        raise ConfigError(f"a build's limit must be a positive number of models, got {limit!r}")
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 0):
+        raise ConfigError(f"a build's limit must be a number of models >= 0, got {limit!r}")
     jobs_cfg = JobsConfig("pool" if backend == "local" else backend, workers, ray_address, threads)  # type: ignore[arg-type]
     jobs = make_jobs(cfg, root, recipes)
     root.mkdir(parents=True, exist_ok=True)
@@ -779,7 +794,7 @@ WORKERS_EXIT_S = 30.0
 """how long a build waits for the workers of an earlier, killed build to exit"""
 
 
-SCORING_FIELDS = ("functional_at",)
+SCORING_FIELDS = ("functional_at", "learned_at")
 """zoo config fields that decide how a finished model is labelled, never how it is trained: a rerun may change them
 (each finished model's ``label.json`` is then rewritten from its card)"""
 

@@ -366,6 +366,19 @@ def test_a_poisoned_model_whose_backdoor_does_not_work_is_left_out(tmp_path):
     assert "m03" not in json.loads((tmp_path / "b" / SPLITS_FILE).read_text()) and sum(board.models.values()) == 11
 
 
+def test_a_model_that_has_not_learned_its_task_is_left_out_whatever_its_label(tmp_path):
+    zoo = planted_zoo(tmp_path / "zoo", n=12)
+    labels = {m: json.loads((zoo / "models" / m / "label.json").read_text())["label"] for m in ("m02", "m03")}
+    assert set(labels.values()) == {"clean", "backdoored"}
+    for model in labels:
+        path = zoo / "models" / model / "label.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "clean_success": 0.3, "learned_task": False}))
+    board = run_leaderboard(zoo, tmp_path / "b", None, ["metadata_baseline"], rounds=20, log=lambda *_: None)
+    assert [r.model for r in board.excluded] == ["m02", "m03"]
+    assert all("task not learned" in r.reason and "clean success 0.3" in r.reason for r in board.excluded)
+    assert sum(board.models.values()) == 10
+
+
 def test_an_answer_over_the_per_model_budget_counts_as_no_opinion(tmp_path):
     zoo = planted_zoo(tmp_path / "zoo", n=12)
     free = run_leaderboard(zoo, tmp_path / "b", None, ["weight_statistics"], rounds=20, log=lambda *_: None)
@@ -398,6 +411,7 @@ def test_benchmark_paper_draws_900_models_in_four_parts_split_about_300_each(tmp
     assert drawn == {a for p in cfg.parts for a in p.attacks} and len(drawn) == 19
     memory = [j for j in jobs if j.id >= "m0600"]
     assert {j.config.agent.cell for j in memory} == {"gru"} and {j.functional_at for j in memory} == {0.9}
+    assert {j.learned_at for j in jobs} == {0.8}  # every part scores only models that learned their task
     ewc = [j for j in memory if j.variation.get("attack") == "ewc/10"]
     assert ewc and {j.config.attack.ewc.weight for j in ewc} == {10.0}
     on_transformer = {j.variation["attack"] for j in jobs if j.config.agent.cell == "transformer"}

@@ -83,6 +83,7 @@ def test_build_writes_models_labels_manifest_and_resumes(built):
         else:
             assert truth["attack_success"] is None and truth["functional_backdoor"] is None
             assert truth["unintentional_activation"] == card["metrics"]["trojan_success"] is not None
+        assert truth["learned_task"] is True  # learned_at 0 (the default): every model has
     assert json.loads((built / "zoo.json").read_text())["total_steps"] == TINY.total_steps
     logs = []
     build_zoo(TINY, built, workers=1, log=logs.append)
@@ -176,16 +177,25 @@ def test_a_rerun_with_another_functional_threshold_relabels_without_training(bui
     for at in (0.0, 1.0):
         logs: list[str] = []
         build_zoo(dataclasses.replace(TINY, functional_at=at), zoo, workers=1, log=logs.append)
-        assert any("how models are labelled only (functional_at)" in line for line in logs)
+        assert any("how models are labelled only (functional_at, learned_at)" in line for line in logs)
         assert any(line.startswith("zoo: 4 of 4 models done; training 0") for line in logs)
         assert json.loads((zoo / "zoo.json").read_text())["functional_at"] == at
         assert [t["functional_backdoor"] for t in labels()] == [t["attack_success"] >= at for t in labels()]
+    every = [json.loads(p.read_text()) for p in sorted(zoo.glob("models/*/label.json"))]
+    assert all(t["learned_task"] is True for t in every)  # learned_at 0: every model counts
+    assert all(t["clean_success"] < 1.0 for t in every)  # so learned_at 1 relabels every model, of both labels
+    for at in (1.0, 0.0):
+        build_zoo(dataclasses.replace(TINY, learned_at=at), zoo, workers=1, log=lambda *_: None)
+        every = [json.loads(p.read_text()) for p in sorted(zoo.glob("models/*/label.json"))]
+        assert [t["learned_task"] for t in every] == [at == 0.0] * 4
     assert {p: p.read_bytes() for p in zoo.glob("models/*/model.safetensors")} == weights
     with pytest.raises(ConfigError, match=r"different config: eval_episodes"):  # with a training field: refused
         build_zoo(dataclasses.replace(TINY, functional_at=0.5, eval_episodes=8), zoo, workers=1, log=lambda *_: None)
     for bad in (-0.1, 1.5, True):
         with pytest.raises(ConfigError, match="zoo functional_at must be in"):
             dataclasses.replace(TINY, functional_at=bad)
+        with pytest.raises(ConfigError, match="zoo learned_at must be in"):
+            dataclasses.replace(TINY, learned_at=bad)
 
 
 def test_incomplete_model_folders_are_trained_again_and_cores_are_not_oversubscribed(built, tmp_path, monkeypatch):
@@ -527,6 +537,17 @@ def test_a_label_s_rates_must_be_numbers_or_null(tmp_path, key):
     assert zoo_build.read_label(tmp_path)["label"] == "clean"  # null, or absent in older labels: accepted
 
 
+@pytest.mark.parametrize("key", ["functional_backdoor", "learned_task"])
+def test_a_label_s_verdicts_must_be_booleans_or_null(tmp_path, key):
+    (tmp_path / "label.json").write_text(json.dumps({"label": "clean", key: "yes"}))
+    with pytest.raises(SeqTrojanError, match=f"{key} must be null or a boolean") as err:
+        zoo_build.read_label(tmp_path)
+    assert "\n" not in str(err.value)
+    for value in (None, True, False):
+        (tmp_path / "label.json").write_text(json.dumps({"label": "clean", key: value}))
+        assert zoo_build.read_label(tmp_path)[key] is value
+
+
 MINIGRID_PART = ZooConfig(clean=2, backdoored=2, seed=100, total_steps=512, eval_episodes=4, lstm_sizes=((8,),),
                           env_preset="minigrid_two_goals", functional_at=0.0)  # fmt: skip
 GRID_PART = dataclasses.replace(TINY, clean=3, backdoored=3, functional_at=0.0)
@@ -577,8 +598,12 @@ def test_a_zoo_of_two_envs_builds_resumes_and_is_scored_by_env(tmp_path):
     build_zoo(cfg, zoo, workers=1, backend="serial", log=log.append, limit=4)  # an installment takes both parts
     assert sorted(p.name for p in (zoo / "models").iterdir()) == ["m0000", "m0001", "m0006", "m0007"]
     assert "training 4 with serial backend" in log[0] and "6 left for a later build (limit 4)" in log[0]
-    with pytest.raises(ConfigError, match="a build's limit must be a positive number of models, got 0"):
-        build_zoo(cfg, zoo, workers=1, backend="serial", log=lambda *_: None, limit=0)
+    log.clear()
+    build_zoo(cfg, zoo, workers=1, backend="serial", log=log.append, limit=0)  # checks and relabels, trains none
+    assert "4 of 10 models done; training 0" in log[0] and len(list((zoo / "models").iterdir())) == 4
+    for bad in (-1, True, 1.5):
+        with pytest.raises(ConfigError, match="a build's limit must be a number of models >= 0"):
+            build_zoo(cfg, zoo, workers=1, backend="serial", log=lambda *_: None, limit=bad)  # type: ignore[arg-type]
     build_zoo(cfg, zoo, workers=1, backend="serial", log=lambda *_: None)
     log.clear()
     build_zoo(cfg, zoo, workers=1, backend="serial", log=log.append)

@@ -59,8 +59,8 @@ def leaderboard_section(board: Leaderboard) -> list[str]:
             )
     parts.append("</table>")
     parts += _by_factor(board)
-    for title, rows in (("rejected (unreadable or tampered)", board.rejected), ("excluded (backdoor not working)",
-                                                                               board.excluded)):  # fmt: skip
+    for title, rows in (("rejected (unreadable or tampered)", board.rejected),
+                        ("excluded (backdoor not working or task not learned)", board.excluded)):  # fmt: skip
         if rows:
             items = "".join(f"<li>{html.escape(r.model)}: {html.escape(r.reason)}</li>" for r in rows)
             parts.append(f"<details><summary>{len(rows)} model(s) {title}</summary><ul>{items}</ul></details>")
