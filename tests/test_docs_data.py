@@ -42,6 +42,7 @@ BENCH_TABLES = [
     ("defenses/fit_from_clean/response_mimicry_2026-12-04.json", "defenses.md", "probe_camouflage.py"),
     ("defenses/all_six_evasion_2026-12-04.json", "defenses.md", "probe_camouflage.py"),
     ("defenses/all_six_online_2026-12-04.json", "defenses.md", "goal_switch.py"),
+    ("defenses/multivariate_bases_2026-12-04.json", "defenses.md", "goal_switch.py"),
     ("defenses/combined_all_2026-12-04.json", "defenses.md", "probe_camouflage.py"),
     ("defenses/combined_all_online_2026-12-04.json", "defenses.md", "goal_switch.py"),
     ("families/popgym_repeat_previous.json", "families.md", "families.py"),
