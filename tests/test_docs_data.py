@@ -58,6 +58,7 @@ BENCH_TABLES = [
     ("benchmark/paper_partial_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
     ("benchmark/paper2_rate_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
     ("benchmark/paper2_partial_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
+    ("benchmark/paper2_576_2026-12-05.json", "benchmark.md", "zoo_rate.py"),
     ("benchmark/memory_strength_sweep_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
     ("benchmark/grid_strength_sweep_2026-12-04.json", "benchmark.md", "zoo_rate.py"),
 ]
@@ -152,6 +153,7 @@ LEADERBOARD_TABLES = [
     ("benchmark/leaderboard_minigrid_memory_attacks.json", "results.md"),
     ("benchmark/leaderboard_paper_partial_2026-12-04.json", "benchmark.md"),
     ("benchmark/leaderboard_paper2_partial_2026-12-04.json", "benchmark.md"),
+    ("benchmark/leaderboard_paper2_576_2026-12-05.json", "benchmark.md"),
 ]
 """a leaderboard and the page holding its table as ``scripts/leaderboard_markdown.py`` prints it"""
 
@@ -167,6 +169,11 @@ LEADERBOARD_FACTOR_TABLES = [
     ),
     (
         "benchmark/leaderboard_paper2_partial_2026-12-04.json", "benchmark.md",
+        ("--by", "env", "--detectors",
+         "state_probe,state_probe_deviation,query_response,trigger_reconstruction,all_features"),
+    ),
+    (
+        "benchmark/leaderboard_paper2_576_2026-12-05.json", "benchmark.md",
         ("--by", "env", "--detectors",
          "state_probe,state_probe_deviation,query_response,trigger_reconstruction,all_features"),
     ),
