@@ -60,7 +60,8 @@ def test_the_models_left_out_are_named_and_text_is_escaped():
     page = leaderboard_page(board)
     assert page.startswith("<!doctype html>") and page.endswith("</html>")
     assert "zoo&lt;b&gt;" in page and "weights &lt;tampered&gt;" in page and "<b>zoo<b>" not in page
-    assert "1 model(s) excluded (backdoor not working or task not learned)" in page and "m0099: backdoor not functional (0.1)" in page
+    assert "1 model(s) excluded (backdoor not working or task not learned)" in page
+    assert "m0099: backdoor not functional (0.1)" in page
 
 
 def test_the_reproduction_s_report_shows_a_leaderboard_only_when_the_zoo_has_one(tmp_path):
