@@ -191,10 +191,10 @@ class ZooConfig:
             raise ConfigError(f"zoo rollout_steps must be a positive integer, got {self.rollout_steps!r}")
         if not 0.0 < self.learning_rate < 1.0:
             raise ConfigError(f"zoo learning_rate must be in (0, 1), got {self.learning_rate!r}")
-        if isinstance(self.functional_at, bool) or not 0.0 <= self.functional_at <= 1.0:
-            raise ConfigError(f"zoo functional_at must be in [0, 1], got {self.functional_at!r}")
-        if isinstance(self.learned_at, bool) or not 0.0 <= self.learned_at <= 1.0:
-            raise ConfigError(f"zoo learned_at must be in [0, 1], got {self.learned_at!r}")
+        for name in SCORING_FIELDS:  # each a rate threshold
+            threshold = getattr(self, name)
+            if isinstance(threshold, bool) or not 0.0 <= threshold <= 1.0:
+                raise ConfigError(f"zoo {name} must be in [0, 1], got {threshold!r}")
         lo, hi = self.trigger_cells
         if not 1 <= lo <= hi <= 9:
             raise ConfigError(f"trigger_cells={self.trigger_cells} must be a range within 1..9")
@@ -579,10 +579,9 @@ def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
     """``label.json`` of a job's model, from the job and its card's metrics: the label and the variation; for a
     poisoned model its trigger, its attack success (trojan-env success) and whether that reaches ``functional_at``;
     for every model its clean success (normal-env success) and whether that reaches ``learned_at`` (it has learned
-    its task), and for a clean one its unintentional activation (its
-    trojan-env success: the env still shows the model's drawn trigger, so this is how often a model trained without
-    it reaches the adversary's goal anyway; a clean model that failed the task reaches it by chance as well, so read
-    it beside the clean success)."""
+    its task), and for a clean one its unintentional activation (its trojan-env success: the env still shows the
+    model's drawn trigger, so this is how often a model trained without it reaches the adversary's goal anyway; a
+    clean model that failed the task reaches it by chance as well, so read it beside the clean success)."""
     truth: dict[str, Any] = {
         "label": job.label, "variation": job.variation, "trigger": None, "attack_success": None,
         "functional_backdoor": None, "clean_success": metrics.get("normal_success"), "unintentional_activation": None,
