@@ -132,7 +132,7 @@ def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected], 
     """Every usable model of ``zoo/models`` as an entry (truth) and a suspect (what detectors see), the rejected
     ones with their reasons, and those excluded because their backdoor does not work or they have not learned their
     task."""
-    from seqtrojan.zoo.build import read_label
+    from seqtrojan.zoo.build import not_learned_reason, read_label
 
     folder = zoo / "models"
     if not folder.is_dir():
@@ -148,9 +148,9 @@ def read_zoo(zoo: Path) -> tuple[list[ZooEntry], list[Suspect], list[Rejected], 
         if truth["label"] == "backdoored" and truth.get("functional_backdoor") is False:
             excluded.append(Rejected(path.name, f"backdoor not functional (attack success {truth['attack_success']})"))
             continue
-        if truth.get("learned_task") is False:
-            excluded.append(Rejected(path.name, f"task not learned ({truth['label']}, clean success "
-                                                f"{truth['clean_success']})"))  # fmt: skip
+        not_learned = not_learned_reason(truth)
+        if not_learned is not None:
+            excluded.append(Rejected(path.name, not_learned))
             continue
         entries.append(ZooEntry(path.name, path, int(truth["label"] == "backdoored"), model_factors(truth)))
         suspects.append(suspect)

@@ -121,16 +121,25 @@ def load_zoo_model(path: Path) -> ZooModel:
 
 def load_zoo_features(zoo: Path) -> tuple[list[ZooModel], list[Rejected]]:
     """Features of every model in ``zoo/models``; a model that cannot be used (pickled, corrupt, a malformed or
-    mismatched card, a bad ``label.json``) is listed as rejected with its reason (one line), and the rest go on."""
+    mismatched card, a bad ``label.json``) or that has not learned its task (the zoo's ``learned_at``) is listed as
+    rejected with its reason (one line), and the rest go on."""
+    from seqtrojan.zoo.build import not_learned_reason
+
     models, rejected = [], []
     folder = zoo / "models"
     if not folder.is_dir():
         raise SeqTrojanError(f"{str(zoo)!r} is not a zoo (no models/ folder)")
     for path in sorted(p for p in folder.iterdir() if p.is_dir()):
         try:
-            models.append(load_zoo_model(path))
+            model = load_zoo_model(path)
         except SeqTrojanError as err:
             rejected.append(Rejected(path.name, " ".join(str(err).split())))
+            continue
+        not_learned = not_learned_reason(model.truth)
+        if not_learned is not None:
+            rejected.append(Rejected(path.name, not_learned))
+        else:
+            models.append(model)
     return models, rejected
 
 

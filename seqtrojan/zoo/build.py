@@ -575,6 +575,15 @@ def read_label(folder: Path) -> dict[str, Any]:
     return truth
 
 
+def not_learned_reason(truth: dict[str, Any]) -> str | None:
+    """Why a model of either label is left out of detection scoring because it has not learned its task (its
+    label's ``learned_task`` is false: clean success below the zoo's ``learned_at``), or None when it counts. An
+    agent that never learned its task is told apart by its failing behaviour, not by a backdoor."""
+    if truth.get("learned_task") is not False:
+        return None
+    return f"task not learned ({truth['label']}, clean success {truth['clean_success']})"
+
+
 def _truth(job: ZooJob, metrics: dict[str, Any]) -> dict[str, Any]:
     """``label.json`` of a job's model, from the job and its card's metrics: the label and the variation; for a
     poisoned model its trigger, its attack success (trojan-env success) and whether that reaches ``functional_at``;

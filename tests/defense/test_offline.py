@@ -159,6 +159,20 @@ def test_malformed_cards_and_labels_are_each_rejected_with_a_reason_and_the_rest
     )
 
 
+def test_models_that_have_not_learned_their_task_are_left_out_of_the_scores(tmp_path):
+    zoo = fake_zoo(tmp_path / "zoo")
+    before = {s.group: s.predictions for s in detect_zoo(zoo, folds=3).scores}
+    learned = {"learned_task": True, "clean_success": 0.97}
+    spoil(zoo, "zz_learned", "label.json", edit_json(lambda t: t.update(learned)))
+    spoil(zoo, "zz_not_learned", "label.json", edit_json(lambda t: t.update(learned_task=False, clean_success=0.31)))
+    result = detect_zoo(zoo, folds=3)
+    assert [(r.model, r.reason) for r in result.rejected] == [
+        ("zz_not_learned", "task not learned (clean, clean success 0.31)")
+    ]
+    scored = {s.group: [p.model for p in s.predictions] for s in result.scores}
+    assert all(models == [p.model for p in before[g]] + ["zz_learned"] for g, models in scored.items())
+
+
 def test_too_few_models_after_rejections_names_the_rejected_ones(tmp_path):
     zoo = fake_zoo(tmp_path / "zoo", n=4)
     (zoo / "models" / "m01" / "label.json").write_text("[]")
