@@ -178,6 +178,17 @@ def _train_locked(
     return dataclasses.replace(result, exact_resume=exact)
 
 
+def _numerics(cfg: ExperimentConfig, device: torch.device) -> dict[str, Any]:
+    """What decides a run's floating-point rounding besides its config and seed, as the process that finished it ran:
+    its kernels (``cpp``: the fused C++ kernels; ``torch``: the PyTorch path, chosen with ``run.lstm_backend: torch``
+    or taken when the kernels could not be built in time, which trains another sample from the same seed) and, on
+    the CPU, its torch threads. Two runs give the same weights only when these agree (docs/commands/train.md)."""
+    if device.type != "cpu":
+        return {"kernels": device.type, "torch_threads": None}
+    cpp = cfg.run.lstm_backend != "torch" and fast_lstm.extension() is not None
+    return {"kernels": "cpp" if cpp else "torch", "torch_threads": torch.get_num_threads()}
+
+
 def _finish(
     cfg: ExperimentConfig, state: TrainerState, device: torch.device, run_dir: Path, stopped_early: bool,
     confirmed: dict[str, float], logger: RunLogger,
@@ -186,7 +197,7 @@ def _finish(
     evaluation = evaluate_final(state.agent, cfg, device) if cfg.run.eval_episodes > 0 else {}
     evaluation.update(
         env_steps=state.global_step, train_seconds=state.elapsed_s, stage=state.curriculum.stage,
-        stopped_early=stopped_early,
+        stopped_early=stopped_early, **_numerics(cfg, device),
     )  # fmt: skip
     if confirmed:
         evaluation["stop_confirmed"] = confirmed

@@ -44,6 +44,20 @@ def test_run_directory_holds_config_logs_checkpoints_and_model(smoke_config):
     assert evaluation["grid"] == "5x5/1" and evaluation["episodes"] == 200
 
 
+def test_the_card_records_the_kernels_and_threads_that_trained_the_model(smoke_config, monkeypatch):
+    """The same config and seed give other weights on the PyTorch path than on the C++ kernels, or with other
+    thread counts: the card says which ran, also when the kernels could not be built and the run fell back."""
+    from seqtrojan.agent import fast_lstm
+
+    cfg = dataclasses.replace(smoke_config, run=dataclasses.replace(smoke_config.run, threads=1, name="auto"))
+    card = load_agent(train(cfg).model_dir)[2]
+    expected = "cpp" if fast_lstm.extension() is not None else "torch"
+    assert (card["metrics"]["kernels"], card["metrics"]["torch_threads"]) == (expected, 1)
+    monkeypatch.setattr(fast_lstm, "extension", lambda: None)  # a build that failed or took too long
+    cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, name="fallback"))
+    assert load_agent(train(cfg).model_dir)[2]["metrics"]["kernels"] == "torch"
+
+
 def test_stopped_run_resumes_without_losing_finished_updates(smoke_config):
     seen = []
 
