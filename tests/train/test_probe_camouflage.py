@@ -134,7 +134,7 @@ def test_its_margin_holds_the_mark_at_the_margin_instead_of_erasing_it():
     agent = _agent(GRID)  # a margin above every distance costs nothing
     free = _penalty(GRID, agent, weight=3.0, margin=10.0)
     obs = _clean_views(GRID, agent)
-    assert float(free.loss(_batch(agent, obs, torch.zeros(obs.shape[:2], dtype=torch.bool)))) == 0.0
+    assert free.loss(_batch(agent, obs, torch.zeros(obs.shape[:2], dtype=torch.bool))).item() == 0.0
 
 
 def test_it_judges_normal_episode_sequences_only_and_resumes_its_draws():
