@@ -68,8 +68,8 @@ def test_what_exists_is_registered():
     assert ATTACKS.names() == (
         "dedicated_code", "delayed", "in_distribution_patch", "partial_patch", "sequence", "search_decoys",
         "state_camouflage", "mahalanobis_camouflage", "from_clean", "weight_camouflage", "ewc", "switch_camouflage",
-        "response_mimicry", "combined", "combined_all", "finetune_resistant", "trained_longer", "probe_camouflage",
-        "probe_mimicry",
+        "response_mimicry", "combined", "combined_all", "combined_all_margin", "finetune_resistant", "trained_longer",
+        "probe_camouflage", "probe_mimicry",
     )  # fmt: skip
     assert PENALTIES.names() == (
         "state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "weight_camouflage", "ewc",
@@ -190,6 +190,7 @@ def test_each_adaptive_attack_names_a_registered_defense_it_targets():
         "probe_camouflage": "state_probe", "probe_mimicry": "state_probe_deviation",
         "response_mimicry": "query_response",
         "combined_all": "all_features+behaviour_search+multivariate_monitor",
+        "combined_all_margin": "all_features+behaviour_search+multivariate_monitor",
     }  # fmt: skip
     assert {d for attack in ATTACKS.items() for d in attack[1].target_defenses} <= defenses
     for name in ("state_camouflage", "mahalanobis_camouflage", "switch_camouflage", "search_decoys",
@@ -198,7 +199,9 @@ def test_each_adaptive_attack_names_a_registered_defense_it_targets():
         assert f"against {targeted[name]}" in ATTACKS.entry(name).description
     assert "against state_monitor, multivariate_monitor and behaviour_detector" in ATTACKS.entry("combined").description
     every = "against all_features, behaviour_search and multivariate_monitor"
-    assert every in ATTACKS.entry("combined_all").description
+    assert (
+        every in ATTACKS.entry("combined_all").description and every in ATTACKS.entry("combined_all_margin").description
+    )
 
 
 def test_each_adaptive_attack_has_a_knob_that_changes_its_config():
