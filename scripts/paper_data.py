@@ -1,6 +1,6 @@
 """Keep a paper-scale reproduction's small results under docs/data, and print docs/results.md's tables from them.
 
-    python scripts/paper_data.py save results/paper_v4 docs/data/paper     # after `seqtrojan reproduce --scale paper`
+    python scripts/paper_data.py save results/paper_v5 docs/data/paper     # after `seqtrojan reproduce --scale paper`
     python scripts/paper_data.py print docs/data/paper                      # the tables of docs/results.md
 
 ``save`` copies what the tables read (a few hundred KB): ``evaluation/summary.json`` (Tables 1 and 2 over seeds),
