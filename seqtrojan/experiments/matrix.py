@@ -119,6 +119,14 @@ class MatrixConfig:
         for name in self.online or ():
             if not monitor_applies(MONITORS.get(name), base.env):
                 raise ConfigError(f"online defense {name!r} reads grid-world views: it cannot watch agents of {where}")
+        zoo_fitted = [n for n in self.offline_names if DETECTORS.get(n).needs_zoo]
+        if self.zoo is not None and zoo_fitted and (self.zoo.cells or (self.zoo.cell,)) != (base.agent.cell,):
+            zoo_cells = ", ".join(self.zoo.cells or (self.zoo.cell,))
+            raise ConfigError(
+                f"the zoo {zoo_fitted[0]!r} is fitted on has {zoo_cells} models, but the matrix trains "
+                f"{base.agent.cell} agents: set zoo.cell: {base.agent.cell} (a detector of weights scores only the "
+                "cell it was fitted on)"
+            )
         for name in self.offline or ():
             if DETECTORS.get(name).grid_only and not base.is_grid:
                 raise ConfigError(
