@@ -10,7 +10,7 @@ import pytest
 from seqtrojan.errors import ConfigError
 from seqtrojan.experiment_results import AgentMeasurement, MatrixResult
 from seqtrojan.experiments.matrix import MatrixConfig, load_matrix_config, matrix_jobs, run_matrix
-from seqtrojan.serde import from_dict, load_json
+from seqtrojan.serde import from_dict, load_json, to_dict
 
 TRAINING = {
     "env": {"size": 5, "holes": 1},
@@ -164,6 +164,21 @@ def test_the_family_matrix_presets_keep_the_gymnasium_attacks_and_defenses(prese
     assert "from_clean" in shipped.attack_names and "partial_patch" not in shipped.attack_names
     assert shipped.online_names == ("state_monitor", "multivariate_monitor", "goal_switch")
     assert shipped.zoo is not None and shipped.zoo.env_preset == shipped.backdoor.preset
+    assert shipped.zoo.cell == shipped.base_config.agent.cell  # the weight detector scores the matrix's cell
+
+
+def test_a_zoo_of_another_cell_than_the_matrix_agents_is_refused_before_training():
+    """A weight detector fitted on LSTM models cannot score GRU agents: found at scoring, after every agent and the
+    zoo had trained, until the config was checked up front."""
+    shipped = to_dict(load_matrix_config("matrix_popgym_smoke"))
+    shipped["zoo"]["cell"] = "lstm"
+    with pytest.raises(ConfigError, match=r"has lstm models, but the matrix trains gru agents: set zoo.cell: gru"):
+        from_dict(MatrixConfig, shipped)
+    shipped["zoo"]["cells"] = ["gru", "lstm"]
+    with pytest.raises(ConfigError, match=r"has gru, lstm models"):
+        from_dict(MatrixConfig, shipped)
+    shipped["offline"] = []  # no detector fitted on the zoo: nothing to refuse
+    assert from_dict(MatrixConfig, shipped).zoo is not None
 
 
 def test_the_matrix_runs_on_a_popgym_task(tmp_path):
