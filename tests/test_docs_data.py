@@ -15,7 +15,10 @@ from tests.conftest import ROOT
 
 DATA = ROOT / "docs" / "data"
 
-MATRIX_TABLES = [("minigrid/matrix_minigrid_smoke.json", "results.md")]
+MATRIX_TABLES = [
+    ("minigrid/matrix_minigrid_smoke.json", "results.md"),
+    ("families/matrix_popgym_smoke.json", "families.md"),
+]
 """a MatrixResult and the page holding its tables (``scripts/matrix_markdown.py``)"""
 
 BENCH_LOGS = [
