@@ -139,8 +139,9 @@ class ZooConfig:
     is that preset's run with its own seed, widths and trigger -- ``trigger_cells`` cells of the view's two far rows,
     an object of ``trigger_objects`` in a colour of ``trigger_colors``, shown for one of ``trigger_durations`` steps
     -- trained ``total_steps`` with the preset's other settings (its envs, rollout and learning rate: ``num_envs``,
-    ``rollout_steps``, ``learning_rate``, ``curricula`` and ``trigger_values`` are the grid world's). None: the grid
-    world"""
+    ``rollout_steps``, ``learning_rate``, ``curricula`` and ``trigger_values`` are the grid world's). Its models'
+    cell is the zoo's ``cell`` (or ``cells``), not the preset's: set it to the cell of the agents the zoo's detector
+    will score. None: the grid world"""
     trigger_objects: tuple[str, ...] = ("key", "ball", "box")
     """a Gymnasium zoo's trigger objects (MiniGrid object names)"""
     trigger_colors: tuple[str, ...] = ("purple", "yellow", "blue", "grey")
