@@ -120,11 +120,12 @@ def curves_table(data: Path) -> str:
             )
     lines = [f"| grid | env steps per run | final score (mean ± sd) | seeds at score ≥ {LEARNED}, and when |",
              "|---|---|---|---|"]  # fmt: skip
-    for grid, seeds in runs.items():
-        final = OverSeeds(tuple(points[-1][1] for _, points in sorted(seeds.items())))
-        first = [next((s for s, score in points if score >= LEARNED), None) for points in seeds.values()]
+    for grid, by_seed in runs.items():
+        seeds = [points for _, points in sorted(by_seed.items())]
+        final = OverSeeds(tuple(points[-1][1] for points in seeds))
+        first = [next((s for s, score in points if score >= LEARNED), None) for points in seeds]
         reached = sorted(s for s in first if s is not None)
-        steps = max(points[-1][0] for points in seeds.values())
+        steps = max(points[-1][0] for points in seeds)
         when = f"{len(reached)} of {len(first)}"
         if reached:
             when += f", at {_steps(reached[0])}-{_steps(reached[-1])} steps"
@@ -138,13 +139,10 @@ def curves_table(data: Path) -> str:
 def response_table(analysis: AnalysisResult) -> str:
     """Each agent's units by response type (impulse / none / step), per layer's h and c."""
     agents = analysis.responses.agents
-    keys = list(next(iter(agents.values())))
-
-    def width(key: str) -> int:
-        c = next(iter(agents.values()))[key].counts
-        return c.impulse + c.none + c.step
-
-    head = " | ".join(f"layer {k.removeprefix('layer').replace('.', ' ')} ({width(k)})" for k in keys)
+    first = next(iter(agents.values()))
+    keys = list(first)
+    widths = {k: first[k].counts.impulse + first[k].counts.none + first[k].counts.step for k in keys}
+    head = " | ".join(f"layer {k.removeprefix('layer').replace('.', ' ')} ({widths[k]})" for k in keys)
     lines = [f"| agent | {head} |", "|---" * (len(keys) + 1) + "|"]
     for agent, layers in agents.items():
         cells = " | ".join(f"{c.impulse} / {c.none} / {c.step}" for c in (layers[k].counts for k in keys))
